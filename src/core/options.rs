@@ -1,0 +1,113 @@
+//! Reconstruction options: the one set the CLI flags and the HTTP `options` part both fill.
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+/// How albedo·normal is solved per pixel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Solver {
+    /// Plain least squares over every observation (the seed's "solution 2").
+    #[default]
+    L2,
+    /// Least squares weighted by the intensities themselves, T = diag(i) (the seed's
+    /// "solution 1"): down-weights dark observations but biases normals; less accurate.
+    Weighted,
+}
+
+/// Which pixels are the object.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskMode {
+    /// Threshold the albedo at a level chosen from its histogram, then fill holes.
+    #[default]
+    Auto,
+    /// Every pixel is object.
+    None,
+    /// The caller's mask image (non-zero = object); an error if none was supplied.
+    Given,
+}
+
+/// How heights are integrated from the gradient field.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Integration {
+    /// The seed's path integration: down the first column, then along each row.
+    Path,
+    /// Frankot–Chellappa projection onto integrable surfaces, via FFT, on the full frame.
+    FrankotChellappa,
+    /// Least-squares (Poisson) integration over the mask only.
+    #[default]
+    Poisson,
+}
+
+/// How the mesh's vertex normals are made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum MeshNormals {
+    /// The photometric normals, sampled at each vertex.
+    #[default]
+    Photometric,
+    /// Normals of the triangulated height map.
+    Geometric,
+}
+
+/// glTF mesh settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct MeshOptions {
+    /// Upper bound on vertices; the grid step grows until the mesh fits.
+    pub max_vertices: usize,
+    /// Take every `step`-th pixel as a vertex (overrides the automatic step when larger).
+    pub step: Option<usize>,
+    /// Multiplies heights before they become z.
+    pub height_scale: f32,
+    /// Size of one pixel in metres; when absent, positions are in pixel units.
+    pub pixel_size: Option<f64>,
+    pub normals: MeshNormals,
+}
+
+impl Default for MeshOptions {
+    fn default() -> Self {
+        Self {
+            max_vertices: 500_000,
+            step: None,
+            height_scale: 1.0,
+            pixel_size: None,
+            normals: MeshNormals::Photometric,
+        }
+    }
+}
+
+/// Everything a reconstruction can be asked to do differently.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct Options {
+    pub solver: Solver,
+    pub mask: MaskMode,
+    pub integration: Integration,
+    /// Light direction for `shaded.png` (need not be unit length).
+    pub shading_light: [f64; 3],
+    pub mesh: MeshOptions,
+    /// Largest light-matrix condition number accepted before refusing the set.
+    pub max_condition: f64,
+    /// Artifact names to write; all of them when absent.
+    pub outputs: Option<Vec<String>>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Self {
+            solver: Solver::default(),
+            mask: MaskMode::default(),
+            integration: Integration::default(),
+            shading_light: [1.0, 2.0, 3.0],
+            mesh: MeshOptions::default(),
+            max_condition: DEFAULT_MAX_CONDITION,
+            outputs: None,
+        }
+    }
+}
+
+/// Past this, noise in the images is amplified more than 100-fold into the normals.
+pub const DEFAULT_MAX_CONDITION: f64 = 100.0;

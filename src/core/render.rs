@@ -1,0 +1,1 @@
+//! Pictures drawn from a reconstruction: shading under a light, needle map, colour maps.

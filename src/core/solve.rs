@@ -1,0 +1,293 @@
+//! Per-pixel solve of I = L·g with g = albedo·n.
+//!
+//! Images stay 16-bit; each pixel's observations are gathered into registers row by row
+//! and the solve runs in f32/f64 scalars, in parallel over rows.
+
+use ndarray::{Array2, Array3, Axis};
+use rayon::prelude::*;
+
+use super::intake::ImageSet;
+use super::options::Solver;
+
+/// The raw per-pixel solution, before masking and clamping.
+#[derive(Debug, Clone)]
+pub struct Surface {
+    /// |g|, unclamped.
+    pub albedo: Array2<f32>,
+    /// g/|g|, zero where |g| = 0.
+    pub normals: Array3<f32>,
+    /// RMS over the images of (observed − max(0, g·l)).
+    pub residual: Array2<f32>,
+}
+
+const SCALE: f32 = 1.0 / 65535.0;
+
+/// Solve every pixel of `set` with the chosen solver.
+pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
+    let (rows, cols) = (set.height, set.width);
+    let lights: Vec<[f32; 3]> = set
+        .lights
+        .iter()
+        .map(|l| l.scaled().map(|v| v as f32))
+        .collect();
+    let pinv = pseudo_inverse(&lights);
+    let mut albedo = Array2::<f32>::zeros((rows, cols));
+    let mut normals = Array3::<f32>::zeros((rows, cols, 3));
+    let mut residual = Array2::<f32>::zeros((rows, cols));
+    let n = lights.len();
+
+    albedo
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
+        .enumerate()
+        .for_each(|(r, ((mut a_row, mut n_row), mut res_row))| {
+            let mut obs = vec![0f32; n];
+            for c in 0..cols {
+                for (i, o) in obs.iter_mut().enumerate() {
+                    *o = set.planes[i][[r, c]] as f32 * SCALE;
+                }
+                let g = match solver {
+                    Solver::L2 => apply(&pinv, &obs),
+                    Solver::Weighted => weighted(&lights, &obs),
+                };
+                let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+                a_row[c] = rho;
+                if rho > 0.0 && rho.is_finite() {
+                    for k in 0..3 {
+                        n_row[[c, k]] = g[k] / rho;
+                    }
+                }
+                res_row[c] = reprojection_rms(&lights, &obs, g);
+            }
+        });
+    Surface {
+        albedo,
+        normals,
+        residual,
+    }
+}
+
+/// RMS of observed minus re-rendered intensity, with attached shadows clamped at 0.
+pub fn reprojection_rms(lights: &[[f32; 3]], obs: &[f32], g: [f32; 3]) -> f32 {
+    let sum: f32 = lights
+        .iter()
+        .zip(obs)
+        .map(|(l, &o)| {
+            let pred = (g[0] * l[0] + g[1] * l[1] + g[2] * l[2]).max(0.0);
+            (o - pred) * (o - pred)
+        })
+        .sum();
+    (sum / obs.len() as f32).sqrt()
+}
+
+/// (LᵀL)⁻¹Lᵀ as 3 rows of n coefficients.
+pub fn pseudo_inverse(lights: &[[f32; 3]]) -> Vec<[f32; 3]> {
+    let mut m = [[0.0f64; 3]; 3];
+    for l in lights {
+        for r in 0..3 {
+            for c in 0..3 {
+                m[r][c] += l[r] as f64 * l[c] as f64;
+            }
+        }
+    }
+    let inv = invert3(&m).unwrap_or([[0.0; 3]; 3]);
+    lights
+        .iter()
+        .map(|l| {
+            let mut col = [0f32; 3];
+            for (r, v) in col.iter_mut().enumerate() {
+                *v = (0..3).map(|k| inv[r][k] * l[k] as f64).sum::<f64>() as f32;
+            }
+            col
+        })
+        .collect()
+}
+
+fn apply(pinv: &[[f32; 3]], obs: &[f32]) -> [f32; 3] {
+    let mut g = [0f32; 3];
+    for (p, &o) in pinv.iter().zip(obs) {
+        g[0] += p[0] * o;
+        g[1] += p[1] * o;
+        g[2] += p[2] * o;
+    }
+    g
+}
+
+/// The seed's "solution 1": least squares weighted by T = diag(i), i.e. weights i².
+/// Observations in shadow get no say, but bright ones dominate, which biases normals
+/// towards the brightest lights.
+fn weighted(lights: &[[f32; 3]], obs: &[f32]) -> [f32; 3] {
+    let mut m = [[0.0f64; 3]; 3];
+    let mut b = [0.0f64; 3];
+    for (l, &o) in lights.iter().zip(obs) {
+        let w = (o as f64) * (o as f64);
+        for r in 0..3 {
+            b[r] += w * o as f64 * l[r] as f64;
+            for c in 0..3 {
+                m[r][c] += w * l[r] as f64 * l[c] as f64;
+            }
+        }
+    }
+    match invert3(&m) {
+        Some(inv) => [0, 1, 2].map(|r| (0..3).map(|k| inv[r][k] * b[k]).sum::<f64>() as f32),
+        None => [0.0; 3],
+    }
+}
+
+/// Inverse of a 3×3 matrix, or None when it is (numerically) singular.
+pub fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let c00 = m[1][1] * m[2][2] - m[1][2] * m[2][1];
+    let c01 = m[1][2] * m[2][0] - m[1][0] * m[2][2];
+    let c02 = m[1][0] * m[2][1] - m[1][1] * m[2][0];
+    let det = m[0][0] * c00 + m[0][1] * c01 + m[0][2] * c02;
+    let scale = m.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max);
+    if scale == 0.0 || det.abs() <= 1e-12 * scale * scale * scale {
+        return None;
+    }
+    let d = 1.0 / det;
+    Some([
+        [
+            c00 * d,
+            (m[0][2] * m[2][1] - m[0][1] * m[2][2]) * d,
+            (m[0][1] * m[1][2] - m[0][2] * m[1][1]) * d,
+        ],
+        [
+            c01 * d,
+            (m[0][0] * m[2][2] - m[0][2] * m[2][0]) * d,
+            (m[0][2] * m[1][0] - m[0][0] * m[1][2]) * d,
+        ],
+        [
+            c02 * d,
+            (m[0][1] * m[2][0] - m[0][0] * m[2][1]) * d,
+            (m[0][0] * m[1][1] - m[0][1] * m[1][0]) * d,
+        ],
+    ])
+}
+
+/// Eigenvalues of a symmetric 3×3 matrix, ascending (closed form).
+pub fn sym3_eigenvalues(m: &[[f64; 3]; 3]) -> [f64; 3] {
+    let p1 = m[0][1].powi(2) + m[0][2].powi(2) + m[1][2].powi(2);
+    let tr = m[0][0] + m[1][1] + m[2][2];
+    if p1 == 0.0 {
+        let mut e = [m[0][0], m[1][1], m[2][2]];
+        e.sort_by(f64::total_cmp);
+        return e;
+    }
+    let q = tr / 3.0;
+    let p2 = (m[0][0] - q).powi(2) + (m[1][1] - q).powi(2) + (m[2][2] - q).powi(2) + 2.0 * p1;
+    let p = (p2 / 6.0).sqrt();
+    let b = |r: usize, c: usize| (m[r][c] - if r == c { q } else { 0.0 }) / p;
+    let det_b = b(0, 0) * (b(1, 1) * b(2, 2) - b(1, 2) * b(2, 1))
+        - b(0, 1) * (b(1, 0) * b(2, 2) - b(1, 2) * b(2, 0))
+        + b(0, 2) * (b(1, 0) * b(2, 1) - b(1, 1) * b(2, 0));
+    let phi = (det_b / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
+    let e_max = q + 2.0 * p * phi.cos();
+    let e_min = q + 2.0 * p * (phi + 2.0 * std::f64::consts::PI / 3.0).cos();
+    let e_mid = tr - e_max - e_min;
+    [e_min, e_mid, e_max]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::lights::Light;
+
+    fn set_from(lights: &[[f64; 3]], pixels: &[[f32; 3]], albedo: f32) -> ImageSet {
+        let lights: Vec<Light> = lights
+            .iter()
+            .enumerate()
+            .map(|(i, d)| {
+                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                Light {
+                    name: format!("{i}"),
+                    direction: d.map(|v| v / n),
+                    intensity: 1.0,
+                }
+            })
+            .collect();
+        let planes = lights
+            .iter()
+            .map(|l| {
+                Array2::from_shape_fn((1, pixels.len()), |(_, c)| {
+                    let n = pixels[c];
+                    let v = albedo
+                        * (n[0] * l.direction[0] as f32
+                            + n[1] * l.direction[1] as f32
+                            + n[2] * l.direction[2] as f32);
+                    (v.max(0.0) * 65535.0).round() as u16
+                })
+            })
+            .collect();
+        ImageSet {
+            width: pixels.len(),
+            height: 1,
+            bit_depth: 16,
+            lights,
+            planes,
+            colour_moments: None,
+            mask: None,
+        }
+    }
+
+    #[test]
+    fn l2_recovers_normals_and_albedo_of_unshadowed_pixels() {
+        let s = 0.5f32.sqrt();
+        let pixels = [[0.0, 0.0, 1.0], [s, 0.0, s], [0.0, -0.3, 0.9539392]];
+        let set = set_from(
+            &[
+                [0.0, 0.0, 1.0],
+                [0.3, 0.0, 1.0],
+                [0.0, 0.3, 1.0],
+                [-0.2, -0.2, 1.0],
+            ],
+            &pixels,
+            0.7,
+        );
+        let surf = solve(&set, Solver::L2);
+        for (c, n) in pixels.iter().enumerate() {
+            assert!(
+                (surf.albedo[[0, c]] - 0.7).abs() < 1e-3,
+                "{}",
+                surf.albedo[[0, c]]
+            );
+            for k in 0..3 {
+                assert!((surf.normals[[0, c, k]] - n[k]).abs() < 1e-3);
+            }
+            assert!(surf.residual[[0, c]] < 1e-4);
+        }
+    }
+
+    #[test]
+    fn zero_pixels_get_zero_normal() {
+        let set = set_from(
+            &[[0.0, 0.0, 1.0], [0.3, 0.0, 1.0], [0.0, 0.3, 1.0]],
+            &[[0.0, 0.0, 1.0]],
+            0.0,
+        );
+        for solver in [Solver::L2, Solver::Weighted] {
+            let surf = solve(&set, solver);
+            assert_eq!(surf.albedo[[0, 0]], 0.0);
+            assert_eq!(surf.normals.sum(), 0.0);
+        }
+    }
+
+    #[test]
+    fn eigenvalues_and_inverse_agree_with_definitions() {
+        let m = [[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]];
+        let e = sym3_eigenvalues(&m);
+        assert!((e.iter().sum::<f64>() - 9.0).abs() < 1e-9);
+        let inv = invert3(&m).unwrap();
+        for r in 0..3 {
+            for c in 0..3 {
+                let v: f64 = (0..3).map(|k| m[r][k] * inv[k][c]).sum();
+                assert!((v - if r == c { 1.0 } else { 0.0 }).abs() < 1e-12);
+            }
+        }
+        let det: f64 = e.iter().product();
+        let direct = 4.0 * (3.0 * 2.0 - 0.04) - 1.0 * (2.0 - 0.1) + 0.5 * (0.2 - 1.5);
+        assert!((det - direct).abs() < 1e-9);
+        assert!(invert3(&[[1.0, 2.0, 3.0], [2.0, 4.0, 6.0], [0.0, 0.0, 1.0]]).is_none());
+    }
+}

@@ -1,0 +1,1 @@
+//! The HTTP service. UNDER CONSTRUCTION by the service helper.
