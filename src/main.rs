@@ -1,1 +1,208 @@
-fn main() {}
+//! The `photostereo` binary: reconstruct a folder, render the project's data sets, or
+//! serve the HTTP API.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand};
+use photostereo::core::intake::{self, Limits};
+use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
+use photostereo::core::{Options, metrics, pipeline, synth};
+use serde::de::DeserializeOwned;
+
+#[derive(Parser)]
+#[command(name = "photostereo", version, about = "Photometric stereo: albedo, normals, heights and meshes from images under known lights")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Reconstruct a folder holding images and light_directions.csv (or .json).
+    Reconstruct(ReconstructArgs),
+    /// Render the project's own data sets, with ground truth, into a folder (e.g. res/).
+    Render {
+        /// Output folder; one sub-folder per data set.
+        dir: PathBuf,
+        /// Render only these sets (default: all).
+        #[arg(long, value_delimiter = ',')]
+        only: Vec<String>,
+    },
+    /// Score every solver on each data set with ground truth (a folder like res/) and
+    /// print a Markdown table: angular error, depth RMS, solve time.
+    Evaluate {
+        dir: PathBuf,
+        /// Integration method for the depth column.
+        #[arg(long, value_parser = kebab::<Integration>, default_value = "poisson")]
+        integration: Integration,
+    },
+}
+
+#[derive(Args)]
+struct ReconstructArgs {
+    /// Folder in the seed's layout: images + light_directions.csv.
+    dir: PathBuf,
+    /// Where to write the outputs.
+    #[arg(long, short)]
+    out: PathBuf,
+    /// Options as a JSON file (the HTTP API's `options` part); flags below override it.
+    #[arg(long)]
+    options: Option<PathBuf>,
+    /// l2 | weighted
+    #[arg(long, value_parser = kebab::<Solver>)]
+    solver: Option<Solver>,
+    /// auto | none | given
+    #[arg(long, value_parser = kebab::<MaskMode>)]
+    mask: Option<MaskMode>,
+    /// A mask image (non-zero = object); used unless --mask none.
+    #[arg(long)]
+    mask_file: Option<PathBuf>,
+    /// path | frankot-chellappa | poisson
+    #[arg(long, value_parser = kebab::<Integration>)]
+    integration: Option<Integration>,
+    /// Light for shaded.png, as x,y,z (default 1,2,3).
+    #[arg(long, value_delimiter = ',', num_args = 3, allow_negative_numbers = true)]
+    light: Option<Vec<f64>>,
+    /// Write only these artifacts (comma-separated names, e.g. albedo.png,mesh.glb).
+    #[arg(long, value_delimiter = ',')]
+    outputs: Option<Vec<String>>,
+    /// Largest light-matrix condition number accepted.
+    #[arg(long)]
+    max_condition: Option<f64>,
+    /// Mesh: upper bound on vertices.
+    #[arg(long)]
+    mesh_max_vertices: Option<usize>,
+    /// Mesh: take every n-th pixel as a vertex.
+    #[arg(long)]
+    mesh_step: Option<usize>,
+    /// Mesh: multiply heights by this.
+    #[arg(long)]
+    height_scale: Option<f32>,
+    /// Mesh: size of a pixel in metres (positions in pixels when absent).
+    #[arg(long)]
+    pixel_size: Option<f64>,
+    /// Mesh: photometric | geometric vertex normals.
+    #[arg(long, value_parser = kebab::<MeshNormals>)]
+    mesh_normals: Option<MeshNormals>,
+}
+
+/// Parse a flag value by the same kebab-case names the JSON options use.
+fn kebab<T: DeserializeOwned>(s: &str) -> Result<T, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string())).map_err(|e| e.to_string())
+}
+
+impl ReconstructArgs {
+    fn options(&self) -> anyhow::Result<Options> {
+        let mut o: Options = match &self.options {
+            Some(p) => {
+                let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+                serde_json::from_str(&text).with_context(|| format!("options in {}", p.display()))?
+            }
+            None => Options::default(),
+        };
+        macro_rules! set {
+            ($($flag:ident => $($field:ident).+),*) => { $(if let Some(v) = self.$flag.clone() { o.$($field).+ = v; })* };
+        }
+        set!(solver => solver, mask => mask, integration => integration, max_condition => max_condition,
+             height_scale => mesh.height_scale, mesh_max_vertices => mesh.max_vertices, mesh_normals => mesh.normals);
+        if let Some(l) = &self.light {
+            o.shading_light = [l[0], l[1], l[2]];
+        }
+        if self.outputs.is_some() {
+            o.outputs = self.outputs.clone();
+        }
+        if self.mesh_step.is_some() {
+            o.mesh.step = self.mesh_step;
+        }
+        if self.pixel_size.is_some() {
+            o.mesh.pixel_size = self.pixel_size;
+        }
+        Ok(o)
+    }
+}
+
+fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
+    let opts = args.options()?;
+    let start = std::time::Instant::now();
+    let set = intake::load_dir(&args.dir, args.mask_file.as_deref(), &Limits::default())?;
+    let decoded = start.elapsed();
+    let report = pipeline::run(&set, &opts, &args.out, &mut |stage| {
+        eprintln!("  {}", stage.as_str());
+        true
+    })?;
+    eprintln!(
+        "{}×{} from {} images: decode {:.0} ms, total {:.0} ms; heights {:.2}..{:.2} px, reprojection RMS {:.4}, integrability RMS {:.4}",
+        report.width,
+        report.height,
+        report.light_count,
+        decoded.as_secs_f64() * 1e3,
+        start.elapsed().as_secs_f64() * 1e3,
+        report.height_min,
+        report.height_max,
+        report.reprojection_rms,
+        report.integrability_rms
+    );
+    println!("{}", args.out.display());
+    Ok(())
+}
+
+fn render(dir: PathBuf, only: Vec<String>) -> anyhow::Result<()> {
+    for (name, scene, lights, capture) in synth::catalogue() {
+        if !only.is_empty() && !only.iter().any(|o| o == name) {
+            continue;
+        }
+        let out = dir.join(name);
+        synth::write_set(&out, &scene, &lights, &capture)?;
+        println!("{}", out.display());
+    }
+    Ok(())
+}
+
+fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
+    let mut sets: Vec<PathBuf> = std::fs::read_dir(&dir)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join("truth").is_dir())
+        .collect();
+    sets.sort();
+    println!("| scene | solver | mean ° | median ° | depth RMS px | solve ms |");
+    println!("|---|---|---:|---:|---:|---:|");
+    for set_dir in sets {
+        let truth = synth::read_truth(&set_dir)?;
+        let mut set = intake::load_dir(&set_dir, None, &Limits::default())?;
+        set.mask = Some(truth.mask.clone());
+        for solver in [Solver::L2, Solver::Weighted, Solver::Robust] {
+            let opts = Options { solver, integration, ..Options::default() };
+            let rec = pipeline::reconstruct(&set, &opts, &mut |_| true)?;
+            let acc = metrics::accuracy(&rec, &truth, &truth.mask);
+            let solve_ms = rec.report.timings_ms.iter().find(|t| t.stage == "solve").map_or(0.0, |t| t.ms);
+            println!(
+                "| {} | {} | {:.3} | {:.3} | {:.3} | {:.0} |",
+                set_dir.file_name().unwrap_or_default().to_string_lossy(),
+                serde_json::to_value(solver)?.as_str().unwrap_or_default(),
+                acc.mean_deg,
+                acc.median_deg,
+                acc.depth_rms,
+                solve_ms
+            );
+        }
+    }
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Reconstruct(args) => reconstruct(args),
+        Command::Render { dir, only } => render(dir, only),
+        Command::Evaluate { dir, integration } => evaluate(dir, integration),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

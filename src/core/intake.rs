@@ -90,7 +90,8 @@ pub fn load_dir(dir: &Path, mask: Option<&Path>, limits: &Limits) -> Result<Imag
             .extension()
             .and_then(|e| e.to_str())
             .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()));
-        if path.is_file() && is_image {
+        let is_mask = mask.is_some_and(|m| same_file(m, &path));
+        if path.is_file() && is_image && !is_mask {
             let name = path
                 .file_name()
                 .unwrap_or_default()
@@ -109,6 +110,13 @@ pub fn load_dir(dir: &Path, mask: Option<&Path>, limits: &Limits) -> Result<Imag
         path: p.to_path_buf(),
     });
     load(lights, &files, mask.as_ref(), limits)
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => a == b,
+    }
 }
 
 /// Decode the images a light table names, in the table's order.

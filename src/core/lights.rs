@@ -162,6 +162,31 @@ fn make_light(
     })
 }
 
+/// A light given on its own (e.g. for re-shading): three finite numbers, not all zero.
+pub fn check_direction(v: [f64; 3]) -> Result<[f64; 3], InputError> {
+    make_light(1, "light", v, None)
+        .map(|l| l.direction)
+        .map_err(|e| match e {
+            InputError::LightRow { reason, .. } => InputError::Lights(reason),
+            other => other,
+        })
+}
+
+/// Refuse light sets whose normals cannot be solved reliably.
+pub fn check_solvable(lights: &[Light], max_condition: f64) -> Result<f64, InputError> {
+    let (condition, rank) = conditioning(lights);
+    if rank < 3 {
+        return Err(InputError::RankDeficient { rank });
+    }
+    if condition > max_condition {
+        return Err(InputError::IllConditioned {
+            condition,
+            limit: max_condition,
+        });
+    }
+    Ok(condition)
+}
+
 fn check_duplicates(lights: &[Light]) -> Result<(), InputError> {
     let mut seen = std::collections::HashMap::new();
     for (i, l) in lights.iter().enumerate() {

@@ -1,1 +1,633 @@
-//! glTF 2.0 meshes from a reconstruction. UNDER CONSTRUCTION by the mesh helper.
+//! glTF 2.0 meshes of a reconstruction's height map.
+//!
+//! One vertex per sampled mask pixel (every `step`-th row and column) and triangles only
+//! where all their corners are vertices: background never becomes geometry, holes stay
+//! holes, there are no walls. Positions use glTF's frame (x right, y up, z towards the
+//! viewer): pixel (row, col) lands at (col, −row, height·height_scale), all times
+//! `pixel_size` when given. The albedo travels as an embedded PNG base-colour texture.
+//! The bytes depend only on the input (no hash-map order, no timestamps).
+
+use gltf_json as json;
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+use image::{ExtendedColorType, ImageBuffer, ImageEncoder, Pixel};
+use json::accessor::{ComponentType, GenericComponentType, Type};
+use json::buffer::Target;
+use json::validation::{Checked::Valid, USize64};
+use ndarray::{Array2, Axis, s};
+use serde_json::Value;
+
+use super::options::{MeshNormals, MeshOptions};
+use super::pipeline::Reconstruction;
+
+/// Largest texture side; larger albedo maps are downscaled (many GPUs stop at 4096).
+const MAX_TEXTURE_SIDE: usize = 4096;
+/// Rings of background texels filled with nearby object colours, so texture filtering and
+/// mipmaps do not bleed black into the object's edge.
+const FILL_RINGS: usize = 4;
+/// No vertex at this grid point.
+const NONE: u32 = u32::MAX;
+
+/// Why no mesh could be made.
+#[derive(Debug, thiserror::Error)]
+pub enum MeshError {
+    #[error("the mask is empty: no mesh")]
+    EmptyMask,
+    #[error(
+        "no three neighbouring mask pixels at grid step {step}: no mesh \
+         (lower the step or raise max_vertices)"
+    )]
+    NoTriangles { step: usize },
+    #[error("the reconstruction's {array} array does not match its {width}×{height} size")]
+    Shape {
+        array: &'static str,
+        width: usize,
+        height: usize,
+    },
+    #[error("the height at row {row}, column {col} is not finite")]
+    NonFinite { row: usize, col: usize },
+    #[error("invalid mesh options: {0}")]
+    Options(&'static str),
+    #[error("the mesh needs {bytes} bytes, more than a GLB file can hold")]
+    TooLarge { bytes: usize },
+    #[error("encoding the albedo texture: {0}")]
+    Texture(String),
+    #[error("encoding the glTF JSON: {0}")]
+    Json(String),
+}
+
+/// A triangulated, decimated height map in glTF's frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TriMesh {
+    /// Grid step in pixels: vertices sit on every `step`-th row and column.
+    pub step: usize,
+    pub positions: Vec<[f32; 3]>,
+    /// Unit vertex normals.
+    pub normals: Vec<[f32; 3]>,
+    /// Texture coordinates of the vertices' pixel centres (glTF's origin is top-left).
+    pub uvs: Vec<[f32; 2]>,
+    /// Source pixel `[row, col]` of each vertex.
+    pub pixels: Vec<[u32; 2]>,
+    /// Counter-clockwise seen from +z, so front faces look at the viewer.
+    pub triangles: Vec<[u32; 3]>,
+}
+
+/// The mesh as a binary glTF (`.glb`) file.
+pub fn glb(rec: &Reconstruction, opts: &MeshOptions) -> Result<Vec<u8>, MeshError> {
+    let (root, bin) = document(rec, opts)?;
+    let mut json = root.to_vec().map_err(|e| MeshError::Json(e.to_string()))?;
+    json.resize(json.len().next_multiple_of(4), b' ');
+    let bytes = 12 + 8 + json.len() + 8 + bin.len();
+    let total = u32::try_from(bytes).map_err(|_| MeshError::TooLarge { bytes })?;
+    let mut out = Vec::with_capacity(bytes);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&total.to_le_bytes());
+    for (kind, data) in [(b"JSON", &json), (b"BIN\0", &bin)] {
+        out.extend_from_slice(&(data.len() as u32).to_le_bytes());
+        out.extend_from_slice(kind);
+        out.extend_from_slice(data);
+    }
+    Ok(out)
+}
+
+/// The mesh as a self-contained `.gltf` JSON file (buffer embedded as a base64 data URI).
+pub fn gltf(rec: &Reconstruction, opts: &MeshOptions) -> Result<String, MeshError> {
+    let (mut root, bin) = document(rec, opts)?;
+    root.buffers[0].uri = Some(format!(
+        "data:application/octet-stream;base64,{}",
+        base64(&bin)
+    ));
+    root.to_string().map_err(|e| MeshError::Json(e.to_string()))
+}
+
+/// The grid step: the smallest step ≥ `min_step` (and ≥ 1) at which at most
+/// `max_vertices` mask pixels are sampled. Counts only the sampled pixels at each
+/// candidate step, never building anything at full resolution.
+pub fn grid_step(mask: &Array2<bool>, max_vertices: usize, min_step: usize) -> usize {
+    let (h, w) = mask.dim();
+    let limit = max_vertices.min(NONE as usize - 1);
+    let mut step = min_step.max(1);
+    // From max(h, w) on only pixel (0, 0) is sampled: stepping further changes nothing.
+    while step < h.max(w) && sampled(mask, step) > limit {
+        step += 1;
+    }
+    step
+}
+
+fn sampled(mask: &Array2<bool>, step: usize) -> usize {
+    let st = step as isize;
+    mask.slice(s![..;st, ..;st]).iter().filter(|&&m| m).count()
+}
+
+/// Sample, triangulate and shade the height map (see the module docs for the frame).
+pub fn triangulate(rec: &Reconstruction, opts: &MeshOptions) -> Result<TriMesh, MeshError> {
+    check_shapes(rec)?;
+    let unit = opts.pixel_size.unwrap_or(1.0);
+    if !(unit.is_finite() && unit > 0.0) {
+        return Err(MeshError::Options("pixel_size must be positive and finite"));
+    }
+    if !opts.height_scale.is_finite() {
+        return Err(MeshError::Options("height_scale must be finite"));
+    }
+    if !rec.mask.iter().any(|&m| m) {
+        return Err(MeshError::EmptyMask);
+    }
+    let (h, w) = rec.mask.dim();
+    let step = grid_step(&rec.mask, opts.max_vertices, opts.step.unwrap_or(1));
+    let (gh, gw) = (h.div_ceil(step), w.div_ceil(step));
+    let zunit = f64::from(opts.height_scale) * unit;
+    let mut m = TriMesh {
+        step,
+        positions: Vec::new(),
+        normals: Vec::new(),
+        uvs: Vec::new(),
+        pixels: Vec::new(),
+        triangles: Vec::new(),
+    };
+    // Vertex index per grid point: decimated size, nothing is built at full resolution.
+    let mut index = vec![NONE; gh * gw];
+    for (gi, r) in (0..h).step_by(step).enumerate() {
+        for (gj, c) in (0..w).step_by(step).enumerate() {
+            if !rec.mask[[r, c]] {
+                continue;
+            }
+            let z = rec.heights[[r, c]];
+            if !z.is_finite() {
+                return Err(MeshError::NonFinite { row: r, col: c });
+            }
+            index[gi * gw + gj] = m.positions.len() as u32;
+            let (x, y) = (c as f64, r as f64);
+            m.positions.push([
+                (x * unit) as f32,
+                (-y * unit) as f32,
+                (f64::from(z) * zunit) as f32,
+            ]);
+            m.uvs
+                .push([((x + 0.5) / w as f64) as f32, ((y + 0.5) / h as f64) as f32]);
+            m.pixels.push([r as u32, c as u32]);
+        }
+    }
+    for gi in 1..gh {
+        for gj in 1..gw {
+            let at = |i: usize, j: usize| index[i * gw + j];
+            let cell = cell_triangles(
+                at(gi - 1, gj - 1),
+                at(gi - 1, gj),
+                at(gi, gj - 1),
+                at(gi, gj),
+            );
+            m.triangles.extend(cell.into_iter().flatten());
+        }
+    }
+    if m.triangles.is_empty() {
+        return Err(MeshError::NoTriangles { step });
+    }
+    let normals = match opts.normals {
+        MeshNormals::Geometric => geometric_normals(&m.positions, &m.triangles),
+        MeshNormals::Photometric => {
+            // A normal relief scaled by s in z has normal ∝ (s·nx, s·ny, nz); rows run
+            // down, so y flips. Unusable normals fall back to the geometric ones.
+            let stretch = f64::from(opts.height_scale);
+            let mut fallback: Option<Vec<[f32; 3]>> = None;
+            (m.pixels.iter().enumerate())
+                .map(|(i, &[r, c])| {
+                    let n = rec.normals.slice(s![r as usize, c as usize, ..]);
+                    let [nx, ny, nz] = [n[0], n[1], n[2]].map(f64::from);
+                    normalize([stretch * nx, -stretch * ny, nz]).unwrap_or_else(|| {
+                        fallback
+                            .get_or_insert_with(|| geometric_normals(&m.positions, &m.triangles))[i]
+                    })
+                })
+                .collect()
+        }
+    };
+    m.normals = normals;
+    Ok(m)
+}
+
+/// A grid cell's triangles (corners top-left, top-right, bottom-left, bottom-right),
+/// counter-clockwise seen from +z once rows run along −y: both halves of the TR–BL
+/// diagonal when all four corners exist, else the one triangle that three corners span.
+fn cell_triangles(tl: u32, tr: u32, bl: u32, br: u32) -> [Option<[u32; 3]>; 2] {
+    match [tl, tr, bl, br].map(|v| v != NONE) {
+        [true, true, true, true] => [Some([tl, bl, tr]), Some([tr, bl, br])],
+        [false, true, true, true] => [Some([tr, bl, br]), None],
+        [true, false, true, true] => [Some([tl, bl, br]), None],
+        [true, true, false, true] => [Some([tl, br, tr]), None],
+        [true, true, true, false] => [Some([tl, bl, tr]), None],
+        _ => [None, None],
+    }
+}
+
+/// Area-weighted normals of the triangulated surface; +z for a vertex in no triangle.
+fn geometric_normals(positions: &[[f32; 3]], triangles: &[[u32; 3]]) -> Vec<[f32; 3]> {
+    let mut acc = vec![[0.0f64; 3]; positions.len()];
+    for t in triangles {
+        let [a, b, c] = t.map(|i| positions[i as usize].map(f64::from));
+        let (u, v) = (sub(b, a), sub(c, a));
+        // |u × v| is twice the area: summing it weights by area.
+        let n = [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ];
+        for &i in t {
+            for k in 0..3 {
+                acc[i as usize][k] += n[k];
+            }
+        }
+    }
+    acc.into_iter()
+        .map(|n| normalize(n).unwrap_or([0.0, 0.0, 1.0]))
+        .collect()
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn normalize(v: [f64; 3]) -> Option<[f32; 3]> {
+    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    (len.is_finite() && len > 1e-12).then(|| v.map(|x| (x / len) as f32))
+}
+
+fn check_shapes(rec: &Reconstruction) -> Result<(), MeshError> {
+    let (width, height) = (rec.width, rec.height);
+    let bad = |array| {
+        Err(MeshError::Shape {
+            array,
+            width,
+            height,
+        })
+    };
+    if rec.mask.dim() != (height, width) {
+        return bad("mask");
+    }
+    if rec.heights.dim() != (height, width) {
+        return bad("heights");
+    }
+    if rec.albedo.dim() != (height, width) {
+        return bad("albedo");
+    }
+    if rec.normals.dim() != (height, width, 3) {
+        return bad("normals");
+    }
+    if rec
+        .albedo_rgb
+        .as_ref()
+        .is_some_and(|a| a.dim() != (height, width, 3))
+    {
+        return bad("albedo_rgb");
+    }
+    Ok(())
+}
+
+/// The glTF document and its binary buffer (views 4-byte aligned, length padded to 4).
+fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec<u8>), MeshError> {
+    let mesh = triangulate(rec, opts)?;
+    let texture = albedo_png(rec)?;
+    let mut root = json::Root {
+        asset: json::Asset {
+            generator: Some(format!("photostereo {}", env!("CARGO_PKG_VERSION"))),
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let buffer = root.push(json::Buffer {
+        byte_length: USize64(0), // set below, once the buffer is complete
+        uri: None,
+        extensions: None,
+        extras: Default::default(),
+    });
+    let mut bin = Vec::new();
+    let mut view = |root: &mut json::Root, bytes: &[u8], target: Option<Target>| {
+        bin.resize(bin.len().next_multiple_of(4), 0);
+        let offset = bin.len();
+        bin.extend_from_slice(bytes);
+        root.push(json::buffer::View {
+            buffer,
+            byte_length: bytes.len().into(),
+            byte_offset: Some(offset.into()),
+            byte_stride: None,
+            target: target.map(Valid),
+            extensions: None,
+            extras: Default::default(),
+        })
+    };
+    let floats = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+
+    let (lo, hi) = bounds(&mesh.positions);
+    let n = mesh.positions.len();
+    let v = view(
+        &mut root,
+        &floats(mesh.positions.as_flattened()),
+        Some(Target::ArrayBuffer),
+    );
+    let positions = accessor(
+        &mut root,
+        v,
+        n,
+        ComponentType::F32,
+        Type::Vec3,
+        Some((lo, hi)),
+    );
+    let v = view(
+        &mut root,
+        &floats(mesh.normals.as_flattened()),
+        Some(Target::ArrayBuffer),
+    );
+    let normals = accessor(&mut root, v, n, ComponentType::F32, Type::Vec3, None);
+    let v = view(
+        &mut root,
+        &floats(mesh.uvs.as_flattened()),
+        Some(Target::ArrayBuffer),
+    );
+    let uvs = accessor(&mut root, v, n, ComponentType::F32, Type::Vec2, None);
+    // u16 when every index fits below 65535 (that value means primitive restart).
+    let flat = mesh.triangles.as_flattened();
+    let (bytes, kind): (Vec<u8>, _) = if n < usize::from(u16::MAX) {
+        let b = flat.iter().flat_map(|&i| (i as u16).to_le_bytes());
+        (b.collect(), ComponentType::U16)
+    } else {
+        (
+            flat.iter().flat_map(|i| i.to_le_bytes()).collect(),
+            ComponentType::U32,
+        )
+    };
+    let v = view(&mut root, &bytes, Some(Target::ElementArrayBuffer));
+    let indices = accessor(&mut root, v, flat.len(), kind, Type::Scalar, None);
+    let image_view = view(&mut root, &texture, None);
+    bin.resize(bin.len().next_multiple_of(4), 0);
+    root.buffers[0].byte_length = bin.len().into();
+
+    let image = root.push(json::Image {
+        buffer_view: Some(image_view),
+        mime_type: Some(json::image::MimeType("image/png".into())),
+        uri: None,
+        extensions: None,
+        extras: Default::default(),
+    });
+    let sampler = root.push(json::texture::Sampler {
+        mag_filter: Some(Valid(json::texture::MagFilter::Linear)),
+        min_filter: Some(Valid(json::texture::MinFilter::LinearMipmapLinear)),
+        wrap_s: Valid(json::texture::WrappingMode::ClampToEdge),
+        wrap_t: Valid(json::texture::WrappingMode::ClampToEdge),
+        ..Default::default()
+    });
+    let texture = root.push(json::Texture {
+        sampler: Some(sampler),
+        source: image,
+        extensions: None,
+        extras: Default::default(),
+    });
+    // A matte, non-metallic surface: what photometric stereo assumes (Lambertian).
+    let material = root.push(json::Material {
+        pbr_metallic_roughness: json::material::PbrMetallicRoughness {
+            base_color_texture: Some(json::texture::Info {
+                index: texture,
+                tex_coord: 0,
+                extensions: None,
+                extras: Default::default(),
+            }),
+            metallic_factor: json::material::StrengthFactor(0.0),
+            roughness_factor: json::material::StrengthFactor(1.0),
+            ..Default::default()
+        },
+        double_sided: false,
+        ..Default::default()
+    });
+    let attributes = [
+        (json::mesh::Semantic::Positions, positions),
+        (json::mesh::Semantic::Normals, normals),
+        (json::mesh::Semantic::TexCoords(0), uvs),
+    ];
+    let primitive = json::mesh::Primitive {
+        attributes: attributes.into_iter().map(|(k, a)| (Valid(k), a)).collect(),
+        extensions: None,
+        extras: Default::default(),
+        indices: Some(indices),
+        material: Some(material),
+        mode: Valid(json::mesh::Mode::Triangles),
+        targets: None,
+    };
+    let mesh = root.push(json::Mesh {
+        extensions: None,
+        extras: Default::default(),
+        primitives: vec![primitive],
+        weights: None,
+    });
+    let node = root.push(json::Node {
+        mesh: Some(mesh),
+        ..Default::default()
+    });
+    let scene = root.push(json::Scene {
+        extensions: None,
+        extras: Default::default(),
+        nodes: vec![node],
+    });
+    root.scene = Some(scene);
+    Ok((root, bin))
+}
+
+fn accessor(
+    root: &mut json::Root,
+    view: json::Index<json::buffer::View>,
+    count: usize,
+    component: ComponentType,
+    kind: Type,
+    bounds: Option<(Value, Value)>,
+) -> json::Index<json::Accessor> {
+    let (min, max) = bounds.unzip();
+    root.push(json::Accessor {
+        buffer_view: Some(view),
+        byte_offset: None,
+        count: count.into(),
+        component_type: Valid(GenericComponentType(component)),
+        extensions: None,
+        extras: Default::default(),
+        type_: Valid(kind),
+        min,
+        max,
+        normalized: false,
+        sparse: None,
+    })
+}
+
+/// Per-axis minimum and maximum as JSON arrays (f32 → f64 is exact, so they match the
+/// data bit for bit as the spec requires).
+fn bounds(points: &[[f32; 3]]) -> (Value, Value) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    (Value::from(lo.to_vec()), Value::from(hi.to_vec()))
+}
+
+/// The albedo as an 8-bit PNG: gray, or RGB when colour albedo exists. Values are
+/// written as stored, like `albedo.png` (intake does not linearise its inputs).
+fn albedo_png(rec: &Reconstruction) -> Result<Vec<u8>, MeshError> {
+    let mut planes: Vec<Array2<f32>> = match &rec.albedo_rgb {
+        Some(rgb) => rgb.axis_iter(Axis(2)).map(|p| p.to_owned()).collect(),
+        None => vec![rec.albedo.clone()],
+    };
+    fill_background(&mut planes, &rec.mask);
+    let (h, w) = rec.mask.dim();
+    let mut raw = Vec::with_capacity(w * h * planes.len());
+    for r in 0..h {
+        for c in 0..w {
+            // NaN saturates to 0.
+            raw.extend(
+                planes
+                    .iter()
+                    .map(|p| (p[[r, c]].clamp(0.0, 1.0) * 255.0).round() as u8),
+            );
+        }
+    }
+    if planes.len() == 1 {
+        png(image::GrayImage::from_raw(w as u32, h as u32, raw))
+    } else {
+        png(image::RgbImage::from_raw(w as u32, h as u32, raw))
+    }
+}
+
+fn png<P: Pixel<Subpixel = u8> + 'static>(
+    img: Option<ImageBuffer<P, Vec<u8>>>,
+) -> Result<Vec<u8>, MeshError> {
+    let mut img = img.ok_or_else(|| MeshError::Texture("albedo size".into()))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    if w.max(h) > MAX_TEXTURE_SIDE {
+        let f = MAX_TEXTURE_SIDE as f64 / w.max(h) as f64;
+        let side = |n: usize| ((n as f64 * f).round() as u32).max(1);
+        img = image::imageops::resize(&img, side(w), side(h), image::imageops::Triangle);
+    }
+    let color = if P::CHANNEL_COUNT == 1 {
+        ExtendedColorType::L8
+    } else {
+        ExtendedColorType::Rgb8
+    };
+    let mut out = Vec::new();
+    PngEncoder::new_with_quality(&mut out, CompressionType::Default, FilterType::Adaptive)
+        .write_image(img.as_raw(), img.width(), img.height(), color)
+        .map_err(|e| MeshError::Texture(e.to_string()))?;
+    Ok(out)
+}
+
+/// Give background texels near the mask the mean of their already-filled 4-neighbours,
+/// ring by ring, and the rest the mask's mean colour: filtering and mipmaps then blend
+/// the object's edge with its own colours, not black.
+fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
+    let (h, w) = mask.dim();
+    let mut known = mask.clone();
+    for _ in 0..FILL_RINGS {
+        let before = known.clone();
+        for r in 0..h {
+            for c in 0..w {
+                if before[[r, c]] {
+                    continue;
+                }
+                let near = [
+                    (r.wrapping_sub(1), c),
+                    (r + 1, c),
+                    (r, c.wrapping_sub(1)),
+                    (r, c + 1),
+                ];
+                let near: Vec<_> = (near.into_iter())
+                    .filter(|&(y, x)| y < h && x < w && before[[y, x]])
+                    .collect();
+                if near.is_empty() {
+                    continue;
+                }
+                for p in planes.iter_mut() {
+                    p[[r, c]] = near.iter().map(|&i| p[i]).sum::<f32>() / near.len() as f32;
+                }
+                known[[r, c]] = true;
+            }
+        }
+    }
+    let count = mask.iter().filter(|&&m| m).count().max(1) as f32;
+    for p in planes.iter_mut() {
+        let mean = (p.iter().zip(mask))
+            .filter(|(_, m)| **m)
+            .map(|(v, _)| v)
+            .sum::<f32>()
+            / count;
+        p.zip_mut_with(&known, |v, &k| {
+            if !k {
+                *v = mean;
+            }
+        });
+    }
+}
+
+/// Standard base64 with padding (RFC 4648), for the data URI.
+fn base64(bytes: &[u8]) -> String {
+    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
+    for chunk in bytes.chunks(3) {
+        let b = |i: usize| u32::from(chunk.get(i).copied().unwrap_or(0));
+        let n = b(0) << 16 | b(1) << 8 | b(2);
+        for i in 0..4 {
+            out.push(if i <= chunk.len() {
+                ABC[(n >> (18 - 6 * i) & 63) as usize] as char
+            } else {
+                '='
+            });
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mesh_base64_matches_rfc4648_vectors() {
+        let cases = [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ];
+        for (plain, coded) in cases {
+            assert_eq!(base64(plain.as_bytes()), coded);
+        }
+    }
+
+    #[test]
+    fn mesh_cells_are_counter_clockwise_after_the_y_flip() {
+        // Corners at glTF (x, y): TL (0, 0), TR (1, 0), BL (0, −1), BR (1, −1).
+        let xy = [[0.0, 0.0], [1.0, 0.0], [0.0, -1.0], [1.0, -1.0]];
+        for missing in [None, Some(0), Some(1), Some(2), Some(3)] {
+            let id = |k: u32| if Some(k) == missing { NONE } else { k };
+            let tris = cell_triangles(id(0), id(1), id(2), id(3));
+            let tris: Vec<_> = tris.into_iter().flatten().collect();
+            assert_eq!(tris.len(), if missing.is_some() { 1 } else { 2 });
+            for t in tris {
+                assert!(!t.contains(&NONE));
+                let [a, b, c] = t.map(|i| xy[i as usize]);
+                let cross = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+                assert!(cross > 0.0, "{t:?} is clockwise");
+            }
+        }
+        assert_eq!(cell_triangles(0, NONE, NONE, 3), [None, None]);
+    }
+
+    #[test]
+    fn mesh_grid_step_is_the_smallest_that_fits() {
+        let mask = Array2::from_elem((100, 100), true);
+        assert_eq!(grid_step(&mask, 10_000, 1), 1);
+        assert_eq!(grid_step(&mask, 9_999, 1), 2);
+        assert_eq!(grid_step(&mask, 2_500, 1), 2);
+        assert_eq!(grid_step(&mask, 2_499, 1), 3);
+        assert_eq!(grid_step(&mask, 10_000, 5), 5);
+        assert_eq!(grid_step(&mask, 0, 1), 100);
+    }
+}

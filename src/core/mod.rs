@@ -9,10 +9,13 @@ pub mod integrate;
 pub mod lights;
 pub mod mask;
 pub mod mesh;
+pub mod metrics;
 pub mod options;
 pub mod outputs;
 pub mod pipeline;
+pub mod preview;
 pub mod render;
+pub mod robust;
 pub mod solve;
 pub mod synth;
 

@@ -7,6 +7,9 @@ use utoipa::ToSchema;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum Solver {
+    /// Least squares over the observations a Lambertian model explains: shadows,
+    /// highlights and saturated values set aside per pixel, black level removed.
+    Robust,
     /// Plain least squares over every observation (the seed's "solution 2").
     #[default]
     L2,

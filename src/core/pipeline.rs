@@ -1,13 +1,18 @@
 //! `reconstruct`: the one path from an [`ImageSet`] to a [`Reconstruction`], shared by the
 //! CLI and the job worker.
 
-use ndarray::{Array2, Array3};
+use std::path::Path;
+use std::time::Instant;
+
+use ndarray::{Array2, Array3, Zip};
 use serde::Serialize;
 
 use super::InputError;
 use super::intake::ImageSet;
-use super::lights::Light;
+use super::lights::{self, Light};
 use super::options::Options;
+use super::solve::{self, Surface};
+use super::{integrate, mask, outputs};
 
 /// Named stages, reported to a progress callback as they start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -54,6 +59,10 @@ pub struct Reconstruction {
     pub curl: Array2<f32>,
     /// Per-pixel RMS of (observed − re-rendered) intensity, 0 off the mask.
     pub residual: Array2<f32>,
+    /// Per-pixel reliability in [0, 1], 0 off the mask.
+    pub confidence: Array2<f32>,
+    /// Mask pixels with fewer than 3 usable observations (their normals are a fallback).
+    pub unreliable: Array2<bool>,
     pub report: Report,
 }
 
@@ -66,7 +75,7 @@ pub struct Report {
     pub lights: Vec<LightSummary>,
     pub options: Options,
     pub light_condition_number: f64,
-    pub timings_ms: Vec<(String, f64)>,
+    pub timings_ms: Vec<Timing>,
     pub height_min: f32,
     pub height_max: f32,
     pub integrability_rms: f64,
@@ -74,6 +83,18 @@ pub struct Report {
     pub clamped_albedo_pixels: usize,
     pub background_pixels: usize,
     pub object_pixels: usize,
+    /// Mean confidence over the mask.
+    pub confidence_mean: f64,
+    /// Mean number of observations kept per mask pixel.
+    pub inliers_mean: f64,
+    /// Mask pixels with fewer than 3 usable observations.
+    pub unreliable_pixels: usize,
+    /// Camera black level the robust solver estimated and removed.
+    pub black_level: Option<f32>,
+    /// Image noise σ the robust solver estimated.
+    pub noise_sigma: Option<f32>,
+    /// Names of the files written (filled in by [`run`]).
+    pub artifacts: Vec<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -106,8 +127,108 @@ pub fn reconstruct(
     opts: &Options,
     progress: Progress,
 ) -> Result<Reconstruction, RunError> {
-    let _ = (set, opts, progress);
-    todo!("pipeline under construction")
+    let mut timings = Timings::default();
+    let condition = lights::check_solvable(&set.lights, opts.max_condition)?;
+    if let Some(names) = &opts.outputs {
+        outputs::check_selection(names)?;
+    }
+
+    step(progress, Stage::Solve)?;
+    let surface = timings.time(Stage::Solve, || solve::solve(set, opts.solver));
+    let Surface {
+        mut albedo,
+        mut normals,
+        mut residual,
+        mut confidence,
+        inliers,
+        unreliable,
+        estimate,
+    } = surface;
+
+    step(progress, Stage::Mask)?;
+    let mask = timings.time(Stage::Mask, || mask::build(opts.mask, &albedo, set.mask.as_ref()))?;
+    let clamped = albedo.iter().zip(mask.iter()).filter(|(a, m)| **m && **a > 1.0).count();
+    Zip::from(&mut albedo).and(&mask).par_for_each(|a, &m| {
+        *a = if m { a.min(1.0) } else { 0.0 };
+    });
+    Zip::from(normals.rows_mut()).and(&mask).par_for_each(|mut n, &m| {
+        if !m {
+            n.fill(0.0);
+        }
+    });
+    Zip::from(&mut residual).and(&mut confidence).and(&mask).par_for_each(|r, c, &m| {
+        if !m {
+            *r = 0.0;
+            *c = 0.0;
+        }
+    });
+    let unreliable = &unreliable & &mask;
+    let albedo_rgb = set.colour_moments.as_ref().map(|m| colour_albedo(m, &normals, &mask, &set.lights));
+
+    step(progress, Stage::Integrate)?;
+    let (heights, curl) = timings.time(Stage::Integrate, || {
+        let (p, q) = integrate::gradients(&normals, &mask);
+        let curl = integrate::curl(&p, &q, &mask);
+        (integrate::integrate(&p, &q, &mask, opts.integration), curl)
+    });
+
+    let object = mask.iter().filter(|m| **m).count();
+    let over_mask = |a: &Array2<f32>| -> f64 {
+        let sum: f64 = a.iter().zip(mask.iter()).filter(|(_, m)| **m).map(|(v, _)| (*v as f64).powi(2)).sum();
+        if object > 0 { (sum / object as f64).sqrt() } else { 0.0 }
+    };
+    let (height_min, height_max) = heights
+        .iter()
+        .zip(mask.iter())
+        .filter(|(_, m)| **m)
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| (lo.min(*h), hi.max(*h)));
+    let (height_min, height_max) = if object > 0 { (height_min, height_max) } else { (0.0, 0.0) };
+    let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| if object > 0 { v.sum::<f64>() / object as f64 } else { 0.0 };
+    let report = Report {
+        black_level: estimate.map(|e| e.black_level),
+        noise_sigma: estimate.map(|e| e.noise_sigma),
+        confidence_mean: mean_over_mask(&mut confidence.iter().map(|c| *c as f64)),
+        inliers_mean: mean_over_mask(&mut inliers.iter().zip(mask.iter()).filter(|(_, m)| **m).map(|(k, _)| *k as f64)),
+        unreliable_pixels: unreliable.iter().filter(|u| **u).count(),
+        width: set.width,
+        height: set.height,
+        light_count: set.lights.len(),
+        lights: set
+            .lights
+            .iter()
+            .map(|l| LightSummary {
+                name: l.name.clone(),
+                direction: l.direction,
+                intensity: l.intensity,
+            })
+            .collect(),
+        options: opts.clone(),
+        light_condition_number: condition,
+        timings_ms: timings.0,
+        height_min,
+        height_max,
+        integrability_rms: over_mask(&curl),
+        reprojection_rms: over_mask(&residual),
+        clamped_albedo_pixels: clamped,
+        background_pixels: mask.len() - object,
+        object_pixels: object,
+        artifacts: Vec::new(),
+    };
+    Ok(Reconstruction {
+        width: set.width,
+        height: set.height,
+        lights: set.lights.clone(),
+        albedo,
+        albedo_rgb,
+        normals,
+        mask,
+        heights,
+        curl,
+        residual,
+        confidence,
+        unreliable,
+        report,
+    })
 }
 
 /// Reconstruct and write every requested artifact into `dir` (each written under a
@@ -115,9 +236,112 @@ pub fn reconstruct(
 pub fn run(
     set: &ImageSet,
     opts: &Options,
-    dir: &std::path::Path,
+    dir: &Path,
     progress: Progress,
 ) -> Result<Report, RunError> {
-    let _ = (set, opts, dir, progress);
-    todo!("pipeline under construction")
+    let mut rec = reconstruct(set, opts, progress)?;
+    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
+        path: dir.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    let wanted = |name: &str| opts.outputs.as_ref().is_none_or(|o| o.iter().any(|n| n == name));
+    let pictures: Vec<&str> = outputs::ARTIFACTS
+        .iter()
+        .map(|(n, _)| *n)
+        .filter(|n| n.ends_with(".png") || n.ends_with(".exr"))
+        .filter(|n| *n != "preview.png" && wanted(n))
+        .collect();
+
+    step(progress, Stage::Outputs)?;
+    let start = Instant::now();
+    let mut written = outputs::write_pictures(&rec, &pictures, opts.shading_light, dir)?;
+    rec.report.timings_ms.push(Timing::new(Stage::Outputs, start));
+
+    step(progress, Stage::Mesh)?;
+    let start = Instant::now();
+    written.extend(write_meshes(&rec, opts, dir, &wanted)?);
+    rec.report.timings_ms.push(Timing::new(Stage::Mesh, start));
+
+    written.push("result.json".into());
+    rec.report.artifacts = written;
+    let json = serde_json::to_vec_pretty(&rec.report).expect("the report serialises");
+    outputs::write_atomic(dir, "result.json", &json)?;
+    Ok(rec.report)
+}
+
+/// The glTF files and the preview picture.
+fn write_meshes(
+    rec: &Reconstruction,
+    opts: &Options,
+    dir: &Path,
+    wanted: &dyn Fn(&str) -> bool,
+) -> Result<Vec<String>, RunError> {
+    let _ = (rec, opts, dir, wanted);
+    Ok(Vec::new())
+}
+
+fn step(progress: Progress, stage: Stage) -> Result<(), RunError> {
+    if progress(stage) { Ok(()) } else { Err(RunError::Cancelled) }
+}
+
+/// Each channel's albedo fitted against the recovered normals: for shading sᵢ = n·lᵢ,
+/// a_c = Σᵢ Iᵢ,c sᵢ / Σᵢ sᵢ² = n·(Σᵢ lᵢ Iᵢ,c) / nᵀ(LᵀL)n, from moments summed at intake.
+fn colour_albedo(moments: &Array3<f32>, normals: &Array3<f32>, mask: &Array2<bool>, lights: &[Light]) -> Array3<f32> {
+    let mut ltl = [[0f32; 3]; 3];
+    for l in lights {
+        let s = l.scaled();
+        for r in 0..3 {
+            for c in 0..3 {
+                ltl[r][c] += (s[r] * s[c]) as f32;
+            }
+        }
+    }
+    let (rows, cols) = mask.dim();
+    let mut out = Array3::<f32>::zeros((rows, cols, 3));
+    Zip::from(out.rows_mut())
+        .and(moments.rows())
+        .and(normals.rows())
+        .and(mask)
+        .par_for_each(|mut o, m, n, &inside| {
+            if !inside {
+                return;
+            }
+            let quad: f32 = (0..3).map(|r| (0..3).map(|c| n[r] * ltl[r][c] * n[c]).sum::<f32>()).sum();
+            if quad <= 0.0 {
+                return;
+            }
+            for ch in 0..3 {
+                let dot = n[0] * m[ch * 3] + n[1] * m[ch * 3 + 1] + n[2] * m[ch * 3 + 2];
+                o[ch] = (dot / quad).clamp(0.0, 1.0);
+            }
+        });
+    out
+}
+
+/// Wall-clock time of one stage.
+#[derive(Debug, Clone, Serialize)]
+pub struct Timing {
+    pub stage: &'static str,
+    pub ms: f64,
+}
+
+impl Timing {
+    fn new(stage: Stage, start: Instant) -> Self {
+        Self {
+            stage: stage.as_str(),
+            ms: start.elapsed().as_secs_f64() * 1e3,
+        }
+    }
+}
+
+#[derive(Default)]
+struct Timings(Vec<Timing>);
+
+impl Timings {
+    fn time<T>(&mut self, stage: Stage, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        self.0.push(Timing::new(stage, start));
+        out
+    }
 }

@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use super::intake::ImageSet;
 use super::options::Solver;
+use super::robust::{self, CaptureEstimate};
 
 /// The raw per-pixel solution, before masking and clamping.
 #[derive(Debug, Clone)]
@@ -16,14 +17,39 @@ pub struct Surface {
     pub albedo: Array2<f32>,
     /// g/|g|, zero where |g| = 0.
     pub normals: Array3<f32>,
-    /// RMS over the images of (observed − max(0, g·l)).
+    /// RMS over the images of (observed − re-rendered), shadows rendered as black.
     pub residual: Array2<f32>,
+    /// Per-pixel reliability in [0, 1] (see [`robust::confidence_of`]).
+    pub confidence: Array2<f32>,
+    /// Observations each pixel's fit used.
+    pub inliers: Array2<u16>,
+    /// Pixels with fewer than 3 usable observations.
+    pub unreliable: Array2<bool>,
+    /// Black level and noise, when the solver estimates them.
+    pub estimate: Option<CaptureEstimate>,
 }
 
 const SCALE: f32 = 1.0 / 65535.0;
 
 /// Solve every pixel of `set` with the chosen solver.
 pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
+    if solver == Solver::Robust {
+        let r = robust::solve(set);
+        return Surface {
+            albedo: r.albedo,
+            normals: r.normals,
+            residual: r.residual,
+            confidence: r.confidence,
+            inliers: r.inliers,
+            unreliable: r.unreliable,
+            estimate: Some(r.estimate),
+        };
+    }
+    linear(set, solver)
+}
+
+/// Every observation counts: plain or intensity-weighted least squares.
+fn linear(set: &ImageSet, solver: Solver) -> Surface {
     let (rows, cols) = (set.height, set.width);
     let lights: Vec<[f32; 3]> = set
         .lights
@@ -34,15 +60,18 @@ pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
     let mut albedo = Array2::<f32>::zeros((rows, cols));
     let mut normals = Array3::<f32>::zeros((rows, cols, 3));
     let mut residual = Array2::<f32>::zeros((rows, cols));
+    let mut confidence = Array2::<f32>::zeros((rows, cols));
     let n = lights.len();
+    let quantum = if set.bit_depth <= 8 { 1.0 / 255.0 } else { SCALE };
 
     albedo
         .axis_iter_mut(Axis(0))
         .into_par_iter()
         .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
         .enumerate()
-        .for_each(|(r, ((mut a_row, mut n_row), mut res_row))| {
+        .for_each(|(r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
             let mut obs = vec![0f32; n];
             for c in 0..cols {
                 for (i, o) in obs.iter_mut().enumerate() {
@@ -51,6 +80,7 @@ pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
                 let g = match solver {
                     Solver::L2 => apply(&pinv, &obs),
                     Solver::Weighted => weighted(&lights, &obs),
+                    Solver::Robust => unreachable!("handled by robust::solve"),
                 };
                 let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
                 a_row[c] = rho;
@@ -60,12 +90,17 @@ pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
                     }
                 }
                 res_row[c] = reprojection_rms(&lights, &obs, g);
+                conf_row[c] = robust::confidence_of(n, res_row[c], 3.0 * quantum + 0.02 * rho);
             }
         });
     Surface {
         albedo,
         normals,
         residual,
+        confidence,
+        inliers: Array2::from_elem((rows, cols), n as u16),
+        unreliable: Array2::from_elem((rows, cols), false),
+        estimate: None,
     }
 }
 

@@ -1,1 +1,606 @@
-//! The HTTP service. UNDER CONSTRUCTION by the service helper.
+//! The HTTP service: an axum shell around [`crate::core`].
+//!
+//! - [`routes`]: the handlers (typed extractors in, `Result<impl IntoResponse, ApiError>`
+//!   out), documented with `#[utoipa::path]`.
+//! - [`jobs`]: the bounded queue and worker pool that run reconstructions.
+//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite).
+//! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory).
+//! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
+//! - [`config`]: [`ServeArgs`] (flags + environment) and [`Config`].
+//!
+//! [`router`] is what tests call; [`serve`] is `photostereo serve`.
+
+pub mod blobs;
+pub mod config;
+pub mod error;
+mod health;
+pub mod jobs;
+mod metrics;
+mod openapi;
+pub mod repo;
+pub mod routes;
+mod upload;
+mod util;
+
+use std::collections::HashSet;
+use std::future::Future;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::http::header;
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use subtle::ConstantTimeEq;
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::{DefaultOnResponse, TraceLayer};
+use utoipa::OpenApi;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+use utoipa_swagger_ui::SwaggerUi;
+use uuid::Uuid;
+
+pub use config::{Config, LogFormat, ServeArgs};
+pub use error::{ApiError, Problem};
+pub use health::{HealthcheckArgs, healthcheck};
+
+use blobs::{BlobStore, LocalStore, MANIFEST_FILE};
+use jobs::JobQueue;
+use metrics::{Metrics, Snapshot};
+use repo::{JobRepo, JobStatus, RepoResult, SqliteRepo};
+use util::now_ms;
+
+/// How often running jobs' heartbeats are written.
+const HEARTBEAT_EVERY: Duration = Duration::from_secs(10);
+
+/// Everything the handlers and workers share. Cheap to clone.
+#[derive(Clone)]
+pub struct AppState {
+    inner: Arc<Inner>,
+}
+
+pub(crate) struct Inner {
+    config: Config,
+    repo: Arc<dyn JobRepo>,
+    store: Arc<dyn BlobStore>,
+    jobs: JobQueue,
+    metrics: Metrics,
+    shutting_down: AtomicBool,
+    stop: watch::Sender<bool>,
+}
+
+impl AppState {
+    /// Open the data directory (database, job files), put every unfinished job back in the
+    /// queue, start the workers and the background sweeper.
+    pub async fn open(config: Config) -> anyhow::Result<Self> {
+        let state = tokio::task::spawn_blocking(move || Self::open_blocking(config))
+            .await
+            .context("opening the service state")??;
+        state.spawn_background();
+        Ok(state)
+    }
+
+    fn open_blocking(config: Config) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(&config.data_dir).with_context(|| {
+            format!("cannot create the data directory {}", config.data_dir.display())
+        })?;
+        let db = config.data_dir.join("jobs.sqlite");
+        let repo = SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?;
+        let store = LocalStore::open(&config.data_dir)
+            .with_context(|| format!("opening {}", config.data_dir.display()))?;
+        let (stop, _) = watch::channel(false);
+        let inner = Arc::new(Inner {
+            jobs: JobQueue::new(config.queue_length),
+            config,
+            repo: Arc::new(repo),
+            store: Arc::new(store),
+            metrics: Metrics::default(),
+            shutting_down: AtomicBool::new(false),
+            stop,
+        });
+        let requeued = recover(&inner)?;
+        if requeued > 0 {
+            tracing::info!(jobs = requeued, "unfinished jobs queued again");
+        }
+        for i in 0..inner.config.workers.max(1) {
+            let worker = inner.clone();
+            let handle = std::thread::Builder::new()
+                .name(format!("photostereo-worker-{i}"))
+                .spawn(move || jobs::worker_loop(worker))
+                .context("starting a worker thread")?;
+            inner.jobs.add_thread(handle);
+        }
+        Ok(Self { inner })
+    }
+
+    fn spawn_background(&self) {
+        let inner = self.inner.clone();
+        let mut stop = self.inner.stop.subscribe();
+        tokio::spawn(async move {
+            let mut sweep = tokio::time::interval(inner.config.sweep_interval);
+            let mut beat = tokio::time::interval(HEARTBEAT_EVERY);
+            loop {
+                tokio::select! {
+                    _ = sweep.tick() => {
+                        let i = inner.clone();
+                        let _ = tokio::task::spawn_blocking(move || sweep_expired(&i)).await;
+                    }
+                    _ = beat.tick() => {
+                        let i = inner.clone();
+                        let _ = tokio::task::spawn_blocking(move || {
+                            let ids = i.jobs.running_ids();
+                            if !ids.is_empty()
+                                && let Err(e) = i.repo.heartbeat(&ids, now_ms())
+                            {
+                                tracing::warn!(error = %e, "heartbeat");
+                            }
+                        })
+                        .await;
+                    }
+                    _ = stop.changed() => break,
+                }
+            }
+        });
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.inner.config
+    }
+
+    pub fn jobs(&self) -> &JobQueue {
+        &self.inner.jobs
+    }
+
+    pub fn store(&self) -> &dyn BlobStore {
+        &*self.inner.store
+    }
+
+    /// The most jobs that were ever running at once (never more than the pool size).
+    pub fn max_running(&self) -> usize {
+        self.inner.jobs.running_max()
+    }
+
+    /// Run a repo call off the async runtime.
+    pub async fn repo<T, F>(&self, f: F) -> Result<T, ApiError>
+    where
+        T: Send + 'static,
+        F: FnOnce(&dyn JobRepo) -> RepoResult<T> + Send + 'static,
+    {
+        let repo = self.inner.repo.clone();
+        Ok(tokio::task::spawn_blocking(move || f(&*repo)).await??)
+    }
+
+    pub fn is_shutting_down(&self) -> bool {
+        self.inner.shutting_down.load(Ordering::SeqCst)
+    }
+
+    /// Stop taking work: readiness fails, new submissions get 503, workers take no new
+    /// jobs (queued ones stay queued for the next start), background tasks stop.
+    pub fn begin_shutdown(&self) {
+        if self.inner.shutting_down.swap(true, Ordering::SeqCst) {
+            return;
+        }
+        self.inner.jobs.close();
+        let _ = self.inner.stop.send(true);
+    }
+
+    /// [`begin_shutdown`](Self::begin_shutdown), then let running jobs finish for up to
+    /// the shutdown grace; jobs still running then are interrupted at their next stage and
+    /// run again at the next start.
+    pub async fn shutdown(&self) {
+        self.begin_shutdown();
+        let jobs = &self.inner.jobs;
+        let deadline = Instant::now() + self.inner.config.shutdown_grace;
+        while jobs.busy() > 0 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if jobs.busy() > 0 {
+            tracing::warn!(
+                jobs = jobs.busy(),
+                "interrupting running jobs; they run again at the next start"
+            );
+            jobs.interrupt_all();
+            let until = Instant::now() + Duration::from_secs(10);
+            while jobs.busy() > 0 && Instant::now() < until {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+        jobs.join_finished_threads();
+        tracing::info!("stopped");
+    }
+
+    pub(crate) fn count_submitted(&self) {
+        self.inner.metrics.submitted.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub(crate) fn count_queue_full(&self) {
+        self.inner
+            .metrics
+            .rejected_queue_full
+            .fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// 507 when the data directory's file system is short of space.
+    pub(crate) async fn check_free_disk(&self) -> Result<(), ApiError> {
+        let min = self.inner.config.min_free_disk;
+        if min == 0 {
+            return Ok(());
+        }
+        let store = self.inner.store.clone();
+        match tokio::task::spawn_blocking(move || store.free_bytes()).await? {
+            Ok(free) if free < min => Err(ApiError::insufficient_storage(format!(
+                "only {free} bytes are free for job data; new jobs need at least {min}"
+            ))),
+            Ok(_) => Ok(()),
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot read free disk space");
+                Ok(())
+            }
+        }
+    }
+
+    /// A staging directory for an upload, removed again unless kept.
+    pub(crate) async fn stage_upload(&self, id: Uuid) -> Result<Staging, ApiError> {
+        let store = self.inner.store.clone();
+        let path = tokio::task::spawn_blocking(move || store.stage_inputs(id)).await??;
+        Ok(Staging {
+            state: self.clone(),
+            id,
+            path,
+            keep: false,
+        })
+    }
+
+    /// Remove a job's files (errors are logged).
+    pub(crate) async fn remove_files(&self, id: Uuid) {
+        let store = self.inner.store.clone();
+        match tokio::task::spawn_blocking(move || store.remove_job(id)).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => tracing::warn!(job = %id, error = %e, "cannot remove job files"),
+            Err(e) => tracing::warn!(job = %id, error = %e, "cannot remove job files"),
+        }
+    }
+
+    pub(crate) async fn readiness_problems(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        if self.is_shutting_down() {
+            problems.push("the service is shutting down".to_string());
+        }
+        if let Err(e) = self.repo(|r| r.ping()).await {
+            problems.push(format!("the job database does not answer ({})", e.detail()));
+        }
+        let store = self.inner.store.clone();
+        match tokio::task::spawn_blocking(move || store.probe_writable()).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => problems.push(format!("the data directory is not writable: {e}")),
+            Err(e) => problems.push(format!("the data directory check failed: {e}")),
+        }
+        problems
+    }
+
+    pub(crate) async fn render_metrics(&self) -> Result<String, ApiError> {
+        let counts = self.repo(|r| r.counts()).await?;
+        let store = self.inner.store.clone();
+        let free = tokio::task::spawn_blocking(move || store.free_bytes().ok()).await?;
+        let jobs = &self.inner.jobs;
+        Ok(self.inner.metrics.render(&Snapshot {
+            jobs_by_status: counts,
+            queue_depth: jobs.depth(),
+            queue_capacity: jobs.capacity(),
+            running: jobs.running(),
+            running_max: jobs.running_max(),
+            workers: self.inner.config.workers,
+            free_disk_bytes: free,
+        }))
+    }
+}
+
+/// An upload's staging directory; removed (with the job's directory) when dropped unless
+/// [`keep`](Staging::keep) was called.
+pub(crate) struct Staging {
+    state: AppState,
+    id: Uuid,
+    path: PathBuf,
+    keep: bool,
+}
+
+impl Staging {
+    pub(crate) fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Make the upload the job's inputs.
+    pub(crate) async fn commit(&mut self) -> Result<(), ApiError> {
+        let store = self.state.inner.store.clone();
+        let id = self.id;
+        tokio::task::spawn_blocking(move || store.commit_inputs(id)).await??;
+        Ok(())
+    }
+
+    pub(crate) fn keep(&mut self) {
+        self.keep = true;
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if self.keep {
+            return;
+        }
+        let store = self.state.inner.store.clone();
+        let id = self.id;
+        let remove = move || {
+            if let Err(e) = store.remove_job(id) {
+                tracing::warn!(job = %id, error = %e, "cannot remove a refused upload");
+            }
+        };
+        match tokio::runtime::Handle::try_current() {
+            Ok(rt) => {
+                rt.spawn_blocking(remove);
+            }
+            Err(_) => remove(),
+        }
+    }
+}
+
+/// Startup: drop leftovers, put unfinished jobs back in the queue (oldest first).
+fn recover(inner: &Inner) -> anyhow::Result<usize> {
+    let known: HashSet<Uuid> = inner.repo.ids()?.into_iter().collect();
+    for id in inner.store.job_ids()? {
+        let tidy = if known.contains(&id) {
+            inner.store.remove_partials(id)
+        } else {
+            inner.store.remove_job(id) // an upload that never became a job
+        };
+        if let Err(e) = tidy {
+            tracing::warn!(job = %id, error = %e, "cannot tidy job files");
+        }
+    }
+    let mut queued = 0;
+    for rec in inner.repo.unfinished()? {
+        if rec.status == JobStatus::Running {
+            inner.repo.requeue(rec.id)?;
+        }
+        if !inner.store.inputs(rec.id).join(MANIFEST_FILE).is_file() {
+            let problem = ApiError::job_failed(
+                "the job's input files are gone (the data directory changed while the service was stopped)",
+            )
+            .with_instance(format!("/v1/jobs/{}", rec.id))
+            .problem();
+            inner.repo.fail_queued(rec.id, &problem, now_ms())?;
+            continue;
+        }
+        inner.jobs.push(rec.id);
+        queued += 1;
+    }
+    sweep_expired(inner);
+    Ok(queued)
+}
+
+/// Delete finished jobs past the retention period: the record first (the job is gone from
+/// the API at once), then the files.
+fn sweep_expired(inner: &Inner) {
+    let retention = i64::try_from(inner.config.retention.as_millis()).unwrap_or(i64::MAX);
+    let cutoff = now_ms().saturating_sub(retention);
+    let ids = match inner.repo.expired(cutoff, 1000) {
+        Ok(ids) => ids,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot list expired jobs");
+            return;
+        }
+    };
+    for id in ids {
+        match inner.repo.delete(id) {
+            Ok(_) => {
+                if let Err(e) = inner.store.remove_job(id) {
+                    tracing::warn!(job = %id, error = %e, "cannot remove expired job files");
+                } else {
+                    tracing::info!(job = %id, "expired job removed");
+                }
+            }
+            Err(e) => tracing::warn!(job = %id, error = %e, "cannot delete expired job"),
+        }
+    }
+}
+
+/// The `/v1` routes (behind the API key when one is configured).
+fn api_routes() -> OpenApiRouter<AppState> {
+    OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
+        .routes(routes!(routes::create_job, routes::list_jobs))
+        .routes(routes!(routes::get_job, routes::delete_job))
+        .routes(routes!(routes::get_artifact))
+}
+
+/// Health, readiness, metrics, the OpenAPI document (always open).
+fn operations_routes() -> OpenApiRouter<AppState> {
+    OpenApiRouter::default()
+        .routes(routes!(routes::healthz))
+        .routes(routes!(routes::readyz))
+        .routes(routes!(routes::metrics))
+        .routes(routes!(routes::openapi_doc))
+}
+
+/// The OpenAPI document served at `/openapi.json` (pretty JSON, trailing newline), also
+/// what `photostereo openapi` prints and `openapi/openapi.json` holds.
+pub fn openapi_json() -> String {
+    static DOC: OnceLock<String> = OnceLock::new();
+    DOC.get_or_init(|| {
+        let doc = api_routes().merge(operations_routes()).into_openapi();
+        let mut text = doc
+            .to_pretty_json()
+            .expect("the OpenAPI document serialises");
+        text.push('\n');
+        text
+    })
+    .clone()
+}
+
+/// The whole HTTP app over `state`.
+pub fn router(state: AppState) -> Router {
+    let max_body = usize::try_from(state.inner.config.max_body_bytes).unwrap_or(usize::MAX);
+    let api = api_routes().route_layer(middleware::from_fn_with_state(
+        state.clone(),
+        require_api_key,
+    ));
+    let (app, _) = api.merge(operations_routes()).split_for_parts();
+    app.merge(SwaggerUi::new("/docs").config(utoipa_swagger_ui::Config::new(["/openapi.json"])))
+        .fallback(routes::not_found)
+        .method_not_allowed_fallback(routes::method_not_allowed)
+        .layer(middleware::from_fn_with_state(state.clone(), track_http))
+        .layer(DefaultBodyLimit::max(max_body))
+        .layer(PropagateRequestIdLayer::x_request_id())
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(|req: &Request| {
+                    let id = req
+                        .headers()
+                        .get("x-request-id")
+                        .and_then(|v| v.to_str().ok())
+                        .unwrap_or("-");
+                    tracing::info_span!(
+                        "request",
+                        method = %req.method(),
+                        path = %req.uri().path(),
+                        request_id = %id
+                    )
+                })
+                .on_response(DefaultOnResponse::new().level(tracing::Level::INFO)),
+        )
+        .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+        .layer(CatchPanicLayer::custom(routes::panic_response))
+        .with_state(state)
+}
+
+/// `Authorization: Bearer <key>` on the /v1 routes when keys are configured. Keys are
+/// compared in constant time.
+async fn require_api_key(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let keys = &state.inner.config.api_keys;
+    if keys.is_empty() {
+        return next.run(req).await;
+    }
+    let presented = req
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| {
+            let (scheme, key) = v.trim().split_once(' ')?;
+            scheme.eq_ignore_ascii_case("bearer").then(|| key.trim().to_string())
+        });
+    let Some(presented) = presented else {
+        return ApiError::unauthorized("this server needs an API key: send Authorization: Bearer <key>")
+            .into_response();
+    };
+    let mut ok = subtle::Choice::from(0u8);
+    for key in keys {
+        ok |= key.as_bytes().ct_eq(presented.as_bytes());
+    }
+    if bool::from(ok) {
+        next.run(req).await
+    } else {
+        ApiError::unauthorized("the API key is not valid").into_response()
+    }
+}
+
+/// Count requests by method, route template and status.
+async fn track_http(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    const METHODS: [&str; 7] = ["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"];
+    let method = req.method().as_str();
+    let method = METHODS
+        .iter()
+        .find(|m| **m == method)
+        .copied()
+        .unwrap_or("other");
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|m| m.as_str().to_string())
+        .unwrap_or_else(|| "unmatched".to_string());
+    let started = Instant::now();
+    let response = next.run(req).await;
+    state
+        .inner
+        .metrics
+        .observe_http(method, &route, response.status().as_u16(), started.elapsed());
+    response
+}
+
+/// Serve `state` on `listener` until `shutdown` completes, then stop gracefully: no new
+/// connections, in-flight requests finish, running jobs get the shutdown grace.
+pub async fn serve_with(
+    listener: TcpListener,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    let app = router(state.clone());
+    let stopping = state.clone();
+    axum::serve(listener, app)
+        .with_graceful_shutdown(async move {
+            shutdown.await;
+            tracing::info!("shutting down: finishing requests and running jobs");
+            stopping.begin_shutdown();
+        })
+        .await
+        .context("serving HTTP")?;
+    state.shutdown().await;
+    Ok(())
+}
+
+/// `photostereo serve`: run the API until SIGTERM or Ctrl-C.
+pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    init_tracing(args.log_format);
+    let config = Config::from(&args);
+    let listener = TcpListener::bind(&args.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
+    let state = AppState::open(config).await?;
+    let addr = listener.local_addr()?;
+    tracing::info!(
+        %addr,
+        data_dir = %state.config().data_dir.display(),
+        workers = state.config().workers,
+        queue_length = state.config().queue_length,
+        api_keys = state.config().api_keys.len(),
+        "photostereo serving; API docs at /docs"
+    );
+    serve_with(listener, state, shutdown_signal()).await
+}
+
+fn init_tracing(format: LogFormat) {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter);
+    let _ = match format {
+        LogFormat::Json => builder.json().try_init(),
+        LogFormat::Text => builder.try_init(),
+    };
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

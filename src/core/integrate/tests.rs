@@ -1,0 +1,394 @@
+//! Accuracy tests against analytic surfaces (pixel units), plus edge cases and timings.
+
+use super::*;
+use ndarray::{Array2, Array3};
+use std::time::Instant;
+
+/// Analytic surface: height and its derivatives (dz/dx, dz/dy) at (x = col, y = row).
+type Surface = dyn Fn(f64, f64) -> (f64, f64, f64);
+
+/// Exact unit normals of `s` on an `h × w` grid (zero off the mask).
+fn normals_of(s: &Surface, mask: &Array2<bool>) -> Array3<f32> {
+    let (h, w) = mask.dim();
+    let mut n = Array3::zeros((h, w, 3));
+    for r in 0..h {
+        for c in 0..w {
+            if !mask[(r, c)] {
+                continue;
+            }
+            let (_, zx, zy) = s(c as f64, r as f64);
+            let len = (zx * zx + zy * zy + 1.0).sqrt();
+            n[(r, c, 0)] = (-zx / len) as f32;
+            n[(r, c, 1)] = (-zy / len) as f32;
+            n[(r, c, 2)] = (1.0 / len) as f32;
+        }
+    }
+    n
+}
+
+fn heights_of(s: &Surface, h: usize, w: usize) -> Array2<f64> {
+    Array2::from_shape_fn((h, w), |(r, c)| s(c as f64, r as f64).0)
+}
+
+/// Depth RMS over `region` after removing the mean offset over `region`.
+fn rms(z: &Array2<f32>, truth: &Array2<f64>, region: &Array2<bool>) -> f64 {
+    let pts: Vec<f64> = z
+        .iter()
+        .zip(truth)
+        .zip(region)
+        .filter(|&(_, &m)| m)
+        .map(|((&z, &t), _)| f64::from(z) - t)
+        .collect();
+    let mean = pts.iter().sum::<f64>() / pts.len() as f64;
+    (pts.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / pts.len() as f64).sqrt()
+}
+
+fn gaussians(x: f64, y: f64) -> (f64, f64, f64) {
+    let mut out = (0.0, 0.0, 0.0);
+    for (a, cx, cy, s) in [
+        (14.0, 50.0, 60.0, 15.0),
+        (-8.0, 88.0, 40.0, 11.0),
+        (6.0, 75.0, 95.0, 20.0),
+    ] {
+        let (dx, dy) = (x - cx, y - cy);
+        let g = a * (-(dx * dx + dy * dy) / (2.0 * s * s)).exp();
+        out.0 += g;
+        out.1 += -g * dx / (s * s);
+        out.2 += -g * dy / (s * s);
+    }
+    out
+}
+
+fn periodic(x: f64, y: f64) -> (f64, f64, f64) {
+    use std::f64::consts::PI;
+    let (kx, ky) = (2.0 * PI / 128.0, 4.0 * PI / 128.0);
+    (
+        12.0 * (kx * x).cos() * (ky * y).sin() + 5.0 * (kx * (x + y)).sin(),
+        -12.0 * kx * (kx * x).sin() * (ky * y).sin() + 5.0 * kx * (kx * (x + y)).cos(),
+        12.0 * ky * (kx * x).cos() * (ky * y).cos() + 5.0 * kx * (kx * (x + y)).cos(),
+    )
+}
+
+fn disc(h: usize, w: usize, cx: f64, cy: f64, rad: f64) -> Array2<bool> {
+    Array2::from_shape_fn((h, w), |(r, c)| {
+        (c as f64 - cx).powi(2) + (r as f64 - cy).powi(2) < rad * rad
+    })
+}
+
+fn hemisphere(cx: f64, cy: f64, rad: f64) -> impl Fn(f64, f64) -> (f64, f64, f64) {
+    move |x, y| {
+        let (dx, dy) = (x - cx, y - cy);
+        let z = (rad * rad - dx * dx - dy * dy).max(1e-9).sqrt();
+        (z, -dx / z, -dy / z)
+    }
+}
+
+fn run(s: &Surface, mask: &Array2<bool>, method: Integration) -> (Array2<f32>, f64) {
+    let (h, w) = mask.dim();
+    let (p, q) = gradients(&normals_of(s, mask), mask);
+    let z = integrate(&p, &q, mask, method);
+    assert!(z.iter().all(|v| v.is_finite()));
+    let e = rms(&z, &heights_of(s, h, w), mask);
+    (z, e)
+}
+
+#[test]
+fn full_frame_smooth_surface_accuracy() {
+    let full = Array2::from_elem((128, 128), true);
+    let (_, poisson) = run(&gaussians, &full, Integration::Poisson);
+    let (_, path) = run(&gaussians, &full, Integration::Path);
+    let (_, fc) = run(&periodic, &full, Integration::FrankotChellappa);
+    let (_, fc_gauss) = run(&gaussians, &full, Integration::FrankotChellappa);
+    eprintln!(
+        "full 128²: poisson(DCT) {poisson:.5} px, FC periodic {fc:.5} px, \
+         FC gaussians {fc_gauss:.5} px, path {path:.5} px"
+    );
+    assert!(poisson < 0.05, "poisson rms {poisson}");
+    assert!(fc < 0.05, "FC rms {fc}");
+    assert!(path.is_finite() && path > poisson);
+}
+
+#[test]
+fn hemisphere_poisson_beats_frankot_chellappa() {
+    let (n, rad) = (128, 40.0);
+    let s = hemisphere(63.5, 63.5, rad);
+    let mask = disc(n, n, 63.5, 63.5, 0.95 * rad);
+    let (z, poisson) = run(&s, &mask, Integration::Poisson);
+    let (_, fc) = run(&s, &mask, Integration::FrankotChellappa);
+    let (_, path) = run(&s, &mask, Integration::Path);
+    eprintln!(
+        "hemisphere r=40 mask 0.95r: poisson {poisson:.4} px, FC {fc:.4} px, path {path:.4} px"
+    );
+    assert!(poisson < 0.5, "poisson rms {poisson}");
+    assert!(poisson < fc, "poisson {poisson} vs FC {fc}");
+    // Background is the lowest height on the mask.
+    let low = z
+        .iter()
+        .zip(&mask)
+        .filter(|&(_, &m)| m)
+        .map(|(&v, _)| v)
+        .fold(f32::INFINITY, f32::min);
+    assert_eq!(z[(0, 0)], low);
+}
+
+#[test]
+fn masked_pcg_matches_dct_on_full_mask() {
+    let (h, w) = (96, 130);
+    let full = Array2::from_elem((h, w), true);
+    let (p, q) = gradients(&normals_of(&gaussians, &full), &full);
+    let m = vec![true; h * w];
+    let st = MaskStencil::new(&m, h, w);
+    let (ps, qs) = (p.as_slice().unwrap(), q.as_slice().unwrap());
+    let b = poisson::rhs(&st, ps, qs);
+    let comps = Components::new(&m, h, w);
+    let mut direct = poisson::solve_dct(b.clone(), h, w);
+    comps.remove_means(&mut direct);
+    let mut bb = b;
+    comps.remove_means(&mut bb);
+    let (mut iter, stats) = poisson::solve_pcg(&st, bb);
+    comps.remove_means(&mut iter);
+    let diff = direct
+        .iter()
+        .zip(&iter)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    eprintln!("PCG vs DCT on a full 96×130 mask: max |Δz| {diff:.2e} px, {stats:?}");
+    assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
+    assert!(stats.iterations <= 20, "{stats:?}");
+    assert!(diff < 1e-3, "max diff {diff}");
+}
+
+#[test]
+fn pcg_converges_fast_on_disc() {
+    let (n, rad) = (256, 100.0);
+    let s = hemisphere(128.0, 120.0, rad);
+    let mask = disc(n, n, 128.0, 120.0, 0.95 * rad);
+    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let st = MaskStencil::new(&m, n, n);
+    let comps = Components::new(&m, n, n);
+    let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+    comps.remove_means(&mut b);
+    let (_, stats) = poisson::solve_pcg(&st, b);
+    eprintln!("disc 256²: {stats:?}");
+    assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
+    assert!(stats.iterations <= 20, "{stats:?}");
+}
+
+#[test]
+fn disjoint_components_get_their_own_constants() {
+    let (h, w) = (100, 140);
+    let a = hemisphere(35.0, 50.0, 30.0);
+    let b = |x: f64, y: f64| {
+        let (z, zx, zy) = gaussians(x, y);
+        (z + 0.3 * x - 0.2 * y + 40.0, zx + 0.3, zy - 0.2)
+    };
+    let ma = disc(h, w, 35.0, 50.0, 27.0);
+    let mb = Array2::from_shape_fn((h, w), |(r, c)| {
+        (75..130).contains(&c) && (20..85).contains(&r)
+    });
+    let mask = &ma | &mb;
+    let s = move |x: f64, y: f64| if x < 70.0 { a(x, y) } else { b(x, y) };
+    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    assert_eq!(Components::new(&m, h, w).count(), 2);
+    let z = integrate(&p, &q, &mask, Integration::Poisson);
+    let truth = heights_of(&s, h, w);
+    let (ea, eb) = (rms(&z, &truth, &ma), rms(&z, &truth, &mb));
+    eprintln!("two components: rms {ea:.4} px (hemisphere), {eb:.4} px (tilted bumps)");
+    assert!(ea < 0.5 && eb < 0.1, "{ea} {eb}");
+    // Each component has zero mean, so the 40 px offset of the second one is not recovered.
+    for region in [&ma, &mb] {
+        let (s, n) = z
+            .iter()
+            .zip(region)
+            .filter(|&(_, &m)| m)
+            .fold((0.0f64, 0usize), |(s, n), (&v, _)| {
+                (s + f64::from(v), n + 1)
+            });
+        assert!((s / n as f64).abs() < 1e-3);
+    }
+}
+
+#[test]
+fn curl_is_zero_for_surfaces_and_two_for_rotation() {
+    let full = Array2::from_elem((64, 64), true);
+    let (p, q) = gradients(&normals_of(&gaussians, &full), &full);
+    let c = curl(&p, &q, &full);
+    let max = c.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(max < 1e-3, "curl of a surface {max}");
+
+    // p = −y, q = x: dp/dy − dq/dx = −2 everywhere inside.
+    let p = Array2::from_shape_fn((20, 30), |(r, _)| -(r as f32));
+    let q = Array2::from_shape_fn((20, 30), |(_, c)| c as f32);
+    let mask = Array2::from_elem((20, 30), true);
+    let c = curl(&p, &q, &mask);
+    for r in 0..19 {
+        for col in 0..29 {
+            assert!((c[(r, col)] + 2.0).abs() < 1e-5);
+        }
+    }
+    assert_eq!(c[(19, 3)], 0.0);
+    assert_eq!(c[(3, 29)], 0.0);
+    // A neighbour off the mask → 0.
+    let mut holey = mask.clone();
+    holey[(5, 5)] = false;
+    let c = curl(&p, &q, &holey);
+    assert_eq!(c[(4, 4)], 0.0);
+    assert_eq!(c[(5, 5)], 0.0);
+    assert!((c[(6, 6)] + 2.0).abs() < 1e-5);
+}
+
+#[test]
+fn gradients_clamp_grazing_normals() {
+    let mut n = Array3::zeros((1, 3, 3));
+    n[(0, 0, 0)] = 1.0; // grazing: nz = 0
+    n[(0, 1, 0)] = -0.6;
+    n[(0, 1, 2)] = 0.8;
+    n[(0, 2, 0)] = f32::NAN;
+    let mask = Array2::from_elem((1, 3), true);
+    let (p, q) = gradients(&n, &mask);
+    assert!((p[(0, 0)] + 1.0 / MIN_NZ).abs() < 1e-3);
+    assert!((p[(0, 1)] - 0.75).abs() < 1e-6);
+    assert_eq!(p[(0, 2)], 0.0);
+    assert!(q.iter().all(|&v| v == 0.0));
+    let off = Array2::from_elem((1, 3), false);
+    let (p, _) = gradients(&n, &off);
+    assert!(p.iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn degenerate_inputs_do_not_panic() {
+    let all = [
+        Integration::Path,
+        Integration::FrankotChellappa,
+        Integration::Poisson,
+    ];
+    for (h, w) in [
+        (0, 0),
+        (0, 5),
+        (1, 1),
+        (1, 17),
+        (23, 1),
+        (1, 700),
+        (600, 1),
+        (2, 2),
+    ] {
+        let p = Array2::from_elem((h, w), 0.5f32);
+        let q = Array2::from_elem((h, w), -0.25f32);
+        for fill in [false, true] {
+            let mask = Array2::from_elem((h, w), fill);
+            for m in all {
+                let z = integrate(&p, &q, &mask, m);
+                assert_eq!(z.dim(), (h, w));
+                assert!(z.iter().all(|v| v.is_finite()), "{h}×{w} {m:?}");
+                if !fill {
+                    assert!(z.iter().all(|&v| v == 0.0));
+                }
+            }
+            let wt = Array2::from_elem((h, w), 1.0f32);
+            let z = integrate_weighted(&p, &q, &mask, &wt);
+            assert!(z.iter().all(|v| v.is_finite()));
+            let _ = curl(&p, &q, &mask);
+            let _ = gradients(&Array3::zeros((h, w, 3)), &mask);
+        }
+    }
+    // A 1×N ramp is recovered exactly by poisson (masked and full).
+    let p = Array2::from_elem((1, 700), 0.5f32);
+    let q = Array2::zeros((1, 700));
+    for mask in [
+        Array2::from_elem((1, 700), true),
+        Array2::from_shape_fn((1, 700), |(_, c)| c != 300),
+    ] {
+        let z = integrate(&p, &q, &mask, Integration::Poisson);
+        assert!((z[(0, 699)] - z[(0, 301)] - 0.5 * 398.0).abs() < 1e-2);
+        assert!((z[(0, 299)] - z[(0, 0)] - 0.5 * 299.0).abs() < 1e-2);
+    }
+}
+
+#[test]
+fn weighted_poisson_matches_and_down_weights() {
+    let (n, rad) = (128, 40.0);
+    let s = hemisphere(63.5, 63.5, rad);
+    let mask = disc(n, n, 63.5, 63.5, 0.95 * rad);
+    let truth = heights_of(&s, n, n);
+    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
+    let ones = Array2::from_elem((n, n), 1.0f32);
+    let zw = integrate_weighted(&p, &q, &mask, &ones);
+    let zp = integrate(&p, &q, &mask, Integration::Poisson);
+    let diff = zw
+        .iter()
+        .zip(&zp)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(diff < 1e-3, "uniform weights vs poisson {diff}");
+
+    // Corrupt a patch of gradients; giving it low confidence must reduce the error.
+    let (mut pc, mut qc) = (p.clone(), q.clone());
+    let mut conf = ones.clone();
+    for r in 50..62 {
+        for c in 55..70 {
+            pc[(r, c)] += 1.5;
+            qc[(r, c)] -= 1.0;
+            conf[(r, c)] = 0.0;
+        }
+    }
+    let plain = rms(
+        &integrate(&pc, &qc, &mask, Integration::Poisson),
+        &truth,
+        &mask,
+    );
+    let weighted = rms(&integrate_weighted(&pc, &qc, &mask, &conf), &truth, &mask);
+    eprintln!("corrupted patch: poisson {plain:.3} px, weighted {weighted:.3} px");
+    assert!(weighted < 0.5 * plain, "{weighted} vs {plain}");
+}
+
+/// 2048² timings: `cargo test --release --lib integrate -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn timings_2048() {
+    let n = 2048;
+    let rad = 0.45 * n as f64;
+    let c = n as f64 / 2.0;
+    let s = hemisphere(c, c, rad);
+    let full = Array2::from_elem((n, n), true);
+    let mask = disc(n, n, c, c, 0.95 * rad);
+    let (pf, qf) = gradients(&normals_of(&gaussians, &full), &full);
+    let (pd, qd) = gradients(&normals_of(&s, &mask), &mask);
+    let time = |p: &Array2<f32>, q: &Array2<f32>, m: &Array2<bool>, method| {
+        let _ = integrate(p, q, m, method); // warm-up
+        let mut best = f64::INFINITY;
+        for _ in 0..3 {
+            let t = Instant::now();
+            let z = integrate(p, q, m, method);
+            best = best.min(t.elapsed().as_secs_f64());
+            std::hint::black_box(z);
+        }
+        best * 1e3
+    };
+    let fc_full = time(&pf, &qf, &full, Integration::FrankotChellappa);
+    let po_full = time(&pf, &qf, &full, Integration::Poisson);
+    let fc_disc = time(&pd, &qd, &mask, Integration::FrankotChellappa);
+    let po_disc = time(&pd, &qd, &mask, Integration::Poisson);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let st = MaskStencil::new(&m, n, n);
+    let mut b = poisson::rhs(&st, pd.as_slice().unwrap(), qd.as_slice().unwrap());
+    Components::new(&m, n, n).remove_means(&mut b);
+    let t = Instant::now();
+    let (_, stats) = poisson::solve_pcg(&st, b);
+    let pcg = t.elapsed().as_secs_f64() * 1e3;
+    let z = integrate(&pd, &qd, &mask, Integration::Poisson);
+    let err = rms(&z, &heights_of(&s, n, n), &mask);
+    eprintln!(
+        "2048² (best of 3, {} rayon threads):",
+        rayon::current_num_threads()
+    );
+    eprintln!("  frankot-chellappa full frame: {fc_full:.0} ms");
+    eprintln!("  poisson full frame (DCT):     {po_full:.0} ms");
+    eprintln!("  frankot-chellappa disc mask:  {fc_disc:.0} ms");
+    eprintln!(
+        "  poisson disc mask (MG-PCG):   {po_disc:.0} ms = {:.2}× FC  [PCG alone {pcg:.0} ms, {stats:?}]",
+        po_disc / fc_disc
+    );
+    eprintln!("  hemisphere r={rad:.0} depth rms: {err:.4} px");
+}

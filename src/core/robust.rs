@@ -1,0 +1,306 @@
+//! The robust per-pixel solve: keep the observations a Lambertian model explains, set
+//! aside shadows (too dark), highlights and saturation (too bright), and re-fit.
+//!
+//! Method: thresholded inlier selection with re-fits (a hard-threshold M-estimator).
+//! 1. A global pre-pass on a subsample estimates the camera's black level (the median
+//!    of observations the model puts in attached shadow) and the noise σ (MAD of the
+//!    residuals of lit observations).
+//! 2. Per pixel: subtract the black level, drop observations below 3σ (attached and cast
+//!    shadows) or at saturation, fit least squares, then repeatedly keep only the
+//!    observations the fit predicts lit and re-renders within 3σ + 2 % of the albedo,
+//!    until the set stops changing. Normal equations are updated by subtracting the few
+//!    dropped lights from the precomputed full LᵀL, so a fully lit pixel costs one pass.
+//! 3. Fewer than 3 inliers: the pixel keeps the fit of its non-dark observations (or
+//!    plain least squares) and is flagged unreliable.
+
+use ndarray::{Array2, Array3, Axis};
+use rayon::prelude::*;
+
+use super::intake::ImageSet;
+use super::solve::invert3;
+
+const SCALE: f32 = 1.0 / 65535.0;
+/// Re-fits per pixel at most; the inlier set almost always settles in two.
+const MAX_ROUNDS: usize = 6;
+/// Model-error allowance relative to the albedo (interreflection, mild gloss).
+const RELATIVE_TOLERANCE: f32 = 0.02;
+/// Observations at or above this fraction of full scale count as saturated.
+const SATURATED: f32 = 0.999;
+
+/// What the pre-pass learned about the capture.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct CaptureEstimate {
+    /// Offset added to every pixel (ambient + sensor), in [0, 1] units.
+    pub black_level: f32,
+    /// Standard deviation of the noise, in [0, 1] units.
+    pub noise_sigma: f32,
+}
+
+/// The robust solve's products.
+pub struct RobustSurface {
+    pub albedo: Array2<f32>,
+    pub normals: Array3<f32>,
+    pub residual: Array2<f32>,
+    /// How far the pixel's kept observations fit the model, times how many there are.
+    pub confidence: Array2<f32>,
+    /// Observations kept per pixel.
+    pub inliers: Array2<u16>,
+    /// Pixels left with fewer than 3 inliers.
+    pub unreliable: Array2<bool>,
+    pub estimate: CaptureEstimate,
+    /// Tolerance used for the inlier test (absolute part).
+    pub tolerance: f32,
+}
+
+struct Model {
+    lights: Vec<[f32; 3]>,
+    /// Σ lᵢlᵢᵀ over every light.
+    full: [[f64; 3]; 3],
+    black: f32,
+    dark: f32,
+    tolerance: f32,
+}
+
+struct Fit {
+    g: [f32; 3],
+    inliers: usize,
+    reliable: bool,
+}
+
+impl Model {
+    fn new(lights: Vec<[f32; 3]>, black: f32, sigma: f32, quantum: f32) -> Self {
+        let mut full = [[0.0; 3]; 3];
+        for l in &lights {
+            add_outer(&mut full, l, 1.0);
+        }
+        let floor = sigma.max(quantum);
+        Self {
+            lights,
+            full,
+            black,
+            dark: 3.0 * floor,
+            tolerance: 3.0 * floor,
+            }
+    }
+
+    /// Least squares over the observations not in `out`.
+    fn solve(&self, y: &[f32], out: &[bool]) -> Option<[f32; 3]> {
+        let mut m = self.full;
+        let mut rhs = [0.0f64; 3];
+        let mut kept = 0;
+        for ((l, &v), &o) in self.lights.iter().zip(y).zip(out) {
+            if o {
+                add_outer(&mut m, l, -1.0);
+            } else {
+                kept += 1;
+                for k in 0..3 {
+                    rhs[k] += v as f64 * l[k] as f64;
+                }
+            }
+        }
+        if kept < 3 {
+            return None;
+        }
+        let inv = invert3(&m)?;
+        Some([0, 1, 2].map(|r| (0..3).map(|k| inv[r][k] * rhs[k]).sum::<f64>() as f32))
+    }
+
+    fn fit(&self, obs: &[f32], y: &mut [f32], out: &mut [bool], next: &mut [bool]) -> Fit {
+        for ((yi, &o), x) in y.iter_mut().zip(obs).zip(out.iter_mut()) {
+            *yi = o - self.black;
+            *x = *yi <= self.dark || o >= SATURATED;
+        }
+        let dark: Vec<bool> = out.to_vec();
+        // Highlights are only ever too bright: leave the brightest sixth out of the
+        // first fit when enough remain, and let the re-fits take back what fits.
+        let lit = out.iter().filter(|o| !**o).count();
+        if lit >= 8 {
+            let mut order: Vec<usize> = (0..y.len()).filter(|&i| !out[i]).collect();
+            order.sort_unstable_by(|&a, &b| y[b].total_cmp(&y[a]));
+            for &i in order.iter().take(lit.div_ceil(6)) {
+                out[i] = true;
+            }
+        }
+        let Some(mut g) = self.solve(y, out) else {
+            // Too few lit observations: plain least squares, flagged.
+            out.fill(false);
+            let g = self.solve(y, out).unwrap_or([0.0; 3]);
+            return Fit { g, inliers: 0, reliable: false };
+        };
+        for _ in 0..MAX_ROUNDS {
+            let rho = norm(g);
+            let tol = self.tolerance + RELATIVE_TOLERANCE * rho;
+            let mut changed = false;
+            for (i, l) in self.lights.iter().enumerate() {
+                let pred = dot(g, *l);
+                let drop = dark[i] || pred <= 0.0 || (y[i] - pred).abs() > tol;
+                changed |= drop != out[i];
+                next[i] = drop;
+            }
+            if !changed {
+                break;
+            }
+            match self.solve(y, next) {
+                Some(g2) => {
+                    g = g2;
+                    out.copy_from_slice(next);
+                }
+                None => break,
+            }
+        }
+        let inliers = out.iter().filter(|o| !**o).count();
+        Fit { g, inliers, reliable: true }
+    }
+}
+
+/// Confidence in [0, 1]: support grows from 3 kept observations (0.25) to 6 or more (1),
+/// times a Gaussian fall-off of the kept observations' RMS against the tolerance.
+pub fn confidence_of(kept: usize, rms: f32, tolerance: f32) -> f32 {
+    let support = ((kept as f32 - 2.0) / 4.0).clamp(0.0, 1.0);
+    support * (-(rms / tolerance.max(1e-9)).powi(2)).exp()
+}
+
+fn add_outer(m: &mut [[f64; 3]; 3], l: &[f32; 3], sign: f64) {
+    for r in 0..3 {
+        for c in 0..3 {
+            m[r][c] += sign * l[r] as f64 * l[c] as f64;
+        }
+    }
+}
+
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f32; 3]) -> f32 {
+    dot(a, a).sqrt()
+}
+
+fn gather(set: &ImageSet, r: usize, c: usize, obs: &mut [f32]) {
+    for (o, plane) in obs.iter_mut().zip(&set.planes) {
+        *o = plane[[r, c]] as f32 * SCALE;
+    }
+}
+
+/// Estimate black level and noise from a subsample of pixels (about 20 000).
+pub fn estimate(set: &ImageSet) -> CaptureEstimate {
+    let lights: Vec<[f32; 3]> = set.lights.iter().map(|l| l.scaled().map(|v| v as f32)).collect();
+    let n = lights.len();
+    let quantum = quantum(set);
+    let stride = (((set.width * set.height) as f64 / 20_000.0).sqrt().floor() as usize).max(1);
+    let mut black = 0.0f32;
+    let mut sigma = quantum;
+    // Two rounds: the first fit is biased by the unknown black level, the second is not.
+    for _ in 0..2 {
+        let model = Model::new(lights.clone(), black, sigma, quantum);
+        let (mut shadow, mut resid) = (Vec::new(), Vec::new());
+        let (mut obs, mut y, mut out) = (vec![0f32; n], vec![0f32; n], vec![false; n]);
+        for r in (stride / 2..set.height).step_by(stride) {
+            for c in (stride / 2..set.width).step_by(stride) {
+                gather(set, r, c, &mut obs);
+                for ((yi, &o), x) in y.iter_mut().zip(&obs).zip(out.iter_mut()) {
+                    *yi = o - model.black;
+                    *x = *yi <= model.dark || o >= SATURATED;
+                }
+                let Some(g) = model.solve(&y, &out) else { continue };
+                let rho = norm(g);
+                if rho < 0.02 {
+                    continue; // background
+                }
+                for (i, l) in lights.iter().enumerate() {
+                    let pred = dot(g, *l);
+                    if pred < -0.1 * rho {
+                        shadow.push(obs[i]);
+                    } else if !out[i] && pred > 0.1 * rho {
+                        resid.push((y[i] - pred).abs());
+                    }
+                }
+            }
+        }
+        if shadow.len() >= 50 {
+            black = median(&mut shadow);
+        }
+        if resid.len() >= 50 {
+            // MAD → σ, corrected for the 3 fitted parameters.
+            let dof = ((n as f32) / (n as f32 - 3.0).max(1.0)).sqrt();
+            sigma = (1.4826 * median(&mut resid) * dof).max(quantum);
+        }
+    }
+    CaptureEstimate {
+        black_level: black,
+        noise_sigma: sigma,
+    }
+}
+
+fn quantum(set: &ImageSet) -> f32 {
+    if set.bit_depth <= 8 { 1.0 / 255.0 } else { 1.0 / 65535.0 }
+}
+
+fn median(v: &mut [f32]) -> f32 {
+    let k = v.len() / 2;
+    *v.select_nth_unstable_by(k, f32::total_cmp).1
+}
+
+/// Solve every pixel robustly.
+pub fn solve(set: &ImageSet) -> RobustSurface {
+    let estimate = estimate(set);
+    let lights: Vec<[f32; 3]> = set.lights.iter().map(|l| l.scaled().map(|v| v as f32)).collect();
+    let model = Model::new(lights, estimate.black_level, estimate.noise_sigma, quantum(set));
+    let (rows, cols, n) = (set.height, set.width, set.lights.len());
+    let mut albedo = Array2::<f32>::zeros((rows, cols));
+    let mut normals = Array3::<f32>::zeros((rows, cols, 3));
+    let mut residual = Array2::<f32>::zeros((rows, cols));
+    let mut confidence = Array2::<f32>::zeros((rows, cols));
+    let mut inliers = Array2::<u16>::zeros((rows, cols));
+    let mut unreliable = Array2::from_elem((rows, cols), false);
+    albedo
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(inliers.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(unreliable.axis_iter_mut(Axis(0)).into_par_iter())
+        .enumerate()
+        .for_each(|(r, (((((mut a_row, mut n_row), mut res_row), mut conf_row), mut in_row), mut bad_row))| {
+            let (mut obs, mut y) = (vec![0f32; n], vec![0f32; n]);
+            let (mut out, mut next) = (vec![false; n], vec![false; n]);
+            for c in 0..cols {
+                gather(set, r, c, &mut obs);
+                let fit = model.fit(&obs, &mut y, &mut out, &mut next);
+                let rho = norm(fit.g);
+                a_row[c] = rho;
+                if rho > 0.0 && rho.is_finite() {
+                    for k in 0..3 {
+                        n_row[[c, k]] = fit.g[k] / rho;
+                    }
+                }
+                in_row[c] = fit.inliers as u16;
+                bad_row[c] = !fit.reliable;
+                // Reprojection over every observation, the shadow model included.
+                let (mut sum, mut inlier_sum) = (0.0, 0.0);
+                for ((l, &o), &dropped) in model.lights.iter().zip(&obs).zip(&out) {
+                    let pred = dot(fit.g, *l).max(0.0) + model.black;
+                    sum += (o - pred) * (o - pred);
+                    if !dropped {
+                        inlier_sum += (o - pred) * (o - pred);
+                    }
+                }
+                res_row[c] = (sum / n as f32).sqrt();
+                if fit.reliable && fit.inliers >= 3 {
+                    let rms = (inlier_sum / fit.inliers as f32).sqrt();
+                    conf_row[c] = confidence_of(fit.inliers, rms, model.tolerance + RELATIVE_TOLERANCE * rho);
+                }
+            }
+        });
+    RobustSurface {
+        albedo,
+        normals,
+        residual,
+        confidence,
+        inliers,
+        unreliable,
+        estimate,
+        tolerance: model.tolerance,
+    }
+}

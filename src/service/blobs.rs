@@ -1,0 +1,246 @@
+//! Job bytes behind [`BlobStore`]; [`LocalStore`] keeps them under `{data}/jobs/{id}/`:
+//!
+//! ```text
+//! jobs/{id}/input.partial/   an upload being received (removed if it fails)
+//! jobs/{id}/input/           manifest.json, lights.txt, 000.img, 001.img, …, mask.img
+//! jobs/{id}/output.partial/  a reconstruction being written
+//! jobs/{id}/output/          the finished artifacts (renamed from output.partial at once)
+//! ```
+//!
+//! The reconstruction core reads and writes local files, so the store hands out local
+//! directories; a remote store (S3 and the like) would stage through a local cache and
+//! upload on `commit_outputs`. Nothing a caller sends ever becomes a path: directories
+//! are named by the job's UUID, files by the service.
+
+use std::io;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use uuid::Uuid;
+
+use super::util::sync_dir;
+
+/// File names inside a job's input directory.
+pub const MANIFEST_FILE: &str = "manifest.json";
+pub const LIGHTS_FILE: &str = "lights.txt";
+pub const MASK_FILE: &str = "mask.img";
+
+/// Name of the `i`-th stored input image.
+pub fn image_file(i: usize) -> String {
+    format!("{i:03}.img")
+}
+
+/// What the input directory holds: table names → stored files.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub images: Vec<ManifestEntry>,
+    pub mask: Option<ManifestEntry>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ManifestEntry {
+    /// The name the light table uses (or the mask part's file name).
+    pub name: String,
+    /// The stored file, relative to the input directory.
+    pub file: String,
+}
+
+/// Where job inputs and artifacts live.
+pub trait BlobStore: Send + Sync + 'static {
+    /// A fresh, empty directory to receive a job's upload into.
+    fn stage_inputs(&self, id: Uuid) -> io::Result<PathBuf>;
+    /// Make the staged upload the job's inputs (durably).
+    fn commit_inputs(&self, id: Uuid) -> io::Result<()>;
+    /// The committed inputs.
+    fn inputs(&self, id: Uuid) -> PathBuf;
+    fn remove_inputs(&self, id: Uuid) -> io::Result<()>;
+    /// A fresh, empty directory for a reconstruction to write into.
+    fn stage_outputs(&self, id: Uuid) -> io::Result<PathBuf>;
+    /// Make the staged outputs the job's artifacts, all at once (durably).
+    fn commit_outputs(&self, id: Uuid) -> io::Result<()>;
+    /// Remove staged and committed outputs.
+    fn discard_outputs(&self, id: Uuid) -> io::Result<()>;
+    /// The committed artifacts' directory.
+    fn outputs(&self, id: Uuid) -> PathBuf;
+    /// Remove everything of a job (a missing job is not an error).
+    fn remove_job(&self, id: Uuid) -> io::Result<()>;
+    /// Every job that has a directory.
+    fn job_ids(&self) -> io::Result<Vec<Uuid>>;
+    /// Remove what an interrupted upload or reconstruction left behind.
+    fn remove_partials(&self, id: Uuid) -> io::Result<()>;
+    /// Bytes available to this process on the store's file system.
+    fn free_bytes(&self) -> io::Result<u64>;
+    /// Write, sync and remove a probe file.
+    fn probe_writable(&self) -> io::Result<()>;
+}
+
+/// [`BlobStore`] in a local directory.
+pub struct LocalStore {
+    root: PathBuf,
+}
+
+impl LocalStore {
+    pub fn open(data_dir: &Path) -> io::Result<Self> {
+        let root = data_dir.join("jobs");
+        std::fs::create_dir_all(&root)?;
+        Ok(Self { root })
+    }
+
+    fn job(&self, id: Uuid) -> PathBuf {
+        self.root.join(id.to_string())
+    }
+
+    fn fresh_dir(path: &Path) -> io::Result<()> {
+        remove_dir_if_exists(path)?;
+        std::fs::create_dir_all(path)
+    }
+
+    /// Sync every file in `dir`, then rename it to `to` and sync the parent.
+    fn commit_dir(from: &Path, to: &Path) -> io::Result<()> {
+        for entry in std::fs::read_dir(from)? {
+            let entry = entry?;
+            if entry.file_type()?.is_file() {
+                std::fs::File::open(entry.path())?.sync_all()?;
+            }
+        }
+        sync_dir(from)?;
+        remove_dir_if_exists(to)?;
+        std::fs::rename(from, to)?;
+        if let Some(parent) = to.parent() {
+            sync_dir(parent)?;
+        }
+        Ok(())
+    }
+}
+
+fn remove_dir_if_exists(path: &Path) -> io::Result<()> {
+    match std::fs::remove_dir_all(path) {
+        Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+        _ => Ok(()),
+    }
+}
+
+impl BlobStore for LocalStore {
+    fn stage_inputs(&self, id: Uuid) -> io::Result<PathBuf> {
+        let dir = self.job(id).join("input.partial");
+        Self::fresh_dir(&dir)?;
+        Ok(dir)
+    }
+
+    fn commit_inputs(&self, id: Uuid) -> io::Result<()> {
+        let job = self.job(id);
+        Self::commit_dir(&job.join("input.partial"), &job.join("input"))?;
+        sync_dir(&self.root)
+    }
+
+    fn inputs(&self, id: Uuid) -> PathBuf {
+        self.job(id).join("input")
+    }
+
+    fn remove_inputs(&self, id: Uuid) -> io::Result<()> {
+        remove_dir_if_exists(&self.job(id).join("input"))
+    }
+
+    fn stage_outputs(&self, id: Uuid) -> io::Result<PathBuf> {
+        let dir = self.job(id).join("output.partial");
+        Self::fresh_dir(&dir)?;
+        Ok(dir)
+    }
+
+    fn commit_outputs(&self, id: Uuid) -> io::Result<()> {
+        let job = self.job(id);
+        Self::commit_dir(&job.join("output.partial"), &job.join("output"))
+    }
+
+    fn discard_outputs(&self, id: Uuid) -> io::Result<()> {
+        let job = self.job(id);
+        remove_dir_if_exists(&job.join("output.partial"))?;
+        remove_dir_if_exists(&job.join("output"))
+    }
+
+    fn outputs(&self, id: Uuid) -> PathBuf {
+        self.job(id).join("output")
+    }
+
+    fn remove_job(&self, id: Uuid) -> io::Result<()> {
+        remove_dir_if_exists(&self.job(id))
+    }
+
+    fn job_ids(&self) -> io::Result<Vec<Uuid>> {
+        let mut ids = Vec::new();
+        for entry in std::fs::read_dir(&self.root)? {
+            let entry = entry?;
+            if let Some(id) = entry.file_name().to_str().and_then(|s| Uuid::parse_str(s).ok()) {
+                ids.push(id);
+            }
+        }
+        Ok(ids)
+    }
+
+    fn remove_partials(&self, id: Uuid) -> io::Result<()> {
+        let job = self.job(id);
+        remove_dir_if_exists(&job.join("input.partial"))?;
+        remove_dir_if_exists(&job.join("output.partial"))
+    }
+
+    fn free_bytes(&self) -> io::Result<u64> {
+        free_bytes(&self.root)
+    }
+
+    fn probe_writable(&self) -> io::Result<()> {
+        let probe = self
+            .root
+            .join(format!(".probe-{}", Uuid::new_v4().simple()));
+        std::fs::write(&probe, b"ok")?;
+        std::fs::remove_file(&probe)
+    }
+}
+
+#[cfg(unix)]
+fn free_bytes(path: &Path) -> io::Result<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c_path = std::ffi::CString::new(path.as_os_str().as_bytes())
+        .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e))?;
+    // SAFETY: `c_path` is a valid NUL-terminated string and `stat` a properly sized,
+    // zero-initialised out-parameter that statvfs fills in.
+    let mut stat: libc::statvfs = unsafe { std::mem::zeroed() };
+    let rc = unsafe { libc::statvfs(c_path.as_ptr(), &mut stat) };
+    if rc != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    #[allow(clippy::unnecessary_cast)] // the field types differ between platforms
+    Ok((stat.f_bavail as u64).saturating_mul(stat.f_frsize as u64))
+}
+
+#[cfg(not(unix))]
+fn free_bytes(_path: &Path) -> io::Result<u64> {
+    Ok(u64::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn staged_dirs_commit_atomically() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = LocalStore::open(dir.path()).unwrap();
+        let id = Uuid::new_v4();
+        let staged = store.stage_inputs(id).unwrap();
+        std::fs::write(staged.join("000.img"), b"x").unwrap();
+        store.commit_inputs(id).unwrap();
+        assert!(store.inputs(id).join("000.img").is_file());
+        assert!(!staged.exists());
+        let out = store.stage_outputs(id).unwrap();
+        std::fs::write(out.join("result.json"), b"{}").unwrap();
+        assert!(!store.outputs(id).exists());
+        store.commit_outputs(id).unwrap();
+        assert!(store.outputs(id).join("result.json").is_file());
+        assert_eq!(store.job_ids().unwrap(), vec![id]);
+        assert!(store.free_bytes().unwrap() > 0);
+        store.probe_writable().unwrap();
+        store.remove_job(id).unwrap();
+        store.remove_job(id).unwrap();
+        assert!(store.job_ids().unwrap().is_empty());
+    }
+}

@@ -1,0 +1,254 @@
+//! `photostereo serve` settings: flags, their environment variables and defaults.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use crate::core::intake::Limits;
+
+use super::util::{parse_duration, parse_size};
+
+/// Log line format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
+}
+
+/// Run the HTTP API: accept reconstruction jobs, run them on a bounded worker pool and
+/// serve their artifacts.
+///
+/// Every flag can also be set through the environment variable named in its help.
+/// Durations take `90` (seconds), `500ms`, `30s`, `15m`, `2h`, `7d`, `1w` or sums such as
+/// `1h30m`; sizes take bytes or `KiB`/`MiB`/`GiB`/`TiB` (binary) and `KB`/`MB`/`GB`
+/// (decimal).
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Address and port to listen on.
+    #[arg(long, env = "PHOTOSTEREO_LISTEN", default_value = "127.0.0.1:8080")]
+    pub listen: String,
+
+    /// Directory for the job database and the jobs' inputs and artifacts.
+    #[arg(long, env = "PHOTOSTEREO_DATA_DIR", default_value = "./data")]
+    pub data_dir: PathBuf,
+
+    /// Reconstructions that run at once [default: the number of CPU cores].
+    #[arg(long, env = "PHOTOSTEREO_WORKERS", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub workers: Option<u32>,
+
+    /// Accepted jobs that may wait for a worker; past this, submissions get 503 with
+    /// Retry-After.
+    #[arg(long, env = "PHOTOSTEREO_QUEUE_LENGTH", default_value_t = 64)]
+    pub queue_length: usize,
+
+    /// Largest request body accepted (413 past it).
+    #[arg(long, env = "PHOTOSTEREO_MAX_BODY_BYTES", default_value = "1GiB", value_parser = parse_size)]
+    pub max_body_bytes: u64,
+
+    /// Most images in one job (413 past it).
+    #[arg(long, env = "PHOTOSTEREO_MAX_IMAGES", default_value_t = 64)]
+    pub max_images: usize,
+
+    /// Most pixels in one image, width × height (413 past it).
+    #[arg(long, env = "PHOTOSTEREO_MAX_PIXELS", default_value_t = 16_777_216)]
+    pub max_pixels: u64,
+
+    /// Most parts in one multipart upload, and most entries in one zip archive (413 past
+    /// it).
+    #[arg(long, env = "PHOTOSTEREO_MAX_PARTS", default_value_t = 256)]
+    pub max_parts: usize,
+
+    /// Most bytes a zip archive may unpack to, all entries together (413 past it).
+    #[arg(long, env = "PHOTOSTEREO_MAX_UNPACKED_BYTES", default_value = "2GiB", value_parser = parse_size)]
+    pub max_unpacked_bytes: u64,
+
+    /// How long finished jobs (and their artifacts) are kept before they are deleted.
+    #[arg(long, env = "PHOTOSTEREO_RETENTION", default_value = "7d", value_parser = parse_duration)]
+    pub retention: Duration,
+
+    /// Longest a reconstruction may run; past it the job fails (checked between stages).
+    #[arg(long, env = "PHOTOSTEREO_JOB_TIMEOUT", default_value = "30m", value_parser = parse_duration)]
+    pub job_timeout: Duration,
+
+    /// Longest an upload (one POST /v1/jobs body) may take (408 past it).
+    #[arg(long, env = "PHOTOSTEREO_UPLOAD_TIMEOUT", default_value = "10m", value_parser = parse_duration)]
+    pub upload_timeout: Duration,
+
+    /// Refuse new jobs with 507 while the data directory's file system has less free
+    /// space than this.
+    #[arg(long, env = "PHOTOSTEREO_MIN_FREE_DISK", default_value = "1GiB", value_parser = parse_size)]
+    pub min_free_disk: u64,
+
+    /// API key required as `Authorization: Bearer <key>` on every /v1 route (repeat for
+    /// several keys; the environment variable takes a comma-separated list). No key: the
+    /// API is open.
+    #[arg(
+        long = "api-key",
+        env = "PHOTOSTEREO_API_KEYS",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub api_keys: Vec<String>,
+
+    /// On SIGTERM or Ctrl-C, how long running jobs may go on finishing; jobs still running
+    /// then are stopped at their next stage and run again at the next start.
+    #[arg(long, env = "PHOTOSTEREO_SHUTDOWN_GRACE", default_value = "30s", value_parser = parse_duration)]
+    pub shutdown_grace: Duration,
+
+    /// Log format (the level is set with RUST_LOG, default `info`).
+    #[arg(long, env = "PHOTOSTEREO_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    pub log_format: LogFormat,
+}
+
+/// The service's runtime settings (what [`ServeArgs`] resolves to; tests build it
+/// directly).
+#[derive(Debug, Clone)]
+pub struct Config {
+    pub data_dir: PathBuf,
+    pub workers: usize,
+    pub queue_length: usize,
+    pub max_body_bytes: u64,
+    pub max_images: usize,
+    pub max_pixels: u64,
+    pub max_parts: usize,
+    pub max_unpacked_bytes: u64,
+    pub retention: Duration,
+    pub job_timeout: Duration,
+    pub upload_timeout: Duration,
+    pub min_free_disk: u64,
+    pub api_keys: Vec<String>,
+    pub shutdown_grace: Duration,
+    /// How often expired jobs are looked for.
+    pub sweep_interval: Duration,
+    /// Test hook: a pause at the start of every stage (cancellable), to make jobs last.
+    pub stage_delay: Duration,
+}
+
+/// Largest light table accepted (bytes).
+pub const MAX_LIGHTS_BYTES: usize = 1 << 20;
+/// Largest `options` part accepted (bytes).
+pub const MAX_OPTIONS_BYTES: usize = 64 << 10;
+/// Seconds a client is told to wait when the queue is full.
+pub const RETRY_AFTER_SECS: u64 = 5;
+
+impl Config {
+    /// The defaults of [`ServeArgs`], with the given data directory.
+    pub fn new(data_dir: impl Into<PathBuf>) -> Self {
+        Self {
+            data_dir: data_dir.into(),
+            workers: default_workers(),
+            queue_length: 64,
+            max_body_bytes: 1 << 30,
+            max_images: 64,
+            max_pixels: 16_777_216,
+            max_parts: 256,
+            max_unpacked_bytes: 2 << 30,
+            retention: Duration::from_secs(7 * 86_400),
+            job_timeout: Duration::from_secs(30 * 60),
+            upload_timeout: Duration::from_secs(10 * 60),
+            min_free_disk: 1 << 30,
+            api_keys: Vec::new(),
+            shutdown_grace: Duration::from_secs(30),
+            sweep_interval: Duration::from_secs(60),
+            stage_delay: Duration::ZERO,
+        }
+    }
+
+    /// What the core's intake is allowed to decode.
+    pub fn limits(&self) -> Limits {
+        Limits {
+            max_pixels_per_image: self.max_pixels,
+            max_images: self.max_images,
+        }
+    }
+}
+
+fn default_workers() -> usize {
+    std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1)
+}
+
+impl From<&ServeArgs> for Config {
+    fn from(a: &ServeArgs) -> Self {
+        let mut c = Config::new(a.data_dir.clone());
+        c.workers = a.workers.map(|w| w as usize).unwrap_or_else(default_workers);
+        c.queue_length = a.queue_length;
+        c.max_body_bytes = a.max_body_bytes;
+        c.max_images = a.max_images;
+        c.max_pixels = a.max_pixels;
+        c.max_parts = a.max_parts;
+        c.max_unpacked_bytes = a.max_unpacked_bytes;
+        c.retention = a.retention;
+        c.job_timeout = a.job_timeout;
+        c.upload_timeout = a.upload_timeout;
+        c.min_free_disk = a.min_free_disk;
+        c.api_keys = a
+            .api_keys
+            .iter()
+            .map(|k| k.trim().to_string())
+            .filter(|k| !k.is_empty())
+            .collect();
+        c.shutdown_grace = a.shutdown_grace;
+        c.sweep_interval = (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
+        c
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        serve: ServeArgs,
+    }
+
+    #[test]
+    fn defaults_match_config_new() {
+        let cli = Cli::try_parse_from(["x"]).unwrap();
+        let c = Config::from(&cli.serve);
+        let d = Config::new("./data");
+        assert_eq!(cli.serve.listen, "127.0.0.1:8080");
+        assert_eq!(c.data_dir, d.data_dir);
+        assert_eq!(c.max_body_bytes, d.max_body_bytes);
+        assert_eq!(c.max_pixels, d.max_pixels);
+        assert_eq!(c.retention, d.retention);
+        assert_eq!(c.job_timeout, d.job_timeout);
+        assert_eq!(c.upload_timeout, d.upload_timeout);
+        assert_eq!(c.min_free_disk, d.min_free_disk);
+        assert_eq!(c.max_unpacked_bytes, d.max_unpacked_bytes);
+        assert_eq!(c.queue_length, d.queue_length);
+        assert_eq!(c.max_parts, d.max_parts);
+        assert_eq!(c.max_images, d.max_images);
+        assert!(c.workers >= 1);
+    }
+
+    #[test]
+    fn parses_units_and_repeated_keys() {
+        let cli = Cli::try_parse_from([
+            "x",
+            "--retention",
+            "2h",
+            "--max-body-bytes",
+            "10MiB",
+            "--api-key",
+            "a",
+            "--api-key",
+            "b,c",
+            "--workers",
+            "3",
+        ])
+        .unwrap();
+        let c = Config::from(&cli.serve);
+        assert_eq!(c.retention, Duration::from_secs(7200));
+        assert_eq!(c.max_body_bytes, 10 << 20);
+        assert_eq!(c.api_keys, ["a", "b", "c"]);
+        assert_eq!(c.workers, 3);
+        assert!(Cli::try_parse_from(["x", "--workers", "0"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--retention", "soon"]).is_err());
+    }
+}

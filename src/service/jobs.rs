@@ -1,0 +1,547 @@
+//! The job queue and the worker pool.
+//!
+//! Accepted jobs wait in a bounded in-memory queue (its length is `--queue-length`; the
+//! repo is the durable copy). `--workers` plain threads take jobs from it, so never more
+//! than that many run at once; each runs `intake::load` and `pipeline::run` into a staged
+//! output directory that is renamed into place when the job succeeds. Progress goes to the
+//! repo at every stage; the progress callback is also where cancellation, the time limit
+//! and shutdown stop a job.
+
+use std::collections::{HashMap, VecDeque};
+use std::panic::AssertUnwindSafe;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use uuid::Uuid;
+
+use crate::core::Options;
+use crate::core::intake::{self, NamedFile};
+use crate::core::lights;
+use crate::core::outputs::ARTIFACTS;
+use crate::core::pipeline::{self, Report, RunError, Stage};
+
+use super::Inner;
+use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest};
+use super::error::ApiError;
+use super::repo::{ArtifactInfo, Finish, JobStatus};
+use super::util::{fnv1a, format_duration, now_ms};
+
+/// The pipeline's stages in order; progress is the index of the stage reached over
+/// their number.
+pub const STAGES: [Stage; 6] = [
+    Stage::Decode,
+    Stage::Solve,
+    Stage::Mask,
+    Stage::Integrate,
+    Stage::Outputs,
+    Stage::Mesh,
+];
+
+/// What a running job's worker watches for.
+#[derive(Default)]
+pub struct RunControl {
+    /// A `DELETE` cancelled the job.
+    cancel: AtomicBool,
+    /// The service is stopping: stop and run the job again at the next start.
+    interrupt: AtomicBool,
+}
+
+struct QueueState {
+    pending: VecDeque<Uuid>,
+    closed: bool,
+}
+
+/// Why a job could not be queued.
+#[derive(Debug, PartialEq, Eq)]
+pub enum PushError {
+    Full,
+    Closed,
+}
+
+/// The bounded queue, the running set and the pool's counters.
+pub struct JobQueue {
+    state: Mutex<QueueState>,
+    ready: Condvar,
+    limit: usize,
+    running: Mutex<HashMap<Uuid, Arc<RunControl>>>,
+    running_now: AtomicUsize,
+    running_max: AtomicUsize,
+    /// Workers holding a job (from taking it off the queue until done with it).
+    busy: AtomicUsize,
+    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl JobQueue {
+    pub fn new(limit: usize) -> Self {
+        Self {
+            state: Mutex::new(QueueState {
+                pending: VecDeque::new(),
+                closed: false,
+            }),
+            ready: Condvar::new(),
+            limit,
+            running: Mutex::new(HashMap::new()),
+            running_now: AtomicUsize::new(0),
+            running_max: AtomicUsize::new(0),
+            busy: AtomicUsize::new(0),
+            threads: Mutex::new(Vec::new()),
+        }
+    }
+
+    pub fn capacity(&self) -> usize {
+        self.limit
+    }
+
+    pub fn depth(&self) -> usize {
+        lock(&self.state).pending.len()
+    }
+
+    pub fn is_full(&self) -> bool {
+        self.depth() >= self.limit
+    }
+
+    /// Queue a newly accepted job, unless the queue is full or closed.
+    pub fn try_push(&self, id: Uuid) -> Result<(), PushError> {
+        let mut s = lock(&self.state);
+        if s.closed {
+            return Err(PushError::Closed);
+        }
+        if s.pending.len() >= self.limit {
+            return Err(PushError::Full);
+        }
+        s.pending.push_back(id);
+        drop(s);
+        self.ready.notify_one();
+        Ok(())
+    }
+
+    /// Queue a job regardless of the limit (jobs recovered at startup: a 202 is a promise).
+    pub fn push(&self, id: Uuid) {
+        lock(&self.state).pending.push_back(id);
+        self.ready.notify_one();
+    }
+
+    /// Take a cancelled job out of the queue.
+    pub fn remove(&self, id: Uuid) -> bool {
+        let mut s = lock(&self.state);
+        let before = s.pending.len();
+        s.pending.retain(|j| *j != id);
+        s.pending.len() != before
+    }
+
+    /// Wait for the next job; None once the queue is closed.
+    fn pop(&self) -> Option<Uuid> {
+        let mut s = lock(&self.state);
+        loop {
+            if s.closed {
+                return None;
+            }
+            if let Some(id) = s.pending.pop_front() {
+                self.busy.fetch_add(1, Ordering::SeqCst);
+                return Some(id);
+            }
+            s = self.ready.wait(s).unwrap_or_else(|p| p.into_inner());
+        }
+    }
+
+    /// Stop handing out jobs (those still queued stay queued in the repo).
+    pub fn close(&self) {
+        lock(&self.state).closed = true;
+        self.ready.notify_all();
+    }
+
+    pub fn is_closed(&self) -> bool {
+        lock(&self.state).closed
+    }
+
+    pub fn running(&self) -> usize {
+        self.running_now.load(Ordering::SeqCst)
+    }
+
+    /// The most jobs ever running at once since start.
+    pub fn running_max(&self) -> usize {
+        self.running_max.load(Ordering::SeqCst)
+    }
+
+    /// Workers busy with a job (including one just taken off the queue).
+    pub fn busy(&self) -> usize {
+        self.busy.load(Ordering::SeqCst)
+    }
+
+    pub fn running_ids(&self) -> Vec<Uuid> {
+        lock(&self.running).keys().copied().collect()
+    }
+
+    /// Ask a running job to stop at its next stage. False when no worker has it.
+    pub fn cancel_running(&self, id: Uuid) -> bool {
+        match lock(&self.running).get(&id) {
+            Some(ctl) => {
+                ctl.cancel.store(true, Ordering::SeqCst);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Whether a worker still holds the job (it may be finishing a cancelled one).
+    pub fn is_held(&self, id: Uuid) -> bool {
+        lock(&self.running).contains_key(&id)
+    }
+
+    /// Ask every running job to stop at its next stage and go back to the queue.
+    pub fn interrupt_all(&self) {
+        for ctl in lock(&self.running).values() {
+            ctl.interrupt.store(true, Ordering::SeqCst);
+        }
+    }
+
+    fn register(&self, id: Uuid) -> Arc<RunControl> {
+        let ctl = Arc::new(RunControl::default());
+        lock(&self.running).insert(id, ctl.clone());
+        ctl
+    }
+
+    fn unregister(&self, id: Uuid) {
+        lock(&self.running).remove(&id);
+    }
+
+    fn begin_running(&self) -> RunningGuard<'_> {
+        let now = self.running_now.fetch_add(1, Ordering::SeqCst) + 1;
+        self.running_max.fetch_max(now, Ordering::SeqCst);
+        RunningGuard(self)
+    }
+
+    pub(crate) fn add_thread(&self, handle: std::thread::JoinHandle<()>) {
+        lock(&self.threads).push(handle);
+    }
+
+    /// Join the worker threads that have exited (all of them after `close` once their
+    /// jobs end).
+    pub(crate) fn join_finished_threads(&self) {
+        let mut threads = lock(&self.threads);
+        let (done, alive): (Vec<_>, Vec<_>) = threads.drain(..).partition(|t| t.is_finished());
+        *threads = alive;
+        drop(threads);
+        for t in done {
+            let _ = t.join();
+        }
+    }
+}
+
+struct RunningGuard<'a>(&'a JobQueue);
+
+impl Drop for RunningGuard<'_> {
+    fn drop(&mut self) {
+        self.0.running_now.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// A worker thread: run jobs until the queue closes.
+pub(crate) fn worker_loop(inner: Arc<Inner>) {
+    while let Some(id) = inner.jobs.pop() {
+        process(&inner, id);
+        inner.jobs.busy.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// Why a job stopped without a result.
+enum Stop {
+    /// The progress callback said stop (cancel, interrupt or time limit).
+    Stopped,
+    Error(ApiError),
+}
+
+impl From<ApiError> for Stop {
+    fn from(e: ApiError) -> Self {
+        Stop::Error(e)
+    }
+}
+
+fn process(inner: &Inner, id: Uuid) {
+    // Registered before the repo says running, so a DELETE that sees "running" finds it.
+    let ctl = inner.jobs.register(id);
+    match inner.repo.start(id, now_ms()) {
+        Ok(true) => {}
+        Ok(false) => {
+            inner.jobs.unregister(id);
+            return; // cancelled or deleted while queued
+        }
+        Err(e) => {
+            tracing::error!(job = %id, error = %e, "cannot start job");
+            inner.jobs.unregister(id);
+            return;
+        }
+    }
+    let running = inner.jobs.begin_running();
+    let started = Instant::now();
+    let span = tracing::info_span!("job", job = %id);
+    let _enter = span.enter();
+    tracing::info!("job started");
+
+    let mut clock = StageClock {
+        inner,
+        id,
+        ctl: &ctl,
+        deadline: started + inner.config.job_timeout,
+        current: None,
+        timed_out: false,
+    };
+    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| execute(inner, id, &mut clock)))
+        .unwrap_or_else(|panic| {
+            let what = panic
+                .downcast_ref::<String>()
+                .map(String::as_str)
+                .or_else(|| panic.downcast_ref::<&str>().copied())
+                .unwrap_or("unknown panic");
+            tracing::error!(panic = %what, "the reconstruction panicked");
+            Err(Stop::Error(ApiError::job_failed(
+                "internal error: the reconstruction crashed; see the server logs",
+            )))
+        });
+    clock.close();
+    let timed_out = clock.timed_out;
+    settle(inner, id, &ctl, outcome, timed_out, started.elapsed());
+    drop(running);
+    inner.jobs.unregister(id);
+}
+
+/// Record how the job ended and tidy its files.
+fn settle(
+    inner: &Inner,
+    id: Uuid,
+    ctl: &RunControl,
+    outcome: Result<(serde_json::Value, Vec<ArtifactInfo>), Stop>,
+    timed_out: bool,
+    elapsed: Duration,
+) {
+    let instance = format!("/v1/jobs/{id}");
+    let now = now_ms();
+    let recorded = match outcome {
+        Ok((result, artifacts)) => inner
+            .repo
+            .finish(id, &Finish::Succeeded { result, artifacts }, now)
+            .map(|ok| ok.then_some(JobStatus::Succeeded)),
+        Err(Stop::Stopped) if ctl.interrupt.load(Ordering::SeqCst) => {
+            tracing::info!("job interrupted by shutdown; it runs again at the next start");
+            inner.repo.requeue(id).map(|_| None)
+        }
+        Err(Stop::Stopped) if timed_out && !ctl.cancel.load(Ordering::SeqCst) => {
+            let e = ApiError::job_timeout(format!(
+                "the reconstruction did not finish within the job time limit of {}",
+                format_duration(inner.config.job_timeout)
+            ))
+            .with_instance(&instance);
+            inner
+                .repo
+                .finish(id, &Finish::Failed(e.problem()), now)
+                .map(|ok| ok.then_some(JobStatus::Failed))
+        }
+        Err(Stop::Stopped) => Ok(Some(JobStatus::Cancelled)), // the DELETE recorded it
+        Err(Stop::Error(e)) => {
+            tracing::info!(status = e.status().as_u16(), detail = e.detail(), "job failed");
+            let problem = e.with_instance(&instance).problem();
+            inner
+                .repo
+                .finish(id, &Finish::Failed(problem), now)
+                .map(|ok| ok.then_some(JobStatus::Failed))
+        }
+    };
+    match recorded {
+        Ok(Some(status)) => {
+            tracing::info!(status = status.as_str(), seconds = elapsed.as_secs_f64(), "job finished");
+            inner.metrics.observe_finished(status, elapsed);
+        }
+        Ok(None) => {}
+        Err(e) => tracing::error!(error = %e, "cannot record the job's outcome"),
+    }
+    // Whatever the repo now says decides which files stay.
+    let tidy = match inner.repo.get(id) {
+        Ok(None) => inner.store.remove_job(id),
+        Ok(Some(rec)) if rec.status == JobStatus::Succeeded => inner.store.remove_inputs(id),
+        Ok(Some(rec)) if rec.status.is_terminal() => inner
+            .store
+            .remove_inputs(id)
+            .and_then(|_| inner.store.discard_outputs(id)),
+        Ok(Some(_)) => inner.store.discard_outputs(id),
+        Err(e) => {
+            tracing::error!(error = %e, "cannot read the job back");
+            Ok(())
+        }
+    };
+    if let Err(e) = tidy {
+        tracing::warn!(error = %e, "cannot tidy the job's files");
+    }
+}
+
+/// Times stages, records progress, and decides whether to go on.
+struct StageClock<'a> {
+    inner: &'a Inner,
+    id: Uuid,
+    ctl: &'a RunControl,
+    deadline: Instant,
+    current: Option<(Stage, Instant)>,
+    timed_out: bool,
+}
+
+impl StageClock<'_> {
+    fn should_stop(&mut self) -> bool {
+        if Instant::now() >= self.deadline {
+            self.timed_out = true;
+        }
+        self.timed_out
+            || self.ctl.cancel.load(Ordering::SeqCst)
+            || self.ctl.interrupt.load(Ordering::SeqCst)
+    }
+
+    fn close(&mut self) {
+        if let Some((stage, at)) = self.current.take() {
+            self.inner
+                .metrics
+                .observe_stage(stage.as_str(), at.elapsed());
+        }
+    }
+
+    /// A stage starts: false means stop.
+    fn enter(&mut self, stage: Stage) -> bool {
+        if self.current.map(|(s, _)| s) == Some(stage) {
+            return !self.should_stop(); // the pipeline re-announced the stage we report
+        }
+        self.close();
+        if self.should_stop() {
+            return false;
+        }
+        let index = STAGES.iter().position(|s| *s == stage).unwrap_or(0);
+        let progress = index as f64 / STAGES.len() as f64;
+        if let Err(e) = self
+            .inner
+            .repo
+            .progress(self.id, stage.as_str(), progress, now_ms())
+        {
+            tracing::warn!(error = %e, "cannot record progress");
+        }
+        tracing::debug!(stage = stage.as_str(), "stage");
+        self.current = Some((stage, Instant::now()));
+        let delay = self.inner.config.stage_delay;
+        if !delay.is_zero() {
+            let until = Instant::now() + delay;
+            while Instant::now() < until && !self.should_stop() {
+                std::thread::sleep(Duration::from_millis(5).min(delay));
+            }
+        }
+        !self.should_stop()
+    }
+}
+
+/// Load the job's inputs and reconstruct; on success the outputs are committed.
+fn execute(
+    inner: &Inner,
+    id: Uuid,
+    clock: &mut StageClock<'_>,
+) -> Result<(serde_json::Value, Vec<ArtifactInfo>), Stop> {
+    let record = inner
+        .repo
+        .get(id)
+        .map_err(ApiError::from)?
+        .ok_or(Stop::Stopped)?;
+    let options: Options = serde_json::from_value(record.options)
+        .map_err(|e| ApiError::invalid(format!("options: {e}")))?;
+    let input = inner.store.inputs(id);
+    let manifest: Manifest = std::fs::read(input.join(MANIFEST_FILE))
+        .map_err(ApiError::from)
+        .and_then(|b| {
+            serde_json::from_slice(&b)
+                .map_err(|e| ApiError::internal(format!("manifest of {id}: {e}")))
+        })?;
+    let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(ApiError::from)?;
+
+    if !clock.enter(Stage::Decode) {
+        return Err(Stop::Stopped);
+    }
+    let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
+    let files: Vec<NamedFile> = manifest
+        .images
+        .iter()
+        .map(|e| NamedFile {
+            name: e.name.clone(),
+            path: input.join(&e.file),
+        })
+        .collect();
+    let mask = manifest.mask.as_ref().map(|m| NamedFile {
+        name: m.name.clone(),
+        path: input.join(&m.file),
+    });
+    let set = intake::load(lights, &files, mask.as_ref(), &inner.config.limits())
+        .map_err(ApiError::from)?;
+
+    let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
+    let report = pipeline::run(&set, &options, &out, &mut |stage| clock.enter(stage));
+    drop(set);
+    clock.close();
+    let report = match report {
+        Ok(r) => r,
+        Err(RunError::Cancelled) => return Err(Stop::Stopped),
+        Err(e) => return Err(ApiError::from(e).into()),
+    };
+    inner
+        .store
+        .commit_outputs(id)
+        .map_err(|e| ApiError::internal(format!("committing the outputs of {id}: {e}")))?;
+    let artifacts = list_artifacts(&inner.store.outputs(id)).map_err(ApiError::from)?;
+    Ok((summarize(&report), artifacts))
+}
+
+/// Every artifact that exists in `dir`, with its size and a content-hash ETag.
+fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
+    let mut out = Vec::new();
+    for (name, _) in ARTIFACTS {
+        let path = dir.join(name);
+        let Ok(meta) = std::fs::metadata(&path) else {
+            continue;
+        };
+        if !meta.is_file() {
+            continue;
+        }
+        let hash = fnv1a(std::io::BufReader::new(std::fs::File::open(&path)?))?;
+        out.push(ArtifactInfo {
+            name: name.to_string(),
+            bytes: meta.len(),
+            etag: format!("\"{hash:016x}-{:x}\"", meta.len()),
+        });
+    }
+    Ok(out)
+}
+
+/// The report's headline numbers (as in `result.json`).
+fn summarize(report: &Report) -> serde_json::Value {
+    const KEYS: [&str; 16] = [
+        "width",
+        "height",
+        "light_count",
+        "light_condition_number",
+        "height_min",
+        "height_max",
+        "integrability_rms",
+        "reprojection_rms",
+        "object_pixels",
+        "background_pixels",
+        "clamped_albedo_pixels",
+        "confidence_mean",
+        "inliers_mean",
+        "unreliable_pixels",
+        "black_level",
+        "noise_sigma",
+    ];
+    let full = serde_json::to_value(report).unwrap_or_default();
+    let mut out = serde_json::Map::new();
+    for key in KEYS {
+        if let Some(v) = full.get(key) {
+            out.insert(key.to_string(), v.clone());
+        }
+    }
+    serde_json::Value::Object(out)
+}

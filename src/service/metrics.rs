@@ -1,0 +1,178 @@
+//! In-process counters rendered as Prometheus text at `GET /metrics`.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+
+use super::repo::JobStatus;
+
+#[derive(Default, Clone, Copy)]
+struct SumCount {
+    count: u64,
+    sum: f64,
+}
+
+/// Counters the service updates as it works.
+#[derive(Default)]
+pub struct Metrics {
+    /// (method, route, status) → requests and seconds.
+    http: Mutex<BTreeMap<(String, String, u16), SumCount>>,
+    /// stage → durations.
+    stages: Mutex<BTreeMap<String, SumCount>>,
+    /// final status → jobs (whole-job durations).
+    finished: Mutex<BTreeMap<&'static str, SumCount>>,
+    pub submitted: AtomicU64,
+    pub rejected_queue_full: AtomicU64,
+}
+
+/// Gauges read at scrape time.
+pub struct Snapshot {
+    pub jobs_by_status: Vec<(JobStatus, u64)>,
+    pub queue_depth: usize,
+    pub queue_capacity: usize,
+    pub running: usize,
+    pub running_max: usize,
+    pub workers: usize,
+    pub free_disk_bytes: Option<u64>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Metrics {
+    pub fn observe_http(&self, method: &str, route: &str, status: u16, elapsed: Duration) {
+        let mut m = lock(&self.http);
+        let e = m
+            .entry((method.to_string(), route.to_string(), status))
+            .or_default();
+        e.count += 1;
+        e.sum += elapsed.as_secs_f64();
+    }
+
+    pub fn observe_stage(&self, stage: &str, elapsed: Duration) {
+        let mut m = lock(&self.stages);
+        let e = m.entry(stage.to_string()).or_default();
+        e.count += 1;
+        e.sum += elapsed.as_secs_f64();
+    }
+
+    pub fn observe_finished(&self, status: JobStatus, elapsed: Duration) {
+        let mut m = lock(&self.finished);
+        let e = m.entry(status.as_str()).or_default();
+        e.count += 1;
+        e.sum += elapsed.as_secs_f64();
+    }
+
+    /// Prometheus text exposition format 0.0.4.
+    pub fn render(&self, snap: &Snapshot) -> String {
+        let mut out = String::new();
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_jobs Jobs in the repository by status.\n# TYPE photostereo_jobs gauge"
+        );
+        for (status, n) in &snap.jobs_by_status {
+            let _ = writeln!(out, "photostereo_jobs{{status=\"{}\"}} {n}", status.as_str());
+        }
+        let gauges: [(&str, &str, u64); 5] = [
+            (
+                "photostereo_queue_depth",
+                "Accepted jobs waiting for a worker.",
+                snap.queue_depth as u64,
+            ),
+            (
+                "photostereo_queue_capacity",
+                "Queue length past which submissions get 503.",
+                snap.queue_capacity as u64,
+            ),
+            (
+                "photostereo_workers",
+                "Size of the worker pool.",
+                snap.workers as u64,
+            ),
+            (
+                "photostereo_workers_running",
+                "Workers reconstructing a job now.",
+                snap.running as u64,
+            ),
+            (
+                "photostereo_workers_running_max",
+                "Most workers ever reconstructing at once since start.",
+                snap.running_max as u64,
+            ),
+        ];
+        for (name, help, v) in gauges {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
+        }
+        if let Some(free) = snap.free_disk_bytes {
+            let _ = writeln!(
+                out,
+                "# HELP photostereo_free_disk_bytes Free space on the data directory's file system.\n# TYPE photostereo_free_disk_bytes gauge\nphotostereo_free_disk_bytes {free}"
+            );
+        }
+        for (name, help, v) in [
+            (
+                "photostereo_jobs_submitted_total",
+                "Jobs accepted (202).",
+                self.submitted.load(Ordering::Relaxed),
+            ),
+            (
+                "photostereo_jobs_rejected_queue_full_total",
+                "Submissions refused because the queue was full (503).",
+                self.rejected_queue_full.load(Ordering::Relaxed),
+            ),
+        ] {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+        }
+
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_jobs_finished_seconds Wall time of jobs run by this process, by final status.\n# TYPE photostereo_jobs_finished_seconds summary"
+        );
+        for (status, sc) in lock(&self.finished).iter() {
+            let _ = writeln!(
+                out,
+                "photostereo_jobs_finished_seconds_sum{{status=\"{status}\"}} {}\nphotostereo_jobs_finished_seconds_count{{status=\"{status}\"}} {}",
+                sc.sum, sc.count
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_stage_seconds Time spent in each reconstruction stage.\n# TYPE photostereo_stage_seconds summary"
+        );
+        for (stage, sc) in lock(&self.stages).iter() {
+            let _ = writeln!(
+                out,
+                "photostereo_stage_seconds_sum{{stage=\"{stage}\"}} {}\nphotostereo_stage_seconds_count{{stage=\"{stage}\"}} {}",
+                sc.sum, sc.count
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_http_requests_total HTTP requests by method, route and status.\n# TYPE photostereo_http_requests_total counter"
+        );
+        let http = lock(&self.http).clone();
+        for ((method, route, status), sc) in &http {
+            let _ = writeln!(
+                out,
+                "photostereo_http_requests_total{{method=\"{method}\",route=\"{route}\",status=\"{status}\"}} {}",
+                sc.count
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_http_request_seconds Time to answer HTTP requests (until the response head).\n# TYPE photostereo_http_request_seconds summary"
+        );
+        for ((method, route, status), sc) in &http {
+            let labels = format!("method=\"{method}\",route=\"{route}\",status=\"{status}\"");
+            let _ = writeln!(
+                out,
+                "photostereo_http_request_seconds_sum{{{labels}}} {}\nphotostereo_http_request_seconds_count{{{labels}}} {}",
+                sc.sum, sc.count
+            );
+        }
+        out
+    }
+}

@@ -1,0 +1,786 @@
+//! Handlers: typed extractors in, `Result<impl IntoResponse, ApiError>` out.
+
+use std::collections::BTreeMap;
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::multipart::MultipartRejection;
+use axum::extract::{FromRequestParts, Multipart, Path, Query, State};
+use axum::http::request::Parts;
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use tokio_util::io::ReaderStream;
+use utoipa::{IntoParams, ToSchema};
+use uuid::Uuid;
+
+use crate::core::Options;
+use crate::core::outputs::{self, ARTIFACTS};
+
+use super::AppState;
+use super::error::{ApiError, PROBLEM_JSON, Problem};
+use super::jobs::PushError;
+use super::repo::{JobRecord, JobStatus};
+use super::upload;
+use super::util::{fnv1a, format_duration, now_ms, rfc3339};
+
+/// Cache lifetime of stored artifacts (they never change once a job has succeeded).
+const IMMUTABLE: &str = "private, max-age=31536000, immutable";
+/// Cache lifetime of re-shaded pictures.
+const RESHADED: &str = "private, max-age=86400";
+
+/// A job: where it is, and once it has succeeded, what it produced.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobView {
+    /// The job's id (a random UUID).
+    pub id: Uuid,
+    pub status: JobStatus,
+    /// The stage reached: decode, solve, mask, integrate, outputs or mesh (null before a
+    /// worker starts it).
+    #[schema(example = "solve")]
+    pub stage: Option<String>,
+    /// Fraction of the stages done, 0 to 1.
+    #[schema(example = 0.5)]
+    pub progress: f64,
+    /// RFC 3339.
+    #[schema(example = "2025-11-25T19:34:00.123Z")]
+    pub created_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+    /// How many times a worker has started the job (more than 1 when a restart
+    /// interrupted it).
+    pub attempts: u32,
+    pub image_count: u32,
+    /// The options in force, defaults filled in.
+    #[schema(value_type = Options)]
+    pub options: serde_json::Value,
+    /// Why the job failed (only when `status` is `failed`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<Problem>,
+    /// Headline numbers of the reconstruction (only when `status` is `succeeded`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub result: Option<ResultSummary>,
+    /// Artifact name → download URL, for every artifact the job produced (only when
+    /// `status` is `succeeded`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schema(example = json!({"albedo.png": "/v1/jobs/0b6f2a43-3c1e-4c51-9d1e-6c9f3a7d2e10/artifacts/albedo.png"}))]
+    pub artifacts: Option<BTreeMap<String, String>>,
+    /// This resource's URL.
+    pub url: String,
+}
+
+/// The reconstruction's headline numbers (a subset of `result.json`).
+#[derive(Debug, Default, Serialize, Deserialize, ToSchema)]
+#[serde(default)]
+pub struct ResultSummary {
+    pub width: Option<u64>,
+    pub height: Option<u64>,
+    pub light_count: Option<u64>,
+    /// Condition number of the light matrix (1 is ideal).
+    pub light_condition_number: Option<f64>,
+    /// Lowest height on the object, in pixel units.
+    pub height_min: Option<f64>,
+    /// Highest height on the object, in pixel units.
+    pub height_max: Option<f64>,
+    /// RMS of the integrability residual (curl) over the object.
+    pub integrability_rms: Option<f64>,
+    /// RMS difference between the images and the reconstruction re-rendered under the
+    /// same lights.
+    pub reprojection_rms: Option<f64>,
+    pub object_pixels: Option<u64>,
+    pub background_pixels: Option<u64>,
+    /// Pixels whose albedo was above 1 and clamped.
+    pub clamped_albedo_pixels: Option<u64>,
+    /// Mean solve confidence over the object (0 to 1).
+    pub confidence_mean: Option<f64>,
+    /// Mean number of observations kept per object pixel.
+    pub inliers_mean: Option<f64>,
+    /// Object pixels with fewer than 3 usable observations.
+    pub unreliable_pixels: Option<u64>,
+    /// Camera black level the robust solver estimated and removed.
+    pub black_level: Option<f64>,
+    /// Image noise σ the robust solver estimated.
+    pub noise_sigma: Option<f64>,
+}
+
+/// A page of jobs, newest first.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobList {
+    pub jobs: Vec<JobView>,
+    /// Pass as `cursor` to get the next page; null on the last page.
+    pub next_cursor: Option<String>,
+}
+
+/// The `POST /v1/jobs` form. Send either `images` + `lights` (+ `mask`, `options`) or
+/// `archive` (+ `mask`, `options`).
+#[derive(ToSchema)]
+#[allow(dead_code)] // documents the multipart body; the handler streams it
+pub struct JobUpload {
+    /// One file part per image; each part's file name is the name the light table uses.
+    #[schema(value_type = Vec<String>, content_media_type = "application/octet-stream")]
+    images: Option<Vec<Vec<u8>>>,
+    /// The light table: CSV rows `name, x, y, z[, intensity]`, or JSON
+    /// `[{"name", "direction": [x, y, z], "intensity"?}]` (text or file part).
+    #[schema(value_type = String)]
+    lights: Option<String>,
+    /// Optional mask image, same size as the images (non-zero = object).
+    #[schema(value_type = String, content_media_type = "application/octet-stream")]
+    mask: Option<Vec<u8>>,
+    /// Optional reconstruction options as JSON (unknown fields are refused).
+    #[schema(value_type = Options)]
+    options: Option<String>,
+    /// Instead of images + lights: a .zip of a folder with the images and
+    /// `light_directions.csv`, at its top or inside one folder.
+    #[schema(value_type = String, content_media_type = "application/zip")]
+    archive: Option<Vec<u8>>,
+}
+
+/// Liveness / readiness answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Health {
+    #[schema(example = "ok")]
+    pub status: String,
+}
+
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ListQuery {
+    /// Jobs per page, 1 to 100 (default 20).
+    pub limit: Option<u32>,
+    /// `next_cursor` of the previous page.
+    pub cursor: Option<String>,
+}
+
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ArtifactQuery {
+    /// For `shaded.png` only: re-shade under this light, `x,y,z` (three finite numbers,
+    /// not all zero; need not be unit length).
+    #[param(example = "1,2,3")]
+    pub light: Option<String>,
+}
+
+/// `Query` whose rejection is a problem (400).
+pub struct ApiQuery<T>(pub T);
+
+impl<S, T> FromRequestParts<S> for ApiQuery<T>
+where
+    S: Send + Sync,
+    T: serde::de::DeserializeOwned,
+{
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
+        Query::<T>::from_request_parts(parts, state)
+            .await
+            .map(|Query(q)| ApiQuery(q))
+            .map_err(|e| ApiError::bad_request(format!("invalid query string: {}", e.body_text())))
+    }
+}
+
+/// The `{id}` of a job URL; anything that is not a UUID names no job (404).
+pub struct JobId(pub Uuid);
+
+impl<S: Send + Sync> FromRequestParts<S> for JobId {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
+        let Path(params) = Path::<BTreeMap<String, String>>::from_request_parts(parts, state)
+            .await
+            .map_err(|e| ApiError::bad_request(e.body_text()))?;
+        let raw = params.get("id").cloned().unwrap_or_default();
+        Uuid::parse_str(&raw)
+            .map(JobId)
+            .map_err(|_| ApiError::not_found(format!("there is no job {raw:?}")))
+    }
+}
+
+fn job_url(id: Uuid) -> String {
+    format!("/v1/jobs/{id}")
+}
+
+impl JobView {
+    pub fn from_record(r: JobRecord) -> Self {
+        let url = job_url(r.id);
+        let succeeded = r.status == JobStatus::Succeeded;
+        Self {
+            id: r.id,
+            status: r.status,
+            stage: r.stage,
+            progress: if succeeded { 1.0 } else { r.progress },
+            created_at: rfc3339(r.created_at),
+            started_at: r.started_at.map(rfc3339),
+            finished_at: r.finished_at.map(rfc3339),
+            attempts: r.attempts,
+            image_count: r.image_count,
+            options: r.options,
+            error: if r.status == JobStatus::Failed {
+                r.error
+            } else {
+                None
+            },
+            result: succeeded
+                .then(|| r.result.and_then(|v| serde_json::from_value(v).ok()))
+                .flatten(),
+            artifacts: succeeded.then(|| {
+                r.artifacts
+                    .iter()
+                    .map(|a| (a.name.clone(), format!("{url}/artifacts/{}", a.name)))
+                    .collect()
+            }),
+            url,
+        }
+    }
+}
+
+async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
+    state
+        .repo(move |r| r.get(id))
+        .await?
+        .ok_or_else(|| ApiError::not_found(format!("there is no job {id}")))
+}
+
+/// Submit a reconstruction job.
+///
+/// The upload streams to disk; the light table, names, image formats and dimensions and the
+/// options are checked before the job is accepted, so most mistakes are answered at once.
+/// The answer is 202 with the job and its `Location`; poll it until `status` is
+/// `succeeded` or `failed`.
+#[utoipa::path(
+    post,
+    path = "/v1/jobs",
+    tag = "jobs",
+    request_body(content = inline(JobUpload), content_type = "multipart/form-data"),
+    responses(
+        (status = 202, description = "Accepted and queued", body = JobView,
+            headers(("Location" = String, description = "The job's URL"))),
+        (status = 400, description = "Not multipart, or parts missing, repeated or unknown", body = Problem, content_type = "application/problem+json"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body, image, part count, image count or archive over a limit", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "An image (or archive) in an unsupported format", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid light table, options, names, sizes or archive layout", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "The queue is full (or the service is stopping): retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = u64, description = "Seconds to wait"))),
+        (status = 507, description = "Not enough free disk space", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn create_job(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    multipart: Result<Multipart, MultipartRejection>,
+) -> Result<impl IntoResponse, ApiError> {
+    let config = state.config();
+    if state.is_shutting_down() {
+        return Err(ApiError::unavailable(
+            super::config::RETRY_AFTER_SECS,
+            "the service is shutting down",
+        ));
+    }
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > config.max_body_bytes) {
+        return Err(ApiError::too_large(format!(
+            "the request body is larger than the limit of {} bytes",
+            config.max_body_bytes
+        )));
+    }
+    let multipart = multipart.map_err(|e| {
+        ApiError::bad_request(format!(
+            "expected a multipart/form-data body: {}",
+            e.body_text()
+        ))
+    })?;
+    state.check_free_disk().await?;
+    if state.jobs().is_full() {
+        state.count_queue_full();
+        return Err(queue_full(&state));
+    }
+
+    let id = Uuid::new_v4();
+    let mut staging = state.stage_upload(id).await?;
+    let received = tokio::time::timeout(
+        config.upload_timeout,
+        upload::receive(config, staging.path(), multipart),
+    )
+    .await
+    .map_err(|_| {
+        ApiError::upload_timeout(format!(
+            "the upload did not complete within {}",
+            format_duration(config.upload_timeout)
+        ))
+    })??;
+    staging.commit().await?;
+
+    let record = JobRecord::new_queued(
+        id,
+        now_ms(),
+        received.image_count as u32,
+        received.options,
+    );
+    let stored = record.clone();
+    state.repo(move |r| r.insert(&stored)).await?;
+    match state.jobs().try_push(id) {
+        Ok(()) => {}
+        // Stopping: the job stays queued in the repo and runs at the next start.
+        Err(PushError::Closed) => {}
+        Err(PushError::Full) => {
+            state.repo(move |r| r.delete(id)).await?;
+            state.count_queue_full();
+            return Err(queue_full(&state));
+        }
+    }
+    staging.keep();
+    state.count_submitted();
+    tracing::info!(job = %id, images = record.image_count, "job accepted");
+    let view = JobView::from_record(record);
+    Ok((
+        StatusCode::ACCEPTED,
+        [(header::LOCATION, view.url.clone())],
+        Json(view),
+    ))
+}
+
+fn queue_full(state: &AppState) -> ApiError {
+    ApiError::queue_full(
+        super::config::RETRY_AFTER_SECS,
+        format!(
+            "the job queue is full ({} jobs waiting); retry later",
+            state.jobs().capacity()
+        ),
+    )
+}
+
+/// A job's status, progress, result summary and artifact links.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}",
+    tag = "jobs",
+    params(("id" = Uuid, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "The job", body = JobView),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_job(
+    State(state): State<AppState>,
+    JobId(id): JobId,
+) -> Result<Json<JobView>, ApiError> {
+    Ok(Json(JobView::from_record(load_job(&state, id).await?)))
+}
+
+/// Jobs, newest first, a page at a time.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs",
+    tag = "jobs",
+    params(ListQuery),
+    responses(
+        (status = 200, description = "A page of jobs", body = JobList,
+            headers(("Link" = String, description = "`<next page URL>; rel=\"next\"` when there is one"))),
+        (status = 400, description = "Invalid limit or cursor", body = Problem, content_type = "application/problem+json"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn list_jobs(
+    State(state): State<AppState>,
+    ApiQuery(q): ApiQuery<ListQuery>,
+) -> Result<Response, ApiError> {
+    let limit = q.limit.unwrap_or(20);
+    if !(1..=100).contains(&limit) {
+        return Err(ApiError::bad_request(format!(
+            "limit must be between 1 and 100, got {limit}"
+        )));
+    }
+    let before = q.cursor.as_deref().map(parse_cursor).transpose()?;
+    let limit = limit as usize;
+    let mut page = state.repo(move |r| r.list(limit + 1, before)).await?;
+    let next_cursor = if page.len() > limit {
+        page.truncate(limit);
+        page.last()
+            .map(|r| format!("{}_{}", r.created_at, r.id.simple()))
+    } else {
+        None
+    };
+    let mut response = Json(JobList {
+        jobs: page.into_iter().map(JobView::from_record).collect(),
+        next_cursor: next_cursor.clone(),
+    })
+    .into_response();
+    if let Some(c) = next_cursor
+        && let Ok(v) = HeaderValue::from_str(&format!("</v1/jobs?limit={limit}&cursor={c}>; rel=\"next\""))
+    {
+        response.headers_mut().insert(header::LINK, v);
+    }
+    Ok(response)
+}
+
+fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
+    let bad = || ApiError::bad_request(format!("invalid cursor {c:?}: pass a next_cursor as it was given"));
+    let (at, id) = c.split_once('_').ok_or_else(bad)?;
+    Ok((
+        at.parse().map_err(|_| bad())?,
+        Uuid::parse_str(id).map_err(|_| bad())?,
+    ))
+}
+
+/// Cancel a queued or running job, or delete a finished one and its files.
+///
+/// A queued job is cancelled at once; a running one stops at its next stage (its status is
+/// `cancelled` from now on). Either way the answer is 200 with the job. A finished job
+/// (succeeded, failed or cancelled) is deleted with its files: 204.
+#[utoipa::path(
+    delete,
+    path = "/v1/jobs/{id}",
+    tag = "jobs",
+    params(("id" = Uuid, Path, description = "Job id")),
+    responses(
+        (status = 200, description = "Cancelled", body = JobView),
+        (status = 204, description = "Deleted"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn delete_job(
+    State(state): State<AppState>,
+    JobId(id): JobId,
+) -> Result<Response, ApiError> {
+    let now = now_ms();
+    match state.repo(move |r| r.cancel(id, now)).await? {
+        Some(JobStatus::Queued) => {
+            state.jobs().remove(id);
+            state.remove_files(id).await;
+            tracing::info!(job = %id, "queued job cancelled");
+        }
+        Some(_) => {
+            state.jobs().cancel_running(id);
+            tracing::info!(job = %id, "running job cancelled; it stops at its next stage");
+        }
+        None => {
+            load_job(&state, id).await?;
+            state.repo(move |r| r.delete(id)).await?;
+            // A worker still finishing a cancelled run removes the files itself.
+            if !state.jobs().is_held(id) {
+                state.remove_files(id).await;
+            }
+            tracing::info!(job = %id, "job deleted");
+            return Ok(StatusCode::NO_CONTENT.into_response());
+        }
+    }
+    Ok(Json(JobView::from_record(load_job(&state, id).await?)).into_response())
+}
+
+/// Download an artifact of a succeeded job.
+///
+/// Stored artifacts carry a strong ETag and may be cached for good (`immutable`);
+/// `If-None-Match` gets 304. `shaded.png?light=x,y,z` re-shades the object under another
+/// light on request.
+#[utoipa::path(
+    get,
+    path = "/v1/jobs/{id}/artifacts/{name}",
+    tag = "jobs",
+    params(
+        ("id" = Uuid, Path, description = "Job id"),
+        ("name" = String, Path, description = "Artifact name: albedo.png, albedo_rgb.png, mask.png, normal.png, normal_x.png, normal_y.png, normal_z.png, height.png, normal.exr, height.exr, needle.png, curl.png, shaded.png, preview.png, mesh.glb, mesh.gltf or result.json"),
+        ArtifactQuery,
+        ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
+    ),
+    responses(
+        (status = 200, description = "The artifact (Content-Type by name: image/png, image/x-exr, model/gltf-binary, model/gltf+json, application/json)",
+            content(
+                ("image/png"),
+                ("image/x-exr"),
+                ("model/gltf-binary"),
+                ("model/gltf+json"),
+                ("application/json"),
+            ),
+            headers(
+                ("ETag" = String, description = "Strong entity tag"),
+                ("Cache-Control" = String, description = "private, max-age=31536000, immutable"),
+            )),
+        (status = 304, description = "Not modified (If-None-Match matched)"),
+        (status = 400, description = "`light` given for an artifact other than shaded.png", body = Problem, content_type = "application/problem+json"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job, or no such artifact (unknown name, or not produced by this job)", body = Problem, content_type = "application/problem+json"),
+        (status = 409, description = "The job has not succeeded (queued, running, failed or cancelled)", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid `light`", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_artifact(
+    State(state): State<AppState>,
+    JobId(id): JobId,
+    Path(segments): Path<(String, String)>,
+    ApiQuery(q): ApiQuery<ArtifactQuery>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let name = segments.1;
+    let Some(content_type) = outputs::content_type(&name) else {
+        let known: Vec<&str> = ARTIFACTS.iter().map(|(n, _)| *n).collect();
+        return Err(ApiError::not_found(format!(
+            "there is no artifact {name:?}; artifacts are {}",
+            known.join(", ")
+        )));
+    };
+    let job = load_job(&state, id).await?;
+    if job.status != JobStatus::Succeeded {
+        return Err(ApiError::conflict(format!(
+            "job {id} is {}: artifacts are served once it has succeeded",
+            job.status.as_str()
+        ))
+        .with_instance(job_url(id)));
+    }
+    if let Some(light) = q.light {
+        if name != "shaded.png" {
+            return Err(ApiError::bad_request(format!(
+                "the light parameter applies to shaded.png only, not {name:?}"
+            )));
+        }
+        let light = parse_light(&light)?;
+        let missing: Vec<&str> = ["albedo.png", "normal.exr"]
+            .into_iter()
+            .filter(|n| !job.artifacts.iter().any(|a| a.name == *n))
+            .collect();
+        if !missing.is_empty() {
+            return Err(ApiError::not_found(format!(
+                "re-shading needs albedo.png and normal.exr, and job {id} did not produce {}",
+                missing.join(" or ")
+            )));
+        }
+        let dir = state.store().outputs(id);
+        let png = tokio::task::spawn_blocking(move || outputs::shaded_png_from_dir(&dir, light))
+            .await??;
+        let etag = format!(
+            "\"{:016x}-{:x}\"",
+            fnv1a(png.as_slice()).unwrap_or(0),
+            png.len()
+        );
+        if not_modified(&headers, &etag) {
+            return Ok(not_modified_response(&etag, RESHADED));
+        }
+        return Ok(artifact_response(content_type, &etag, RESHADED, &name, png.len() as u64, Body::from(png)));
+    }
+    let Some(info) = job.artifacts.iter().find(|a| a.name == name) else {
+        return Err(ApiError::not_found(format!(
+            "job {id} did not produce {name} (see the job's artifacts)"
+        )));
+    };
+    if not_modified(&headers, &info.etag) {
+        return Ok(not_modified_response(&info.etag, IMMUTABLE));
+    }
+    let path = state.store().outputs(id).join(&info.name);
+    let file = tokio::fs::File::open(&path)
+        .await
+        .map_err(|_| ApiError::not_found(format!("the artifact {name} of job {id} is gone")))?;
+    Ok(artifact_response(
+        content_type,
+        &info.etag,
+        IMMUTABLE,
+        &name,
+        info.bytes,
+        Body::from_stream(ReaderStream::new(file)),
+    ))
+}
+
+/// `x,y,z`: three finite numbers, not all zero.
+fn parse_light(raw: &str) -> Result<[f64; 3], ApiError> {
+    let bad = |why: &str| {
+        ApiError::invalid(format!(
+            "light must be three finite numbers x,y,z, not all zero ({why}); got {raw:?}"
+        ))
+    };
+    let parts: Vec<&str> = raw.split(',').map(str::trim).collect();
+    if parts.len() != 3 {
+        return Err(bad(&format!("{} values", parts.len())));
+    }
+    let mut v = [0.0; 3];
+    for (slot, p) in v.iter_mut().zip(&parts) {
+        *slot = p
+            .parse::<f64>()
+            .map_err(|_| bad(&format!("{p:?} is not a number")))?;
+        if !slot.is_finite() {
+            return Err(bad(&format!("{p:?} is not finite")));
+        }
+    }
+    if v.iter().all(|c| *c == 0.0) {
+        return Err(bad("zero vector"));
+    }
+    Ok(v)
+}
+
+fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
+    let bare = |t: &str| t.trim().trim_start_matches("W/").to_string();
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|t| t.trim() == "*" || bare(t) == etag)
+}
+
+fn not_modified_response(etag: &str, cache: &'static str) -> Response {
+    let mut r = StatusCode::NOT_MODIFIED.into_response();
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        r.headers_mut().insert(header::ETAG, v);
+    }
+    r.headers_mut()
+        .insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
+    r
+}
+
+fn artifact_response(
+    content_type: &'static str,
+    etag: &str,
+    cache: &'static str,
+    name: &str,
+    len: u64,
+    body: Body,
+) -> Response {
+    let mut r = Response::new(body);
+    let h = r.headers_mut();
+    h.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    h.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        h.insert(header::ETAG, v);
+    }
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{name}\"")) {
+        h.insert(header::CONTENT_DISPOSITION, v);
+    }
+    r
+}
+
+/// Liveness: the process answers.
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "operations",
+    responses((status = 200, description = "Alive", body = Health))
+)]
+pub async fn healthz() -> Json<Health> {
+    Json(Health {
+        status: "ok".into(),
+    })
+}
+
+/// Readiness: the job database answers, the data directory is writable and the service is
+/// not shutting down.
+#[utoipa::path(
+    get,
+    path = "/readyz",
+    tag = "operations",
+    responses(
+        (status = 200, description = "Ready", body = Health),
+        (status = 503, description = "Not ready (the detail says why)", body = Problem, content_type = "application/problem+json"),
+    )
+)]
+pub async fn readyz(State(state): State<AppState>) -> Result<Json<Health>, ApiError> {
+    let problems = state.readiness_problems().await;
+    if problems.is_empty() {
+        Ok(Json(Health {
+            status: "ready".into(),
+        }))
+    } else {
+        Err(ApiError::unavailable(1, problems.join("; ")))
+    }
+}
+
+/// Prometheus metrics: jobs by status, queue depth, running workers (and the most ever
+/// running at once), stage durations, HTTP requests.
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "operations",
+    responses((status = 200, description = "Prometheus text format 0.0.4", body = String, content_type = "text/plain"))
+)]
+pub async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
+    let text = state.render_metrics().await?;
+    Ok((
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+        )],
+        text,
+    )
+        .into_response())
+}
+
+/// This API's OpenAPI document.
+#[utoipa::path(
+    get,
+    path = "/openapi.json",
+    tag = "operations",
+    responses((status = 200, description = "OpenAPI 3.1 document", content_type = "application/json"))
+)]
+pub async fn openapi_doc() -> Response {
+    (
+        [(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))],
+        super::openapi_json(),
+    )
+        .into_response()
+}
+
+/// Unknown routes.
+pub async fn not_found(uri: axum::http::Uri) -> ApiError {
+    ApiError::not_found(format!("there is no route {}", uri.path()))
+}
+
+/// Known routes, wrong method.
+pub async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) -> ApiError {
+    ApiError::method_not_allowed(format!("{} does not accept {method}", uri.path()))
+}
+
+/// What the catch-panic layer answers (the panic itself is logged).
+pub fn panic_response(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let what = err
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| err.downcast_ref::<&str>().copied())
+        .unwrap_or("unknown panic");
+    let mut r = ApiError::internal(format!("handler panicked: {what}")).into_response();
+    r.headers_mut()
+        .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+    r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn light_parameter() {
+        assert_eq!(parse_light("1,2,3").unwrap(), [1.0, 2.0, 3.0]);
+        assert_eq!(parse_light(" -0.5, 0 ,1e0").unwrap(), [-0.5, 0.0, 1.0]);
+        for bad in ["1,2", "1,2,3,4", "a,b,c", "0,0,0", "inf,0,1", "NaN,1,1", ""] {
+            let e = parse_light(bad).unwrap_err();
+            assert_eq!(e.status(), StatusCode::UNPROCESSABLE_ENTITY, "{bad}");
+        }
+    }
+
+    #[test]
+    fn if_none_match() {
+        let mut h = HeaderMap::new();
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("\"a\", W/\"b\""));
+        assert!(not_modified(&h, "\"b\""));
+        assert!(not_modified(&h, "\"a\""));
+        assert!(!not_modified(&h, "\"c\""));
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("*"));
+        assert!(not_modified(&h, "\"c\""));
+    }
+
+    #[test]
+    fn cursors_round_trip() {
+        let id = Uuid::new_v4();
+        let c = format!("{}_{}", 1234, id.simple());
+        assert_eq!(parse_cursor(&c).unwrap(), (1234, id));
+        assert!(parse_cursor("nope").is_err());
+        assert!(parse_cursor("12_zz").is_err());
+    }
+}

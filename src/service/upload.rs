@@ -1,0 +1,747 @@
+//! Receiving a job: the multipart body streams to the job's staging directory part by
+//! part, and everything cheap is checked before the job is accepted (multipart shape,
+//! light table, names, image signatures and dimensions, options), so that bad input gets
+//! its problem answer at once rather than as a failed job.
+//!
+//! Nothing the caller sends becomes a path: images are stored as `000.img`, `001.img`, …
+//! and `manifest.json` maps them to the names the light table uses.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufReader, Read, Write};
+use std::path::{Component, Path, PathBuf};
+
+use axum::extract::multipart::{Field, MultipartError};
+use axum::extract::Multipart;
+use image::ImageReader;
+use tokio::io::AsyncWriteExt;
+
+use crate::core::intake::{LIGHTS_FILE as TABLE_CSV, LIGHTS_JSON_FILE as TABLE_JSON};
+use crate::core::lights::{self, Light};
+use crate::core::options::MaskMode;
+use crate::core::outputs;
+use crate::core::{InputError, Options};
+
+use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, image_file};
+use super::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
+use super::error::ApiError;
+
+/// Bytes kept from the start of each file to recognise its format.
+const HEAD_BYTES: usize = 64;
+const ARCHIVE_FILE: &str = "archive.zip";
+
+/// An image stored in the staging directory.
+#[derive(Debug, Clone)]
+struct StoredImage {
+    /// The caller's name for it (what the light table says).
+    name: String,
+    /// The stored file's name.
+    file: String,
+    width: u32,
+    height: u32,
+}
+
+/// A received, checked job, ready to be queued.
+#[derive(Debug)]
+pub struct Received {
+    pub image_count: usize,
+    /// The options, defaults filled in.
+    pub options: serde_json::Value,
+}
+
+#[derive(Default)]
+struct Parts {
+    images: Vec<StoredImage>,
+    lights: Option<Vec<u8>>,
+    mask: Option<StoredImage>,
+    options: Option<Options>,
+    archive: Option<PathBuf>,
+    count: usize,
+}
+
+/// Read the multipart body into `dir` and check it. The caller removes `dir` on error.
+pub async fn receive(
+    config: &Config,
+    dir: &Path,
+    mut multipart: Multipart,
+) -> Result<Received, ApiError> {
+    let mut parts = Parts::default();
+    while let Some(mut field) = multipart
+        .next_field()
+        .await
+        .map_err(|e| multipart_error(e, config))?
+    {
+        parts.count += 1;
+        if parts.count > config.max_parts {
+            return Err(ApiError::too_large(format!(
+                "the upload has more than {} parts",
+                config.max_parts
+            )));
+        }
+        let part = field.name().unwrap_or_default().to_string();
+        match part.as_str() {
+            "images" => {
+                if parts.archive.is_some() {
+                    return Err(both_forms());
+                }
+                if parts.images.len() >= config.max_images {
+                    return Err(InputError::TooManyImages {
+                        count: parts.images.len() + 1,
+                        limit: config.max_images,
+                    }
+                    .into());
+                }
+                let name = file_name(&field, "images")?;
+                let file = image_file(parts.images.len());
+                let head = stream_to_file(&mut field, &dir.join(&file), config).await?;
+                let (width, height) = probe(dir.join(&file), name.clone(), head, config).await?;
+                parts.images.push(StoredImage {
+                    name,
+                    file,
+                    width,
+                    height,
+                });
+            }
+            "lights" => {
+                if parts.archive.is_some() {
+                    return Err(both_forms());
+                }
+                once(&parts.lights, "lights")?;
+                parts.lights =
+                    Some(read_small(&mut field, MAX_LIGHTS_BYTES, "lights", config).await?);
+            }
+            "mask" => {
+                once(&parts.mask, "mask")?;
+                let name = field
+                    .file_name()
+                    .filter(|n| !n.is_empty())
+                    .unwrap_or("mask")
+                    .to_string();
+                let head = stream_to_file(&mut field, &dir.join(MASK_FILE), config).await?;
+                let (width, height) = probe(dir.join(MASK_FILE), name.clone(), head, config)
+                    .await
+                    .map_err(|e| {
+                        if e.status().is_client_error() && e.status().as_u16() == 422 {
+                            ApiError::invalid(format!("mask: {}", e.detail()))
+                        } else {
+                            e
+                        }
+                    })?;
+                parts.mask = Some(StoredImage {
+                    name,
+                    file: MASK_FILE.to_string(),
+                    width,
+                    height,
+                });
+            }
+            "options" => {
+                once(&parts.options, "options")?;
+                let bytes = read_small(&mut field, MAX_OPTIONS_BYTES, "options", config).await?;
+                parts.options = Some(parse_options(&bytes)?);
+            }
+            "archive" => {
+                once(&parts.archive, "archive")?;
+                if !parts.images.is_empty() || parts.lights.is_some() {
+                    return Err(both_forms());
+                }
+                let path = dir.join(ARCHIVE_FILE);
+                let head = stream_to_file(&mut field, &path, config).await?;
+                if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
+                    return Err(ApiError::unsupported_media(
+                        "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv)",
+                    ));
+                }
+                parts.archive = Some(path);
+            }
+            "" => {
+                return Err(ApiError::bad_request(
+                    "a multipart part has no name; expected images, lights, mask, options or archive",
+                ));
+            }
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unknown part {other:?}; expected images, lights, mask, options or archive"
+                )));
+            }
+        }
+    }
+
+    if let Some(archive) = parts.archive.take() {
+        let limits = ArchiveLimits::from(config);
+        let out = dir.to_path_buf();
+        let (images, table) = tokio::task::spawn_blocking(move || {
+            let r = extract_archive(&archive, &out, &limits);
+            let _ = std::fs::remove_file(&archive);
+            r
+        })
+        .await??;
+        parts.images = images;
+        parts.lights = Some(table);
+    }
+    let options = parts.options.take().unwrap_or_default();
+    let table = parts.lights.take().ok_or_else(|| {
+        ApiError::bad_request(
+            "missing the lights part (the light table, CSV `name, x, y, z[, intensity]` or JSON), or an archive part",
+        )
+    })?;
+    if parts.images.is_empty() {
+        return Err(ApiError::bad_request(
+            "no images parts: send each image as a file part named images (curl -F images=@im1.png), or an archive part",
+        ));
+    }
+    let lights = lights::parse_bytes(&table)?;
+    let ordered = check_names(&lights, &parts.images, config)?;
+    check_sizes(&ordered)?;
+    if let Some(mask) = &parts.mask {
+        let first = ordered[0];
+        if (mask.width, mask.height) != (first.width, first.height) {
+            return Err(InputError::Mask(format!(
+                "{:?} is {}×{} but the images are {}×{}",
+                mask.name, mask.width, mask.height, first.width, first.height
+            ))
+            .into());
+        }
+    } else if options.mask == MaskMode::Given {
+        return Err(InputError::Mask(
+            "options ask for the given mask (\"mask\": \"given\") but no mask part was sent".into(),
+        )
+        .into());
+    }
+
+    let manifest = Manifest {
+        images: ordered
+            .iter()
+            .map(|i| ManifestEntry {
+                name: i.name.clone(),
+                file: i.file.clone(),
+            })
+            .collect(),
+        mask: parts.mask.as_ref().map(|m| ManifestEntry {
+            name: m.name.clone(),
+            file: m.file.clone(),
+        }),
+    };
+    let manifest = serde_json::to_vec_pretty(&manifest)
+        .map_err(|e| ApiError::internal(format!("manifest: {e}")))?;
+    tokio::fs::write(dir.join(MANIFEST_FILE), manifest).await?;
+    tokio::fs::write(dir.join(LIGHTS_FILE), &table).await?;
+    Ok(Received {
+        image_count: ordered.len(),
+        options: serde_json::to_value(&options)
+            .map_err(|e| ApiError::internal(format!("options: {e}")))?,
+    })
+}
+
+fn both_forms() -> ApiError {
+    ApiError::bad_request(
+        "send either an archive part or images and lights parts, not both",
+    )
+}
+
+fn once<T>(slot: &Option<T>, part: &str) -> Result<(), ApiError> {
+    match slot {
+        Some(_) => Err(ApiError::bad_request(format!(
+            "the {part} part appears more than once"
+        ))),
+        None => Ok(()),
+    }
+}
+
+fn multipart_error(e: MultipartError, config: &Config) -> ApiError {
+    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+        ApiError::too_large(format!(
+            "the request body is larger than the limit of {} bytes",
+            config.max_body_bytes
+        ))
+    } else {
+        ApiError::bad_request(format!("malformed multipart body: {}", e.body_text()))
+    }
+}
+
+/// The file name of an image part: the name the light table uses for it.
+fn file_name(field: &Field<'_>, part: &str) -> Result<String, ApiError> {
+    match field.file_name() {
+        Some(n) if !n.is_empty() => Ok(n.to_string()),
+        _ => Err(ApiError::bad_request(format!(
+            "every {part} part needs a file name (the name the light table uses for it), e.g. curl -F {part}=@im1.png"
+        ))),
+    }
+}
+
+/// Parse the `options` part; errors name the field at fault.
+pub fn parse_options(bytes: &[u8]) -> Result<Options, ApiError> {
+    let options = serde_json::from_slice::<Options>(bytes)
+        .map_err(|e| ApiError::from(InputError::Options(e.to_string())))?;
+    if let Some(names) = &options.outputs {
+        outputs::check_selection(names)?;
+    }
+    Ok(options)
+}
+
+/// Write a part to `path` chunk by chunk; returns its first bytes.
+async fn stream_to_file(
+    field: &mut Field<'_>,
+    path: &Path,
+    config: &Config,
+) -> Result<Vec<u8>, ApiError> {
+    let mut file = tokio::fs::File::create(path).await?;
+    let mut head = Vec::with_capacity(HEAD_BYTES);
+    while let Some(chunk) = field
+        .chunk()
+        .await
+        .map_err(|e| multipart_error(e, config))?
+    {
+        if head.len() < HEAD_BYTES {
+            let take = (HEAD_BYTES - head.len()).min(chunk.len());
+            head.extend_from_slice(&chunk[..take]);
+        }
+        file.write_all(&chunk).await?;
+    }
+    file.flush().await?;
+    Ok(head)
+}
+
+/// Read a small text part into memory, refusing more than `limit` bytes.
+async fn read_small(
+    field: &mut Field<'_>,
+    limit: usize,
+    part: &str,
+    config: &Config,
+) -> Result<Vec<u8>, ApiError> {
+    let mut out = Vec::new();
+    while let Some(chunk) = field
+        .chunk()
+        .await
+        .map_err(|e| multipart_error(e, config))?
+    {
+        if out.len() + chunk.len() > limit {
+            return Err(ApiError::too_large(format!(
+                "the {part} part is larger than {limit} bytes"
+            )));
+        }
+        out.extend_from_slice(&chunk);
+    }
+    Ok(out)
+}
+
+/// Recognise the image format from its signature and read its dimensions from the header
+/// (no decoding), off the async runtime.
+async fn probe(
+    path: PathBuf,
+    name: String,
+    head: Vec<u8>,
+    config: &Config,
+) -> Result<(u32, u32), ApiError> {
+    let max_pixels = config.max_pixels;
+    Ok(tokio::task::spawn_blocking(move || probe_image(&path, &name, &head, max_pixels)).await??)
+}
+
+fn probe_image(
+    path: &Path,
+    name: &str,
+    head: &[u8],
+    max_pixels: u64,
+) -> Result<(u32, u32), InputError> {
+    let format = image::guess_format(head).map_err(|_| InputError::UnsupportedFormat {
+        name: name.into(),
+        reason: "unrecognised file signature".into(),
+    })?;
+    let file = File::open(path).map_err(|e| InputError::io(path, e))?;
+    let (w, h) = ImageReader::with_format(BufReader::new(file), format)
+        .into_dimensions()
+        .map_err(|e| match e {
+            image::ImageError::Unsupported(u) => InputError::UnsupportedFormat {
+                name: name.into(),
+                reason: u.to_string(),
+            },
+            other => InputError::Decode {
+                name: name.into(),
+                reason: other.to_string(),
+            },
+        })?;
+    let pixels = u64::from(w) * u64::from(h);
+    if pixels > max_pixels {
+        return Err(InputError::TooLarge {
+            name: name.into(),
+            width: w.into(),
+            height: h.into(),
+            pixels,
+            limit: max_pixels,
+        });
+    }
+    Ok((w, h))
+}
+
+/// Pair the table's rows with the uploaded images, in table order.
+fn check_names<'a>(
+    lights: &[Light],
+    images: &'a [StoredImage],
+    config: &Config,
+) -> Result<Vec<&'a StoredImage>, ApiError> {
+    if lights.len() > config.max_images {
+        return Err(InputError::TooManyImages {
+            count: lights.len(),
+            limit: config.max_images,
+        }
+        .into());
+    }
+    let mut by_name: HashMap<&str, (usize, &StoredImage)> = HashMap::new();
+    for (i, img) in images.iter().enumerate() {
+        if let Some((first, _)) = by_name.insert(img.name.as_str(), (i, img)) {
+            return Err(ApiError::invalid(format!(
+                "image {:?} was sent twice (image parts {} and {})",
+                img.name,
+                first + 1,
+                i + 1
+            )));
+        }
+    }
+    let mut ordered = Vec::with_capacity(lights.len());
+    for l in lights {
+        match by_name.remove(l.name.as_str()) {
+            Some((_, img)) => ordered.push(img),
+            None => {
+                return Err(InputError::MissingImage {
+                    name: l.name.clone(),
+                }
+                .into());
+            }
+        }
+    }
+    if let Some(img) = images.iter().find(|i| by_name.contains_key(i.name.as_str())) {
+        return Err(InputError::UnlistedImage {
+            name: img.name.clone(),
+        }
+        .into());
+    }
+    Ok(ordered)
+}
+
+fn check_sizes(ordered: &[&StoredImage]) -> Result<(), ApiError> {
+    let first = ordered[0];
+    for img in &ordered[1..] {
+        if (img.width, img.height) != (first.width, first.height) {
+            return Err(InputError::SizeMismatch {
+                name: img.name.clone(),
+                width: img.width,
+                height: img.height,
+                first: first.name.clone(),
+                expected_width: first.width,
+                expected_height: first.height,
+            }
+            .into());
+        }
+    }
+    Ok(())
+}
+
+/// Bounds on what an archive may unpack to.
+#[derive(Debug, Clone, Copy)]
+struct ArchiveLimits {
+    max_entries: usize,
+    max_unpacked: u64,
+    max_images: usize,
+    max_pixels: u64,
+}
+
+impl From<&Config> for ArchiveLimits {
+    fn from(c: &Config) -> Self {
+        Self {
+            max_entries: c.max_parts,
+            max_unpacked: c.max_unpacked_bytes,
+            max_images: c.max_images,
+            max_pixels: c.max_pixels,
+        }
+    }
+}
+
+/// macOS and editor leftovers that are skipped rather than refused.
+fn is_junk(components: &[String]) -> bool {
+    components
+        .iter()
+        .any(|c| c == "__MACOSX" || c.starts_with('.'))
+}
+
+fn zip_error(entry: &str, e: zip::result::ZipError) -> ApiError {
+    match e {
+        zip::result::ZipError::UnsupportedArchive(what) => ApiError::unsupported_media(format!(
+            "archive entry {entry:?} cannot be read: {what}"
+        )),
+        zip::result::ZipError::CompressionMethodNotSupported(m) => {
+            ApiError::unsupported_media(format!(
+                "archive entry {entry:?} uses compression method {m}; only stored and deflate are supported"
+            ))
+        }
+        other => ApiError::invalid(format!("archive entry {entry:?} cannot be read: {other}")),
+    }
+}
+
+/// Unpack a zip in the seed's layout (images + `light_directions.csv`, at the top or in
+/// one folder) into `dir`, streaming every entry under the size caps. Returns the images
+/// and the light table's bytes.
+fn extract_archive(
+    path: &Path,
+    dir: &Path,
+    limits: &ArchiveLimits,
+) -> Result<(Vec<StoredImage>, Vec<u8>), ApiError> {
+    let file = File::open(path)?;
+    let mut zip = zip::ZipArchive::new(BufReader::new(file))
+        .map_err(|e| ApiError::invalid(format!("the archive is not a readable zip file: {e}")))?;
+    if zip.len() > limits.max_entries {
+        return Err(ApiError::too_large(format!(
+            "the archive has {} entries, over the limit of {}",
+            zip.len(),
+            limits.max_entries
+        )));
+    }
+
+    // Pass 1: names only. Refuse unsafe paths and links; find the layout.
+    let mut entries: Vec<(usize, Vec<String>)> = Vec::new();
+    for i in 0..zip.len() {
+        let entry = zip
+            .by_index_data(i)
+            .map_err(|e| zip_error(&format!("#{i}"), e))?;
+        let raw = entry
+            .name()
+            .map(|n| n.into_owned())
+            .unwrap_or_else(|_| format!("#{i}"));
+        let unsafe_path = || {
+            ApiError::invalid(format!(
+                "archive entry {raw:?} has an unsafe path (absolute, or leading out of the archive)"
+            ))
+        };
+        let absolute = raw.starts_with('/')
+            || raw.starts_with('\\')
+            || raw.as_bytes().get(1) == Some(&b':');
+        if absolute {
+            return Err(unsafe_path());
+        }
+        let enclosed = entry.enclosed_name().ok_or_else(unsafe_path)?;
+        let mut components = Vec::new();
+        for c in enclosed.components() {
+            match c {
+                Component::Normal(s) => components.push(s.to_string_lossy().into_owned()),
+                Component::CurDir => {}
+                _ => return Err(unsafe_path()),
+            }
+        }
+        if entry.is_dir() || components.is_empty() || is_junk(&components) {
+            continue;
+        }
+        if entry.is_symlink() {
+            return Err(ApiError::invalid(format!(
+                "archive entry {raw:?} is a symbolic link"
+            )));
+        }
+        entries.push((i, components));
+    }
+    if entries.is_empty() {
+        return Err(ApiError::invalid("the archive holds no files"));
+    }
+    let flat = entries.iter().all(|(_, c)| c.len() == 1);
+    if !flat {
+        let top = &entries[0].1[0];
+        if let Some((_, c)) = entries
+            .iter()
+            .find(|(_, c)| c.len() != 2 || &c[0] != top)
+        {
+            return Err(ApiError::invalid(format!(
+                "archive entry {:?} is out of place: the images and {TABLE_CSV} must be at the top of the archive or all inside one folder",
+                c.join("/")
+            )));
+        }
+    }
+
+    // Pass 2: stream each entry out under the caps.
+    let mut budget = limits.max_unpacked;
+    let over_budget = || {
+        ApiError::too_large(format!(
+            "the archive unpacks to more than {} bytes",
+            limits.max_unpacked
+        ))
+    };
+    let mut images = Vec::new();
+    let mut table: Option<Vec<u8>> = None;
+    let mut buf = vec![0u8; 64 * 1024];
+    for (i, components) in entries {
+        let name = components.last().cloned().unwrap_or_default();
+        let mut entry = zip.by_index(i).map_err(|e| zip_error(&name, e))?;
+        if entry.size() > budget {
+            return Err(over_budget());
+        }
+        if name == TABLE_CSV || name == TABLE_JSON {
+            if table.is_some() {
+                return Err(ApiError::invalid(format!(
+                    "the archive holds more than one light table ({TABLE_CSV} / {TABLE_JSON})"
+                )));
+            }
+            let mut bytes = Vec::new();
+            (&mut entry)
+                .take(MAX_LIGHTS_BYTES as u64 + 1)
+                .read_to_end(&mut bytes)
+                .map_err(|e| ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}")))?;
+            if bytes.len() > MAX_LIGHTS_BYTES {
+                return Err(ApiError::too_large(format!(
+                    "the light table {name:?} is larger than {MAX_LIGHTS_BYTES} bytes"
+                )));
+            }
+            budget -= bytes.len() as u64;
+            table = Some(bytes);
+            continue;
+        }
+        if images.len() >= limits.max_images {
+            return Err(InputError::TooManyImages {
+                count: images.len() + 1,
+                limit: limits.max_images,
+            }
+            .into());
+        }
+        let file = image_file(images.len());
+        let target = dir.join(&file);
+        let mut out = File::create(&target)?;
+        let mut head = Vec::with_capacity(HEAD_BYTES);
+        loop {
+            let n = match entry.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => {
+                    return Err(ApiError::invalid(format!(
+                        "archive entry {name:?} cannot be read: {e}"
+                    )));
+                }
+            };
+            if n as u64 > budget {
+                return Err(over_budget());
+            }
+            budget -= n as u64;
+            if head.len() < HEAD_BYTES {
+                let take = (HEAD_BYTES - head.len()).min(n);
+                head.extend_from_slice(&buf[..take]);
+            }
+            out.write_all(&buf[..n])?;
+        }
+        out.flush()?;
+        drop(out);
+        let (width, height) = probe_image(&target, &name, &head, limits.max_pixels)?;
+        images.push(StoredImage {
+            name,
+            file,
+            width,
+            height,
+        });
+    }
+    let table = table.ok_or_else(|| {
+        InputError::Lights(format!(
+            "the archive has no {TABLE_CSV} or {TABLE_JSON} next to the images"
+        ))
+    })?;
+    Ok((images, table))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Cursor;
+    use zip::write::SimpleFileOptions;
+
+    fn png(w: u32, h: u32) -> Vec<u8> {
+        let img = image::GrayImage::from_pixel(w, h, image::Luma([128]));
+        let mut out = Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+        out.into_inner()
+    }
+
+    fn zip_of(entries: &[(&str, &[u8])]) -> Vec<u8> {
+        let mut w = zip::ZipWriter::new(Cursor::new(Vec::new()));
+        for (name, data) in entries {
+            w.start_file(*name, SimpleFileOptions::default()).unwrap();
+            w.write_all(data).unwrap();
+        }
+        w.finish().unwrap().into_inner()
+    }
+
+    fn limits() -> ArchiveLimits {
+        ArchiveLimits {
+            max_entries: 16,
+            max_unpacked: 1 << 20,
+            max_images: 8,
+            max_pixels: 1 << 20,
+        }
+    }
+
+    fn extract(bytes: &[u8], limits: &ArchiveLimits) -> Result<Vec<String>, ApiError> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.zip");
+        std::fs::write(&path, bytes).unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        extract_archive(&path, &out, limits).map(|(imgs, _)| imgs.into_iter().map(|i| i.name).collect())
+    }
+
+    const TABLE: &[u8] = b"a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\n";
+
+    #[test]
+    fn accepts_flat_and_one_folder_and_skips_junk() {
+        let p = png(4, 4);
+        let flat = zip_of(&[("a.png", &p), ("light_directions.csv", TABLE), ("__MACOSX/._a.png", b"x")]);
+        assert_eq!(extract(&flat, &limits()).unwrap(), ["a.png"]);
+        let nested = zip_of(&[("set/a.png", &p), ("set/b.png", &p), ("set/light_directions.csv", TABLE), ("set/.DS_Store", b"x")]);
+        assert_eq!(extract(&nested, &limits()).unwrap(), ["a.png", "b.png"]);
+    }
+
+    #[test]
+    fn refuses_unsafe_layouts_junk_and_bombs() {
+        let p = png(4, 4);
+        let e = extract(&zip_of(&[("../a.png", &p), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        assert_eq!(e.status().as_u16(), 422);
+        assert!(e.detail().contains("unsafe path"), "{e}");
+        let e = extract(&zip_of(&[("/etc/a.png", &p), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        assert!(e.detail().contains("unsafe path"), "{e}");
+        let e = extract(&zip_of(&[("x/a.png", &p), ("y/light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        assert!(e.detail().contains("out of place"), "{e}");
+        let e = extract(&zip_of(&[("a.png", &p), ("notes.txt", b"hello"), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        assert_eq!(e.status().as_u16(), 415, "{e}");
+        assert!(e.detail().contains("notes.txt"), "{e}");
+        let e = extract(&zip_of(&[("a.png", &p)]), &limits()).unwrap_err();
+        assert!(e.detail().contains("light_directions.csv"), "{e}");
+        // 4 MiB of zeros compresses to a few KiB: the cap stops it while streaming.
+        let zeros = vec![0u8; 4 << 20];
+        let e = extract(&zip_of(&[("a.png", &zeros), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        assert_eq!(e.status().as_u16(), 413, "{e}");
+        let many: Vec<(String, Vec<u8>)> = (0..20).map(|i| (format!("{i}.png"), p.clone())).collect();
+        let refs: Vec<(&str, &[u8])> = many.iter().map(|(n, d)| (n.as_str(), d.as_slice())).collect();
+        let e = extract(&zip_of(&refs), &limits()).unwrap_err();
+        assert_eq!(e.status().as_u16(), 413, "{e}");
+        let e = extract(b"PK\x03\x04 not really a zip", &limits()).unwrap_err();
+        assert_eq!(e.status().as_u16(), 422, "{e}");
+    }
+
+    #[test]
+    fn probe_reads_dimensions_and_refuses_junk() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x");
+        let p = png(5, 3);
+        std::fs::write(&path, &p).unwrap();
+        assert_eq!(probe_image(&path, "x.png", &p[..HEAD_BYTES], 100).unwrap(), (5, 3));
+        let e = probe_image(&path, "x.png", &p[..HEAD_BYTES], 10).unwrap_err();
+        assert!(e.is_too_large());
+        std::fs::write(&path, b"GIF89a\x01\x00\x01\x00\x00\x00\x00;").unwrap();
+        let e = probe_image(&path, "x.gif", b"GIF89a\x01\x00\x01\x00\x00\x00\x00;", 100).unwrap_err();
+        assert!(e.is_unsupported_media(), "{e}");
+        let e = probe_image(&path, "x.txt", b"hello", 100).unwrap_err();
+        assert!(e.is_unsupported_media(), "{e}");
+    }
+
+    #[test]
+    fn options_errors_name_the_field() {
+        let e = parse_options(br#"{"solver": "magic"}"#).unwrap_err();
+        assert_eq!(e.status().as_u16(), 422);
+        assert!(e.detail().contains("magic"), "{e}");
+        let e = parse_options(br#"{"outputs": ["albedo.png", "selfie.jpg"]}"#).unwrap_err();
+        assert!(e.detail().contains("selfie.jpg"), "{e}");
+        let e = parse_options(br#"{"colour": 1}"#).unwrap_err();
+        assert!(e.detail().contains("colour"), "{e}");
+        assert!(parse_options(br#"{"integration": "path"}"#).is_ok());
+    }
+}
