@@ -12,7 +12,11 @@ use photostereo::core::{Options, metrics, pipeline, synth};
 use serde::de::DeserializeOwned;
 
 #[derive(Parser)]
-#[command(name = "photostereo", version, about = "Photometric stereo: albedo, normals, heights and meshes from images under known lights")]
+#[command(
+    name = "photostereo",
+    version,
+    about = "Photometric stereo: albedo, normals, heights and meshes from images under known lights"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -63,7 +67,12 @@ struct ReconstructArgs {
     #[arg(long, value_parser = kebab::<Integration>)]
     integration: Option<Integration>,
     /// Light for shaded.png, as x,y,z (default 1,2,3).
-    #[arg(long, value_delimiter = ',', num_args = 3, allow_negative_numbers = true)]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        num_args = 3,
+        allow_negative_numbers = true
+    )]
     light: Option<Vec<f64>>,
     /// Write only these artifacts (comma-separated names, e.g. albedo.png,mesh.glb).
     #[arg(long, value_delimiter = ',')]
@@ -97,8 +106,10 @@ impl ReconstructArgs {
     fn options(&self) -> anyhow::Result<Options> {
         let mut o: Options = match &self.options {
             Some(p) => {
-                let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
-                serde_json::from_str(&text).with_context(|| format!("options in {}", p.display()))?
+                let text = std::fs::read_to_string(p)
+                    .with_context(|| format!("reading {}", p.display()))?;
+                serde_json::from_str(&text)
+                    .with_context(|| format!("options in {}", p.display()))?
             }
             None => Options::default(),
         };
@@ -173,10 +184,19 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
         let mut set = intake::load_dir(&set_dir, None, &Limits::default())?;
         set.mask = Some(truth.mask.clone());
         for solver in [Solver::L2, Solver::Weighted, Solver::Robust] {
-            let opts = Options { solver, integration, ..Options::default() };
+            let opts = Options {
+                solver,
+                integration,
+                ..Options::default()
+            };
             let rec = pipeline::reconstruct(&set, &opts, &mut |_| true)?;
             let acc = metrics::accuracy(&rec, &truth, &truth.mask);
-            let solve_ms = rec.report.timings_ms.iter().find(|t| t.stage == "solve").map_or(0.0, |t| t.ms);
+            let solve_ms = rec
+                .report
+                .timings_ms
+                .iter()
+                .find(|t| t.stage == "solve")
+                .map_or(0.0, |t| t.ms);
             println!(
                 "| {} | {} | {:.3} | {:.3} | {:.3} | {:.0} |",
                 set_dir.file_name().unwrap_or_default().to_string_lossy(),

@@ -5,9 +5,9 @@ use std::path::{Path, PathBuf};
 
 use ndarray::Array2;
 use photostereo::core::intake::{self, Limits};
+use photostereo::core::metrics::{self, Accuracy};
 use photostereo::core::options::{Integration, MaskMode, Solver};
 use photostereo::core::synth::{self, Truth};
-use photostereo::core::metrics::{self, Accuracy};
 use photostereo::core::{Options, Reconstruction, mask, reconstruct};
 
 fn res(name: &str) -> PathBuf {
@@ -19,7 +19,11 @@ fn seed(name: &str) -> PathBuf {
         .map(PathBuf::from)
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
     let dir = root.join(name);
-    assert!(dir.is_dir(), "seed data missing: {} (set PHOTOSTEREO_SEED_DATA)", dir.display());
+    assert!(
+        dir.is_dir(),
+        "seed data missing: {} (set PHOTOSTEREO_SEED_DATA)",
+        dir.display()
+    );
     dir
 }
 
@@ -55,14 +59,25 @@ fn shadow_free_16_bit_bump_normals_within_005_degree_and_depth_within_half_pixel
 #[test]
 fn weighted_solver_is_less_accurate_than_l2_on_noisy_shadow_free_data() {
     let dir = tempfile::tempdir().unwrap();
-    let capture = synth::Capture { bit_depth: 8, noise_sigma: 0.01, seed: 5, ..Default::default() };
+    let capture = synth::Capture {
+        bit_depth: 8,
+        noise_sigma: 0.01,
+        seed: 5,
+        ..Default::default()
+    };
     let lights = synth::light_rings(12, 5.0, 25.0);
     synth::write_set(dir.path(), &synth::Scene::bump(96), &lights, &capture).unwrap();
     let truth = synth::read_truth(dir.path()).unwrap();
-    let opts = |solver| Options { solver, ..Options::default() };
+    let opts = |solver| Options {
+        solver,
+        ..Options::default()
+    };
     let l2 = check(&run(dir.path(), &opts(Solver::L2), None), &truth);
     let weighted = check(&run(dir.path(), &opts(Solver::Weighted), None), &truth);
-    assert!(weighted.mean_deg > l2.mean_deg, "weighted {weighted:?} vs l2 {l2:?}");
+    assert!(
+        weighted.mean_deg > l2.mean_deg,
+        "weighted {weighted:?} vs l2 {l2:?}"
+    );
 }
 
 #[test]
@@ -70,11 +85,28 @@ fn mask_aware_poisson_beats_frankot_chellappa_on_a_masked_sphere() {
     let dir = res("sphere");
     let truth = synth::read_truth(&dir).unwrap();
     // The robust solver gets the rim right, so the integrators are what differs.
-    let with = |integration| Options { integration, solver: Solver::Robust, ..Options::default() };
-    let poisson = check(&run(&dir, &with(Integration::Poisson), Some(&truth.mask)), &truth);
-    let fc = check(&run(&dir, &with(Integration::FrankotChellappa), Some(&truth.mask)), &truth);
+    let with = |integration| Options {
+        integration,
+        solver: Solver::Robust,
+        ..Options::default()
+    };
+    let poisson = check(
+        &run(&dir, &with(Integration::Poisson), Some(&truth.mask)),
+        &truth,
+    );
+    let fc = check(
+        &run(
+            &dir,
+            &with(Integration::FrankotChellappa),
+            Some(&truth.mask),
+        ),
+        &truth,
+    );
     assert!(poisson.mean_deg < 0.5, "{poisson:?}");
-    assert!(poisson.depth_rms < fc.depth_rms, "poisson {poisson:?} vs frankot-chellappa {fc:?}");
+    assert!(
+        poisson.depth_rms < fc.depth_rms,
+        "poisson {poisson:?} vs frankot-chellappa {fc:?}"
+    );
 }
 
 #[test]
@@ -82,7 +114,10 @@ fn seed_sphere_normals_point_outward_and_its_auto_mask_is_one_disc() {
     let rec = run(&seed("sphere-images"), &Options::default(), None);
     let (labels, sizes) = mask::components(&rec.mask);
     assert_eq!(sizes.len(), 2, "one component, got sizes {sizes:?}");
-    assert!(mask::fill_holes(&rec.mask) == rec.mask, "no holes in the disc");
+    assert!(
+        mask::fill_holes(&rec.mask) == rec.mask,
+        "no holes in the disc"
+    );
     // Centre and radius from the mask.
     let (mut sr, mut sc, mut n) = (0.0, 0.0, 0.0);
     for ((r, c), &l) in labels.indexed_iter() {
@@ -94,19 +129,31 @@ fn seed_sphere_normals_point_outward_and_its_auto_mask_is_one_disc() {
     }
     let (cr, cc, radius) = (sr / n, sc / n, (n / std::f64::consts::PI).sqrt());
     let at = |dr: f64, dc: f64| {
-        let (r, c) = ((cr + dr * radius * 0.6) as usize, (cc + dc * radius * 0.6) as usize);
+        let (r, c) = (
+            (cr + dr * radius * 0.6) as usize,
+            (cc + dc * radius * 0.6) as usize,
+        );
         [0, 1, 2].map(|k| rec.normals[[r, c, k]])
     };
     let (left, right, top, bottom) = (at(0.0, -1.0), at(0.0, 1.0), at(-1.0, 0.0), at(1.0, 0.0));
-    assert!(left[0] < -0.3 && right[0] > 0.3, "x: left {left:?} right {right:?}");
-    assert!(top[1] < -0.3 && bottom[1] > 0.3, "y (down): top {top:?} bottom {bottom:?}");
+    assert!(
+        left[0] < -0.3 && right[0] > 0.3,
+        "x: left {left:?} right {right:?}"
+    );
+    assert!(
+        top[1] < -0.3 && bottom[1] > 0.3,
+        "y (down): top {top:?} bottom {bottom:?}"
+    );
     for n in [left, right, top, bottom] {
         assert!(n[2] > 0.3, "faces the camera: {n:?}");
     }
     // Heights: the centre stands above the rim.
     let centre = rec.heights[[cr as usize, cc as usize]];
     let rim = rec.heights[[cr as usize, (cc + radius * 0.9) as usize]];
-    assert!(centre > rim + 0.2 * radius as f32, "centre {centre} rim {rim}");
+    assert!(
+        centre > rim + 0.2 * radius as f32,
+        "centre {centre} rim {rim}"
+    );
 }
 
 #[test]
@@ -115,11 +162,28 @@ fn seed_dog_auto_mask_fills_the_eye_holes() {
     let rec = run(&dir, &Options::default(), None);
     // The plain threshold leaves holes (the eyes); the auto mask has none.
     let set = intake::load_dir(&dir, None, &Limits::default()).unwrap();
-    let raw = reconstruct(&set, &Options { mask: MaskMode::None, ..Options::default() }, &mut |_| true).unwrap();
+    let raw = reconstruct(
+        &set,
+        &Options {
+            mask: MaskMode::None,
+            ..Options::default()
+        },
+        &mut |_| true,
+    )
+    .unwrap();
     let t = mask::auto_threshold(&raw.albedo);
     let thresholded = raw.albedo.mapv(|a| a > t);
-    let holes = |m: &Array2<bool>| mask::fill_holes(m).iter().zip(m.iter()).filter(|(f, o)| **f && !**o).count();
-    assert!(holes(&thresholded) > 10, "the dog's thresholded albedo has holes");
+    let holes = |m: &Array2<bool>| {
+        mask::fill_holes(m)
+            .iter()
+            .zip(m.iter())
+            .filter(|(f, o)| **f && !**o)
+            .count()
+    };
+    assert!(
+        holes(&thresholded) > 10,
+        "the dog's thresholded albedo has holes"
+    );
     assert_eq!(holes(&rec.mask), 0, "auto mask has its holes filled");
     assert!(rec.report.object_pixels > 10_000 && rec.report.background_pixels > 10_000);
 }
@@ -128,7 +192,9 @@ fn seed_dog_auto_mask_fills_the_eye_holes() {
 fn seed_synth_reconstructs_a_bump_with_varying_albedo() {
     let rec = run(&seed("synth-images"), &Options::default(), None);
     let inside: Vec<f32> = rec.albedo.iter().copied().filter(|a| *a > 0.0).collect();
-    let (lo, hi) = inside.iter().fold((1f32, 0f32), |(l, h), a| (l.min(*a), h.max(*a)));
+    let (lo, hi) = inside
+        .iter()
+        .fold((1f32, 0f32), |(l, h), a| (l.min(*a), h.max(*a)));
     assert!(lo < 0.35 && hi > 0.65, "albedo range {lo}..{hi}");
     assert!(rec.report.height_max - rec.report.height_min > 1.0);
 }

@@ -19,9 +19,17 @@ fn seed(name: &str) -> PathBuf {
 
 fn reconstruct(dir: &Path, extra: &[&str]) -> (tempfile::TempDir, serde_json::Value) {
     let out = tempfile::tempdir().unwrap();
-    let status = bin().arg("reconstruct").arg(dir).arg("--out").arg(out.path()).args(extra).status().unwrap();
+    let status = bin()
+        .arg("reconstruct")
+        .arg(dir)
+        .arg("--out")
+        .arg(out.path())
+        .args(extra)
+        .status()
+        .unwrap();
     assert!(status.success(), "reconstruct {} failed", dir.display());
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.path().join("result.json")).unwrap()).unwrap();
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.path().join("result.json")).unwrap()).unwrap();
     (out, report)
 }
 
@@ -30,8 +38,25 @@ fn seed_sets_reconstruct_with_every_output_decodable() {
     for name in ["synth-images", "sphere-images", "dog-images"] {
         let (out, report) = reconstruct(&seed(name), &[]);
         let artifacts = report["artifacts"].as_array().unwrap();
-        for required in ["albedo.png", "normal.png", "normal_x.png", "normal_y.png", "normal_z.png", "height.png", "normal.exr", "height.exr", "needle.png", "curl.png", "shaded.png", "mask.png", "result.json"] {
-            assert!(artifacts.iter().any(|a| a == required), "{name}: {required} missing from {artifacts:?}");
+        for required in [
+            "albedo.png",
+            "normal.png",
+            "normal_x.png",
+            "normal_y.png",
+            "normal_z.png",
+            "height.png",
+            "normal.exr",
+            "height.exr",
+            "needle.png",
+            "curl.png",
+            "shaded.png",
+            "mask.png",
+            "result.json",
+        ] {
+            assert!(
+                artifacts.iter().any(|a| a == required),
+                "{name}: {required} missing from {artifacts:?}"
+            );
         }
         for a in artifacts {
             let a = a.as_str().unwrap();
@@ -53,8 +78,13 @@ fn seed_sets_reconstruct_with_every_output_decodable() {
 #[test]
 fn normal_png_uses_the_opengl_convention() {
     // Seed sphere: above the centre the normal tilts up the image, so green > half.
-    let (out, _) = reconstruct(&seed("sphere-images"), &["--outputs", "normal.png,mask.png"]);
-    let n = image::open(out.path().join("normal.png")).unwrap().to_rgb16();
+    let (out, _) = reconstruct(
+        &seed("sphere-images"),
+        &["--outputs", "normal.png,mask.png"],
+    );
+    let n = image::open(out.path().join("normal.png"))
+        .unwrap()
+        .to_rgb16();
     let mask = image::open(out.path().join("mask.png")).unwrap().to_luma8();
     let (mut sx, mut sy, mut count) = (0u64, 0u64, 0u64);
     for (x, y, p) in mask.enumerate_pixels() {
@@ -69,29 +99,60 @@ fn normal_png_uses_the_opengl_convention() {
     let top = n.get_pixel(cx, cy - r).0;
     let bottom = n.get_pixel(cx, cy + r).0;
     let right = n.get_pixel(cx + r, cy).0;
-    assert!(top[1] > 40000 && bottom[1] < 25000, "green: top {top:?} bottom {bottom:?}");
+    assert!(
+        top[1] > 40000 && bottom[1] < 25000,
+        "green: top {top:?} bottom {bottom:?}"
+    );
     assert!(right[0] > 40000, "red: right {right:?}");
 }
 
 #[test]
 fn render_reproduces_the_committed_res_sets() {
     let out = tempfile::tempdir().unwrap();
-    let status = bin().arg("render").arg(out.path()).args(["--only", "bump"]).status().unwrap();
+    let status = bin()
+        .arg("render")
+        .arg(out.path())
+        .args(["--only", "bump"])
+        .status()
+        .unwrap();
     assert!(status.success());
     let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("res/bump");
-    for f in ["im1.png", "im2.png", "im3.png", "im4.png", "light_directions.csv", "truth/normal.exr", "truth/depth.exr"] {
+    for f in [
+        "im1.png",
+        "im2.png",
+        "im3.png",
+        "im4.png",
+        "light_directions.csv",
+        "truth/normal.exr",
+        "truth/depth.exr",
+    ] {
         let a = std::fs::read(out.path().join("bump").join(f)).unwrap();
         let b = std::fs::read(committed.join(f)).unwrap();
-        assert!(a == b, "{f} differs from res/bump: rerun `photostereo render res`");
+        assert!(
+            a == b,
+            "{f} differs from res/bump: rerun `photostereo render res`"
+        );
     }
 }
 
 #[test]
 fn bad_input_fails_with_a_message_naming_the_problem() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("light_directions.csv"), "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\n").unwrap();
-    let out = bin().arg("reconstruct").arg(dir.path()).args(["--out", "/tmp/never"]).output().unwrap();
+    std::fs::write(
+        dir.path().join("light_directions.csv"),
+        "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\n",
+    )
+    .unwrap();
+    let out = bin()
+        .arg("reconstruct")
+        .arg(dir.path())
+        .args(["--out", "/tmp/never"])
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("\"a.png\"") && err.contains("not provided"), "{err}");
+    assert!(
+        err.contains("\"a.png\"") && err.contains("not provided"),
+        "{err}"
+    );
 }

@@ -23,14 +23,19 @@ fn folder(names: &[&str], table: &str) -> tempfile::TempDir {
 const TABLE: &str = "a.png, 0, 0, 1\nb.png, 0.5, 0, 1\nc.png, 0, 0.5, 1\n";
 
 fn load_err(dir: &Path) -> String {
-    intake::load_dir(dir, None, &Limits::default()).unwrap_err().to_string()
+    intake::load_dir(dir, None, &Limits::default())
+        .unwrap_err()
+        .to_string()
 }
 
 #[test]
 fn a_good_folder_loads() {
     let d = folder(&["a.png", "b.png", "c.png"], TABLE);
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
-    assert_eq!((set.width, set.height, set.planes.len(), set.bit_depth), (8, 8, 3, 8));
+    assert_eq!(
+        (set.width, set.height, set.planes.len(), set.bit_depth),
+        (8, 8, 3, 8)
+    );
     assert_eq!(set.planes[0][[0, 0]], 100 * 257);
 }
 
@@ -61,9 +66,14 @@ fn images_of_different_sizes() {
 #[test]
 fn mixed_bit_depths() {
     let d = folder(&["a.png", "b.png"], TABLE);
-    ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(8, 8, Luma([1000])).save(d.path().join("c.png")).unwrap();
+    ImageBuffer::<Luma<u16>, Vec<u16>>::from_pixel(8, 8, Luma([1000]))
+        .save(d.path().join("c.png"))
+        .unwrap();
     let e = load_err(d.path());
-    assert!(e.contains("\"c.png\" is 16-bit") && e.contains("8-bit"), "{e}");
+    assert!(
+        e.contains("\"c.png\" is 16-bit") && e.contains("8-bit"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -74,16 +84,31 @@ fn undecodable_and_unsupported_files() {
     assert!(e.contains("\"c.png\" cannot be decoded"), "{e}");
     std::fs::write(d.path().join("c.png"), b"just some text, not an image").unwrap();
     let e = load_err(d.path());
-    assert!(e.contains("\"c.png\" is not a supported image format"), "{e}");
+    assert!(
+        e.contains("\"c.png\" is not a supported image format"),
+        "{e}"
+    );
 }
 
 #[test]
 fn bad_vectors_and_duplicates() {
     for (table, needle) in [
-        ("a.png, 0, 0, 0\nb.png, 0.5, 0, 1\nc.png, 0, 0.5, 1\n", "row 1: light vector of \"a.png\" is zero"),
-        ("a.png, 0, 0, 1\nb.png, nan, 0, 1\nc.png, 0, 0.5, 1\n", "row 2: light vector of \"b.png\" has a non-finite"),
-        ("a.png, 0, 0, 1\nb.png, 0.5, 0, 1\nc.png, 0, up, 1\n", "row 3: y of \"c.png\" is not a number: \"up\""),
-        ("a.png, 0, 0, 1\nb.png, 0.5, 0, 1\na.png, 0, 0.5, 1\n", "\"a.png\" appears twice in the light table (rows 1 and 3)"),
+        (
+            "a.png, 0, 0, 0\nb.png, 0.5, 0, 1\nc.png, 0, 0.5, 1\n",
+            "row 1: light vector of \"a.png\" is zero",
+        ),
+        (
+            "a.png, 0, 0, 1\nb.png, nan, 0, 1\nc.png, 0, 0.5, 1\n",
+            "row 2: light vector of \"b.png\" has a non-finite",
+        ),
+        (
+            "a.png, 0, 0, 1\nb.png, 0.5, 0, 1\nc.png, 0, up, 1\n",
+            "row 3: y of \"c.png\" is not a number: \"up\"",
+        ),
+        (
+            "a.png, 0, 0, 1\nb.png, 0.5, 0, 1\na.png, 0, 0.5, 1\n",
+            "\"a.png\" appears twice in the light table (rows 1 and 3)",
+        ),
     ] {
         let d = folder(&["a.png", "b.png", "c.png"], table);
         let e = load_err(d.path());
@@ -94,10 +119,17 @@ fn bad_vectors_and_duplicates() {
 #[test]
 fn decompression_bomb_header_is_refused_before_decoding() {
     let d = folder(&["a.png", "b.png", "c.png"], TABLE);
-    let limits = Limits { max_pixels_per_image: 32, ..Limits::default() };
+    let limits = Limits {
+        max_pixels_per_image: 32,
+        ..Limits::default()
+    };
     let e = intake::load_dir(d.path(), None, &limits).unwrap_err();
     assert!(e.is_too_large());
-    assert!(e.to_string().contains("\"a.png\" is 8×8 = 64 pixels, over the limit of 32"), "{e}");
+    assert!(
+        e.to_string()
+            .contains("\"a.png\" is 8×8 = 64 pixels, over the limit of 32"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -105,14 +137,21 @@ fn ill_conditioned_and_rank_deficient_light_sets() {
     let coplanar = "a.png, 1, 0, 1\nb.png, -1, 0, 1\nc.png, 0, 0, 1\n";
     let d = folder(&["a.png", "b.png", "c.png"], coplanar);
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
-    let e = reconstruct(&set, &Options::default(), &mut |_| true).unwrap_err().to_string();
+    let e = reconstruct(&set, &Options::default(), &mut |_| true)
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("rank 2"), "{e}");
 
     let narrow = "a.png, 0, 0, 1\nb.png, 0.001, 0, 1\nc.png, 0, 0.001, 1\n";
     let d = folder(&["a.png", "b.png", "c.png"], narrow);
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
-    let e = reconstruct(&set, &Options::default(), &mut |_| true).unwrap_err().to_string();
-    assert!(e.contains("ill-conditioned") && e.contains("exceeds the limit 100.0"), "{e}");
+    let e = reconstruct(&set, &Options::default(), &mut |_| true)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("ill-conditioned") && e.contains("exceeds the limit 100.0"),
+        "{e}"
+    );
 }
 
 #[test]
@@ -120,7 +159,9 @@ fn mask_of_the_wrong_size() {
     let d = folder(&["a.png", "b.png", "c.png"], TABLE);
     let m = d.path().join("mask.bmp");
     gray(&m, 4, 4);
-    let e = intake::load_dir(d.path(), Some(&m), &Limits::default()).unwrap_err().to_string();
+    let e = intake::load_dir(d.path(), Some(&m), &Limits::default())
+        .unwrap_err()
+        .to_string();
     assert!(e.contains("mask") && e.contains("4×4"), "{e}");
 }
 
@@ -130,14 +171,24 @@ fn colour_inputs_keep_per_channel_albedo() {
     let table = "a.png, 0, 0, 1\nb.png, 0.5, 0, 1\nc.png, 0, 0.5, 1\n";
     std::fs::write(d.path().join("light_directions.csv"), table).unwrap();
     // A flat reddish plate facing the camera: intensity = albedo_c · l_z.
-    for (name, lz) in [("a.png", 1.0f64), ("b.png", 1.0 / 1.25f64.sqrt()), ("c.png", 1.0 / 1.25f64.sqrt())] {
+    for (name, lz) in [
+        ("a.png", 1.0f64),
+        ("b.png", 1.0 / 1.25f64.sqrt()),
+        ("c.png", 1.0 / 1.25f64.sqrt()),
+    ] {
         let px = [0.8, 0.4, 0.2].map(|a| (a * lz * 255.0).round() as u8);
-        RgbImage::from_pixel(6, 6, Rgb(px)).save(d.path().join(name)).unwrap();
+        RgbImage::from_pixel(6, 6, Rgb(px))
+            .save(d.path().join(name))
+            .unwrap();
     }
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
     let rec = reconstruct(&set, &Options::default(), &mut |_| true).unwrap();
     let rgb = rec.albedo_rgb.expect("colour inputs give albedo_rgb");
     for (k, want) in [0.8f32, 0.4, 0.2].iter().enumerate() {
-        assert!((rgb[[3, 3, k]] - want).abs() < 0.01, "channel {k}: {}", rgb[[3, 3, k]]);
+        assert!(
+            (rgb[[3, 3, k]] - want).abs() < 0.01,
+            "channel {k}: {}",
+            rgb[[3, 3, k]]
+        );
     }
 }

@@ -5,8 +5,8 @@ use std::collections::VecDeque;
 
 use ndarray::Array2;
 
-use super::options::MaskMode;
 use super::InputError;
+use super::options::MaskMode;
 
 /// Lowest auto-mask threshold: below one 8-bit step, albedo is indistinguishable from 0.
 const MIN_THRESHOLD: f32 = 1.0 / 255.0;
@@ -17,7 +17,11 @@ const SPECK_FRACTION: f64 = 0.005;
 
 /// Build the mask. A supplied mask is used unless the mode is `none`; `given` without
 /// one is an error. Pixels of zero albedo are background, except holes the auto mask fills.
-pub fn build(mode: MaskMode, albedo: &Array2<f32>, given: Option<&Array2<bool>>) -> Result<Array2<bool>, InputError> {
+pub fn build(
+    mode: MaskMode,
+    albedo: &Array2<f32>,
+    given: Option<&Array2<bool>>,
+) -> Result<Array2<bool>, InputError> {
     let lit = albedo.mapv(|a| a > 0.0);
     match (mode, given) {
         (MaskMode::None, _) => Ok(lit),
@@ -41,7 +45,11 @@ pub fn auto(albedo: &Array2<f32>) -> Array2<bool> {
 /// else a tenth of the 99th-percentile albedo (an object filling the frame, or one on
 /// a black background with nothing to split).
 pub fn auto_threshold(albedo: &Array2<f32>) -> f32 {
-    let mut v: Vec<f32> = albedo.iter().copied().filter(|a| a.is_finite() && *a > 0.0).collect();
+    let mut v: Vec<f32> = albedo
+        .iter()
+        .copied()
+        .filter(|a| a.is_finite() && *a > 0.0)
+        .collect();
     if v.is_empty() {
         return MIN_THRESHOLD;
     }
@@ -65,7 +73,11 @@ fn otsu(values: impl Iterator<Item = f32>, top: f32) -> Option<(f32, f64, f64)> 
         hist[((v / top).clamp(0.0, 1.0) * (BINS - 1) as f32) as usize] += 1;
     }
     let total: u64 = hist.iter().sum();
-    let sum: f64 = hist.iter().enumerate().map(|(i, &h)| i as f64 * h as f64).sum();
+    let sum: f64 = hist
+        .iter()
+        .enumerate()
+        .map(|(i, &h)| i as f64 * h as f64)
+        .sum();
     let (mut w0, mut s0, mut best) = (0u64, 0f64, None::<(f64, usize, f64, f64)>);
     for (i, &h) in hist.iter().enumerate().take(BINS - 1) {
         w0 += h;
@@ -82,7 +94,11 @@ fn otsu(values: impl Iterator<Item = f32>, top: f32) -> Option<(f32, f64, f64)> 
     }
     let (_, i, m0, m1) = best?;
     let scale = top as f64 / (BINS - 1) as f64;
-    Some(((i as f64 + 1.0) as f32 * scale as f32, m0 * scale, m1 * scale))
+    Some((
+        (i as f64 + 1.0) as f32 * scale as f32,
+        m0 * scale,
+        m1 * scale,
+    ))
 }
 
 /// Label 4-connected components of `true` pixels; returns labels (0 = none) and sizes.
@@ -115,7 +131,12 @@ pub fn components(mask: &Array2<bool>) -> (Array2<u32>, Vec<usize>) {
     (labels, sizes)
 }
 
-fn neighbours(r: usize, c: usize, rows: usize, cols: usize) -> impl Iterator<Item = (usize, usize)> {
+fn neighbours(
+    r: usize,
+    c: usize,
+    rows: usize,
+    cols: usize,
+) -> impl Iterator<Item = (usize, usize)> {
     let up = (r > 0).then(|| (r - 1, c));
     let down = (r + 1 < rows).then(|| (r + 1, c));
     let left = (c > 0).then(|| (r, c - 1));
@@ -161,7 +182,8 @@ mod tests {
 
     fn disc(n: usize, r: f32, hole: f32) -> Array2<f32> {
         Array2::from_shape_fn((n, n), |(y, x)| {
-            let d = ((x as f32 - n as f32 / 2.0).powi(2) + (y as f32 - n as f32 / 2.0).powi(2)).sqrt();
+            let d =
+                ((x as f32 - n as f32 / 2.0).powi(2) + (y as f32 - n as f32 / 2.0).powi(2)).sqrt();
             if d < hole {
                 0.0
             } else if d < r {
@@ -187,8 +209,20 @@ mod tests {
     fn modes() {
         let a = disc(16, 5.0, 0.0);
         let given = Array2::from_elem((16, 16), true);
-        assert_eq!(build(MaskMode::None, &a, None).unwrap().iter().filter(|&&b| b).count(), 256);
-        assert!(build(MaskMode::Given, &a, None).unwrap_err().to_string().contains("given"));
+        assert_eq!(
+            build(MaskMode::None, &a, None)
+                .unwrap()
+                .iter()
+                .filter(|&&b| b)
+                .count(),
+            256
+        );
+        assert!(
+            build(MaskMode::Given, &a, None)
+                .unwrap_err()
+                .to_string()
+                .contains("given")
+        );
         assert_eq!(build(MaskMode::Auto, &a, Some(&given)).unwrap(), given);
     }
 }

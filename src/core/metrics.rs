@@ -24,7 +24,9 @@ pub fn accuracy(rec: &Reconstruction, truth: &Truth, region: &Array2<bool>) -> A
         if !inside {
             continue;
         }
-        let dot: f64 = (0..3).map(|k| rec.normals[[r, c, k]] as f64 * truth.normals[[r, c, k]] as f64).sum();
+        let dot: f64 = (0..3)
+            .map(|k| rec.normals[[r, c, k]] as f64 * truth.normals[[r, c, k]] as f64)
+            .sum();
         angles.push(dot.clamp(-1.0, 1.0).acos().to_degrees());
         diffs.push(rec.heights[[r, c]] as f64 - truth.depth[[r, c]] as f64);
     }

@@ -5,16 +5,13 @@ use std::io::Cursor;
 use std::path::Path;
 
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{
-    DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb, Rgba,
-    Rgba32FImage,
-};
+use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb, Rgba, Rgba32FImage};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
+use super::InputError;
 use super::pipeline::{Reconstruction, RunError};
 use super::render;
-use super::InputError;
 
 /// Every artifact a job can produce: file name and Content-Type.
 pub const ARTIFACTS: &[(&str, &str)] = &[
@@ -49,7 +46,11 @@ pub fn check_selection(names: &[String]) -> Result<(), InputError> {
     match names.iter().find(|n| content_type(n).is_none()) {
         Some(bad) => Err(InputError::Options(format!(
             "unknown output {bad:?}; known: {}",
-            ARTIFACTS.iter().map(|(n, _)| *n).collect::<Vec<_>>().join(", ")
+            ARTIFACTS
+                .iter()
+                .map(|(n, _)| *n)
+                .collect::<Vec<_>>()
+                .join(", ")
         ))),
         None => Ok(()),
     }
@@ -115,7 +116,9 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
         "albedo_rgb.png" => {
             let rgb = rec.albedo_rgb.as_ref()?;
             let img = ImageBuffer::<Rgb<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
-                Rgb([0, 1, 2].map(|k| (rgb[[y as usize, x as usize, k]].clamp(0.0, 1.0) * 65535.0).round() as u16))
+                Rgb([0, 1, 2].map(|k| {
+                    (rgb[[y as usize, x as usize, k]].clamp(0.0, 1.0) * 65535.0).round() as u16
+                }))
             });
             png_bytes(&img)
         }
@@ -128,7 +131,8 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
                 if !mask[[r, c]] {
                     return Rgb([0, 0, 0]);
                 }
-                Rgb(gl_normal(&rec.normals, r, c).map(|v| ((v + 1.0) * 0.5 * 65535.0).round().clamp(0.0, 65535.0) as u16))
+                Rgb(gl_normal(&rec.normals, r, c)
+                    .map(|v| ((v + 1.0) * 0.5 * 65535.0).round().clamp(0.0, 65535.0) as u16))
             });
             png_bytes(&img)
         }
@@ -139,7 +143,11 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
                 _ => 2,
             };
             let comp = Array2::from_shape_fn((rows, cols), |(r, c)| {
-                if mask[[r, c]] { (rec.normals[[r, c, k]] + 1.0) * 0.5 } else { 0.0 }
+                if mask[[r, c]] {
+                    (rec.normals[[r, c, k]] + 1.0) * 0.5
+                } else {
+                    0.0
+                }
             });
             gray16(&comp, |v| v)
         }
@@ -147,7 +155,11 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
             let (lo, hi) = (rec.report.height_min, rec.report.height_max);
             let span = if hi > lo { hi - lo } else { 1.0 };
             let z = Array2::from_shape_fn((rows, cols), |(r, c)| {
-                if mask[[r, c]] { (rec.heights[[r, c]] - lo) / span } else { 0.0 }
+                if mask[[r, c]] {
+                    (rec.heights[[r, c]] - lo) / span
+                } else {
+                    0.0
+                }
             });
             gray16(&z, |v| v)
         }
@@ -169,7 +181,10 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
         }
         "needle.png" => png_bytes(&render::needle_map(&rec.albedo, &rec.normals, mask)),
         "curl.png" => png_bytes(&render::diverging(&rec.curl, mask)),
-        "shaded.png" => gray16(&render::shade(&rec.albedo, &rec.normals, shading_light), |v| v),
+        "shaded.png" => gray16(
+            &render::shade(&rec.albedo, &rec.normals, shading_light),
+            |v| v,
+        ),
         _ => return None,
     };
     Some(bytes)
@@ -195,7 +210,12 @@ pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError
 
 /// Write the picture artifacts `names` in parallel; returns the names written (an
 /// artifact that does not apply, such as `albedo_rgb.png` for gray inputs, is skipped).
-pub fn write_pictures(rec: &Reconstruction, names: &[&str], shading_light: [f64; 3], dir: &Path) -> Result<Vec<String>, RunError> {
+pub fn write_pictures(
+    rec: &Reconstruction,
+    names: &[&str],
+    shading_light: [f64; 3],
+    dir: &Path,
+) -> Result<Vec<String>, RunError> {
     let written: Vec<Option<String>> = names
         .par_iter()
         .map(|name| match encode(rec, name, shading_light) {
@@ -211,15 +231,21 @@ pub fn write_pictures(rec: &Reconstruction, names: &[&str], shading_light: [f64;
 pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, InputError> {
     super::lights::check_direction(light)?;
     let read = |name: &str| {
-        image::open(dir.join(name)).map_err(|e| InputError::io(dir.join(name), format!("cannot re-shade: {e}")))
+        image::open(dir.join(name))
+            .map_err(|e| InputError::io(dir.join(name), format!("cannot re-shade: {e}")))
     };
     let albedo = read("albedo.png")?.to_luma32f();
     let normal = read("normal.exr")?.to_rgba32f();
     if albedo.dimensions() != normal.dimensions() {
-        return Err(InputError::io(dir, "albedo.png and normal.exr differ in size"));
+        return Err(InputError::io(
+            dir,
+            "albedo.png and normal.exr differ in size",
+        ));
     }
     let (w, h) = albedo.dimensions();
-    let a = Array2::from_shape_fn((h as usize, w as usize), |(r, c)| albedo.get_pixel(c as u32, r as u32).0[0]);
+    let a = Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
+        albedo.get_pixel(c as u32, r as u32).0[0]
+    });
     // normal.exr is in the OpenGL frame (y up): back to the seed frame for shading.
     let n = Array3::from_shape_fn((h as usize, w as usize, 3), |(r, c, k)| {
         let v = normal.get_pixel(c as u32, r as u32).0[k];
@@ -232,4 +258,3 @@ pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, Input
 pub fn decode_png16(bytes: &[u8]) -> image::ImageResult<DynamicImage> {
     image::load_from_memory_with_format(bytes, ImageFormat::Png)
 }
-

@@ -5,6 +5,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use ndarray::{Array2, Array3, Zip};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::InputError;
@@ -146,24 +147,38 @@ pub fn reconstruct(
     } = surface;
 
     step(progress, Stage::Mask)?;
-    let mask = timings.time(Stage::Mask, || mask::build(opts.mask, &albedo, set.mask.as_ref()))?;
-    let clamped = albedo.iter().zip(mask.iter()).filter(|(a, m)| **m && **a > 1.0).count();
+    let mask = timings.time(Stage::Mask, || {
+        mask::build(opts.mask, &albedo, set.mask.as_ref())
+    })?;
+    let clamped = albedo
+        .iter()
+        .zip(mask.iter())
+        .filter(|(a, m)| **m && **a > 1.0)
+        .count();
     Zip::from(&mut albedo).and(&mask).par_for_each(|a, &m| {
         *a = if m { a.min(1.0) } else { 0.0 };
     });
-    Zip::from(normals.rows_mut()).and(&mask).par_for_each(|mut n, &m| {
-        if !m {
-            n.fill(0.0);
-        }
-    });
-    Zip::from(&mut residual).and(&mut confidence).and(&mask).par_for_each(|r, c, &m| {
-        if !m {
-            *r = 0.0;
-            *c = 0.0;
-        }
-    });
+    Zip::from(normals.rows_mut())
+        .and(&mask)
+        .par_for_each(|mut n, &m| {
+            if !m {
+                n.fill(0.0);
+            }
+        });
+    Zip::from(&mut residual)
+        .and(&mut confidence)
+        .and(&mask)
+        .par_for_each(|r, c, &m| {
+            if !m {
+                *r = 0.0;
+                *c = 0.0;
+            }
+        });
     let unreliable = &unreliable & &mask;
-    let albedo_rgb = set.colour_moments.as_ref().map(|m| colour_albedo(m, &normals, &mask, &set.lights));
+    let albedo_rgb = set
+        .colour_moments
+        .as_ref()
+        .map(|m| colour_albedo(m, &normals, &mask, &set.lights));
 
     step(progress, Stage::Integrate)?;
     let (heights, curl) = timings.time(Stage::Integrate, || {
@@ -174,21 +189,48 @@ pub fn reconstruct(
 
     let object = mask.iter().filter(|m| **m).count();
     let over_mask = |a: &Array2<f32>| -> f64 {
-        let sum: f64 = a.iter().zip(mask.iter()).filter(|(_, m)| **m).map(|(v, _)| (*v as f64).powi(2)).sum();
-        if object > 0 { (sum / object as f64).sqrt() } else { 0.0 }
+        let sum: f64 = a
+            .iter()
+            .zip(mask.iter())
+            .filter(|(_, m)| **m)
+            .map(|(v, _)| (*v as f64).powi(2))
+            .sum();
+        if object > 0 {
+            (sum / object as f64).sqrt()
+        } else {
+            0.0
+        }
     };
     let (height_min, height_max) = heights
         .iter()
         .zip(mask.iter())
         .filter(|(_, m)| **m)
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| (lo.min(*h), hi.max(*h)));
-    let (height_min, height_max) = if object > 0 { (height_min, height_max) } else { (0.0, 0.0) };
-    let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| if object > 0 { v.sum::<f64>() / object as f64 } else { 0.0 };
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| {
+            (lo.min(*h), hi.max(*h))
+        });
+    let (height_min, height_max) = if object > 0 {
+        (height_min, height_max)
+    } else {
+        (0.0, 0.0)
+    };
+    let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| {
+        if object > 0 {
+            v.sum::<f64>() / object as f64
+        } else {
+            0.0
+        }
+    };
     let report = Report {
         black_level: estimate.map(|e| e.black_level),
         noise_sigma: estimate.map(|e| e.noise_sigma),
         confidence_mean: mean_over_mask(&mut confidence.iter().map(|c| *c as f64)),
-        inliers_mean: mean_over_mask(&mut inliers.iter().zip(mask.iter()).filter(|(_, m)| **m).map(|(k, _)| *k as f64)),
+        inliers_mean: mean_over_mask(
+            &mut inliers
+                .iter()
+                .zip(mask.iter())
+                .filter(|(_, m)| **m)
+                .map(|(k, _)| *k as f64),
+        ),
         unreliable_pixels: unreliable.iter().filter(|u| **u).count(),
         width: set.width,
         height: set.height,
@@ -244,7 +286,11 @@ pub fn run(
         path: dir.display().to_string(),
         reason: e.to_string(),
     })?;
-    let wanted = |name: &str| opts.outputs.as_ref().is_none_or(|o| o.iter().any(|n| n == name));
+    let wanted = |name: &str| {
+        opts.outputs
+            .as_ref()
+            .is_none_or(|o| o.iter().any(|n| n == name))
+    };
     let pictures: Vec<&str> = outputs::ARTIFACTS
         .iter()
         .map(|(n, _)| *n)
@@ -255,7 +301,9 @@ pub fn run(
     step(progress, Stage::Outputs)?;
     let start = Instant::now();
     let mut written = outputs::write_pictures(&rec, &pictures, opts.shading_light, dir)?;
-    rec.report.timings_ms.push(Timing::new(Stage::Outputs, start));
+    rec.report
+        .timings_ms
+        .push(Timing::new(Stage::Outputs, start));
 
     step(progress, Stage::Mesh)?;
     let start = Instant::now();
@@ -269,24 +317,77 @@ pub fn run(
     Ok(rec.report)
 }
 
-/// The glTF files and the preview picture.
+/// The glTF files and the preview picture. A mask too small to triangulate gives no mesh
+/// (and says so in the log of the caller) rather than failing the whole job.
 fn write_meshes(
     rec: &Reconstruction,
     opts: &Options,
     dir: &Path,
     wanted: &dyn Fn(&str) -> bool,
 ) -> Result<Vec<String>, RunError> {
-    let _ = (rec, opts, dir, wanted);
-    Ok(Vec::new())
+    use super::mesh::{self, MeshError};
+    let mut jobs: Vec<(&str, Box<dyn Fn() -> Result<Vec<u8>, MeshError> + Sync>)> = Vec::new();
+    if wanted("mesh.glb") {
+        jobs.push(("mesh.glb", Box::new(|| mesh::glb(rec, &opts.mesh))));
+    }
+    if wanted("mesh.gltf") {
+        jobs.push((
+            "mesh.gltf",
+            Box::new(|| mesh::gltf(rec, &opts.mesh).map(String::into_bytes)),
+        ));
+    }
+    if wanted("preview.png") {
+        jobs.push((
+            "preview.png",
+            Box::new(|| {
+                Ok(outputs::png_bytes(&super::preview::preview(
+                    rec,
+                    PREVIEW_SIZE.0,
+                    PREVIEW_SIZE.1,
+                )))
+            }),
+        ));
+    }
+    let results: Vec<Result<Option<String>, RunError>> = jobs
+        .par_iter()
+        .map(|(name, make)| match make() {
+            Ok(bytes) => outputs::write_atomic(dir, name, &bytes).map(|_| Some(name.to_string())),
+            Err(MeshError::EmptyMask | MeshError::NoTriangles { .. }) => Ok(None),
+            Err(e @ (MeshError::Options(_) | MeshError::TooLarge { .. })) => {
+                Err(InputError::Options(e.to_string()).into())
+            }
+            Err(e) => Err(RunError::Output {
+                path: dir.join(name).display().to_string(),
+                reason: e.to_string(),
+            }),
+        })
+        .collect();
+    let mut written = Vec::new();
+    for r in results {
+        written.extend(r?);
+    }
+    Ok(written)
 }
 
+/// Size of `preview.png`.
+pub const PREVIEW_SIZE: (u32, u32) = (800, 600);
+
 fn step(progress: Progress, stage: Stage) -> Result<(), RunError> {
-    if progress(stage) { Ok(()) } else { Err(RunError::Cancelled) }
+    if progress(stage) {
+        Ok(())
+    } else {
+        Err(RunError::Cancelled)
+    }
 }
 
 /// Each channel's albedo fitted against the recovered normals: for shading sᵢ = n·lᵢ,
 /// a_c = Σᵢ Iᵢ,c sᵢ / Σᵢ sᵢ² = n·(Σᵢ lᵢ Iᵢ,c) / nᵀ(LᵀL)n, from moments summed at intake.
-fn colour_albedo(moments: &Array3<f32>, normals: &Array3<f32>, mask: &Array2<bool>, lights: &[Light]) -> Array3<f32> {
+fn colour_albedo(
+    moments: &Array3<f32>,
+    normals: &Array3<f32>,
+    mask: &Array2<bool>,
+    lights: &[Light],
+) -> Array3<f32> {
     let mut ltl = [[0f32; 3]; 3];
     for l in lights {
         let s = l.scaled();
@@ -306,7 +407,9 @@ fn colour_albedo(moments: &Array3<f32>, normals: &Array3<f32>, mask: &Array2<boo
             if !inside {
                 return;
             }
-            let quad: f32 = (0..3).map(|r| (0..3).map(|c| n[r] * ltl[r][c] * n[c]).sum::<f32>()).sum();
+            let quad: f32 = (0..3)
+                .map(|r| (0..3).map(|c| n[r] * ltl[r][c] * n[c]).sum::<f32>())
+                .sum();
             if quad <= 0.0 {
                 return;
             }

@@ -17,7 +17,7 @@ use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 
 use super::intake::ImageSet;
-use super::solve::invert3;
+use super::solve::{invert3, render_observation};
 
 const SCALE: f32 = 1.0 / 65535.0;
 /// Re-fits per pixel at most; the inlier set almost always settles in two.
@@ -80,7 +80,7 @@ impl Model {
             black,
             dark: 3.0 * floor,
             tolerance: 3.0 * floor,
-            }
+        }
     }
 
     /// Least squares over the observations not in `out`.
@@ -105,35 +105,62 @@ impl Model {
         Some([0, 1, 2].map(|r| (0..3).map(|k| inv[r][k] * rhs[k]).sum::<f64>() as f32))
     }
 
-    fn fit(&self, obs: &[f32], y: &mut [f32], out: &mut [bool], next: &mut [bool]) -> Fit {
+    fn fit(
+        &self,
+        obs: &[f32],
+        y: &mut [f32],
+        out: &mut [bool],
+        next: &mut [bool],
+        scratch: &mut Vec<f32>,
+    ) -> Fit {
         for ((yi, &o), x) in y.iter_mut().zip(obs).zip(out.iter_mut()) {
             *yi = o - self.black;
             *x = *yi <= self.dark || o >= SATURATED;
         }
-        let dark: Vec<bool> = out.to_vec();
         // Highlights are only ever too bright: leave the brightest sixth out of the
         // first fit when enough remain, and let the re-fits take back what fits.
         let lit = out.iter().filter(|o| !**o).count();
         if lit >= 8 {
-            let mut order: Vec<usize> = (0..y.len()).filter(|&i| !out[i]).collect();
-            order.sort_unstable_by(|&a, &b| y[b].total_cmp(&y[a]));
-            for &i in order.iter().take(lit.div_ceil(6)) {
-                out[i] = true;
+            scratch.clear();
+            scratch.extend(
+                y.iter()
+                    .zip(out.iter())
+                    .filter(|(_, o)| !**o)
+                    .map(|(v, _)| *v),
+            );
+            let k = lit.div_ceil(6);
+            let cut = *scratch.select_nth_unstable_by(lit - k, f32::total_cmp).1;
+            for (x, &v) in out.iter_mut().zip(y.iter()) {
+                *x |= v >= cut;
             }
         }
         let Some(mut g) = self.solve(y, out) else {
             // Too few lit observations: plain least squares, flagged.
             out.fill(false);
             let g = self.solve(y, out).unwrap_or([0.0; 3]);
-            return Fit { g, inliers: 0, reliable: false };
+            return Fit {
+                g,
+                inliers: 0,
+                reliable: false,
+            };
         };
+        // Re-fit on the observations the model explains: in the fit where it predicts
+        // light; set aside where it predicts shadow (they then cost y², nothing to fit),
+        // and, when outliers are identifiable, where the shadow-aware re-rendering
+        // misses by more than the tolerance (cast shadows, highlights, penumbrae).
+        // With 4 observations or fewer the residual of a least-squares fit has at most
+        // one degree of freedom and points the same way whichever one is wrong, so only
+        // the shadow model and saturation decide.
+        let identifiable = lit > 4;
         for _ in 0..MAX_ROUNDS {
             let rho = norm(g);
             let tol = self.tolerance + RELATIVE_TOLERANCE * rho;
             let mut changed = false;
             for (i, l) in self.lights.iter().enumerate() {
                 let pred = dot(g, *l);
-                let drop = dark[i] || pred <= 0.0 || (y[i] - pred).abs() > tol;
+                let outlier =
+                    obs[i] >= SATURATED || (identifiable && (y[i] - pred.max(0.0)).abs() > tol);
+                let drop = outlier || pred <= 0.0;
                 changed |= drop != out[i];
                 next[i] = drop;
             }
@@ -148,8 +175,35 @@ impl Model {
                 None => break,
             }
         }
+        // The iteration stops at a stationary point of the shadow-aware objective, not
+        // always the best one: plain least squares over the same non-outlier
+        // observations is the other candidate, and the lower objective wins.
+        // The objective renders like the camera: shadows black, saturation clipped.
+        let tol = self.tolerance + RELATIVE_TOLERANCE * norm(g);
+        for (i, l) in self.lights.iter().enumerate() {
+            next[i] = identifiable && (obs[i] - render_observation(g, *l, self.black)).abs() > tol;
+        }
+        let cost = |g: [f32; 3]| -> f32 {
+            let mut sum = 0.0;
+            for ((l, &o), &skip) in self.lights.iter().zip(obs).zip(next.iter()) {
+                if !skip {
+                    sum += (o - render_observation(g, *l, self.black)).powi(2);
+                }
+            }
+            sum
+        };
+        if let Some(g_ls) = self.solve(y, next)
+            && cost(g_ls) < cost(g)
+        {
+            g = g_ls;
+            out.copy_from_slice(next);
+        }
         let inliers = out.iter().filter(|o| !**o).count();
-        Fit { g, inliers, reliable: true }
+        Fit {
+            g,
+            inliers,
+            reliable: true,
+        }
     }
 }
 
@@ -176,15 +230,24 @@ fn norm(a: [f32; 3]) -> f32 {
     dot(a, a).sqrt()
 }
 
-fn gather(set: &ImageSet, r: usize, c: usize, obs: &mut [f32]) {
-    for (o, plane) in obs.iter_mut().zip(&set.planes) {
-        *o = plane[[r, c]] as f32 * SCALE;
+/// Row `r` of every plane, for fast per-pixel gathering along the row.
+fn plane_rows(set: &ImageSet, r: usize) -> Vec<ndarray::ArrayView1<'_, u16>> {
+    set.planes.iter().map(|p| p.row(r)).collect()
+}
+
+fn gather(rows: &[ndarray::ArrayView1<'_, u16>], c: usize, obs: &mut [f32]) {
+    for (o, row) in obs.iter_mut().zip(rows) {
+        *o = row[c] as f32 * SCALE;
     }
 }
 
 /// Estimate black level and noise from a subsample of pixels (about 20 000).
 pub fn estimate(set: &ImageSet) -> CaptureEstimate {
-    let lights: Vec<[f32; 3]> = set.lights.iter().map(|l| l.scaled().map(|v| v as f32)).collect();
+    let lights: Vec<[f32; 3]> = set
+        .lights
+        .iter()
+        .map(|l| l.scaled().map(|v| v as f32))
+        .collect();
     let n = lights.len();
     let quantum = quantum(set);
     let stride = (((set.width * set.height) as f64 / 20_000.0).sqrt().floor() as usize).max(1);
@@ -196,13 +259,16 @@ pub fn estimate(set: &ImageSet) -> CaptureEstimate {
         let (mut shadow, mut resid) = (Vec::new(), Vec::new());
         let (mut obs, mut y, mut out) = (vec![0f32; n], vec![0f32; n], vec![false; n]);
         for r in (stride / 2..set.height).step_by(stride) {
+            let rows = plane_rows(set, r);
             for c in (stride / 2..set.width).step_by(stride) {
-                gather(set, r, c, &mut obs);
+                gather(&rows, c, &mut obs);
                 for ((yi, &o), x) in y.iter_mut().zip(&obs).zip(out.iter_mut()) {
                     *yi = o - model.black;
                     *x = *yi <= model.dark || o >= SATURATED;
                 }
-                let Some(g) = model.solve(&y, &out) else { continue };
+                let Some(g) = model.solve(&y, &out) else {
+                    continue;
+                };
                 let rho = norm(g);
                 if rho < 0.02 {
                     continue; // background
@@ -233,7 +299,11 @@ pub fn estimate(set: &ImageSet) -> CaptureEstimate {
 }
 
 fn quantum(set: &ImageSet) -> f32 {
-    if set.bit_depth <= 8 { 1.0 / 255.0 } else { 1.0 / 65535.0 }
+    if set.bit_depth <= 8 {
+        1.0 / 255.0
+    } else {
+        1.0 / 65535.0
+    }
 }
 
 fn median(v: &mut [f32]) -> f32 {
@@ -244,8 +314,17 @@ fn median(v: &mut [f32]) -> f32 {
 /// Solve every pixel robustly.
 pub fn solve(set: &ImageSet) -> RobustSurface {
     let estimate = estimate(set);
-    let lights: Vec<[f32; 3]> = set.lights.iter().map(|l| l.scaled().map(|v| v as f32)).collect();
-    let model = Model::new(lights, estimate.black_level, estimate.noise_sigma, quantum(set));
+    let lights: Vec<[f32; 3]> = set
+        .lights
+        .iter()
+        .map(|l| l.scaled().map(|v| v as f32))
+        .collect();
+    let model = Model::new(
+        lights,
+        estimate.black_level,
+        estimate.noise_sigma,
+        quantum(set),
+    );
     let (rows, cols, n) = (set.height, set.width, set.lights.len());
     let mut albedo = Array2::<f32>::zeros((rows, cols));
     let mut normals = Array3::<f32>::zeros((rows, cols, 3));
@@ -262,37 +341,48 @@ pub fn solve(set: &ImageSet) -> RobustSurface {
         .zip(inliers.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(unreliable.axis_iter_mut(Axis(0)).into_par_iter())
         .enumerate()
-        .for_each(|(r, (((((mut a_row, mut n_row), mut res_row), mut conf_row), mut in_row), mut bad_row))| {
-            let (mut obs, mut y) = (vec![0f32; n], vec![0f32; n]);
-            let (mut out, mut next) = (vec![false; n], vec![false; n]);
-            for c in 0..cols {
-                gather(set, r, c, &mut obs);
-                let fit = model.fit(&obs, &mut y, &mut out, &mut next);
-                let rho = norm(fit.g);
-                a_row[c] = rho;
-                if rho > 0.0 && rho.is_finite() {
-                    for k in 0..3 {
-                        n_row[[c, k]] = fit.g[k] / rho;
+        .for_each(
+            |(
+                r,
+                (((((mut a_row, mut n_row), mut res_row), mut conf_row), mut in_row), mut bad_row),
+            )| {
+                let (mut obs, mut y) = (vec![0f32; n], vec![0f32; n]);
+                let (mut out, mut next) = (vec![false; n], vec![false; n]);
+                let mut scratch = Vec::with_capacity(n);
+                let rows = plane_rows(set, r);
+                for c in 0..cols {
+                    gather(&rows, c, &mut obs);
+                    let fit = model.fit(&obs, &mut y, &mut out, &mut next, &mut scratch);
+                    let rho = norm(fit.g);
+                    a_row[c] = rho;
+                    if rho > 0.0 && rho.is_finite() {
+                        for k in 0..3 {
+                            n_row[[c, k]] = fit.g[k] / rho;
+                        }
+                    }
+                    in_row[c] = fit.inliers as u16;
+                    bad_row[c] = !fit.reliable;
+                    // Reprojection over every observation, the shadow model included.
+                    let (mut sum, mut inlier_sum) = (0.0, 0.0);
+                    for ((l, &o), &dropped) in model.lights.iter().zip(&obs).zip(&out) {
+                        let pred = render_observation(fit.g, *l, model.black);
+                        sum += (o - pred) * (o - pred);
+                        if !dropped {
+                            inlier_sum += (o - pred) * (o - pred);
+                        }
+                    }
+                    res_row[c] = (sum / n as f32).sqrt();
+                    if fit.reliable && fit.inliers >= 3 {
+                        let rms = (inlier_sum / fit.inliers as f32).sqrt();
+                        conf_row[c] = confidence_of(
+                            fit.inliers,
+                            rms,
+                            model.tolerance + RELATIVE_TOLERANCE * rho,
+                        );
                     }
                 }
-                in_row[c] = fit.inliers as u16;
-                bad_row[c] = !fit.reliable;
-                // Reprojection over every observation, the shadow model included.
-                let (mut sum, mut inlier_sum) = (0.0, 0.0);
-                for ((l, &o), &dropped) in model.lights.iter().zip(&obs).zip(&out) {
-                    let pred = dot(fit.g, *l).max(0.0) + model.black;
-                    sum += (o - pred) * (o - pred);
-                    if !dropped {
-                        inlier_sum += (o - pred) * (o - pred);
-                    }
-                }
-                res_row[c] = (sum / n as f32).sqrt();
-                if fit.reliable && fit.inliers >= 3 {
-                    let rms = (inlier_sum / fit.inliers as f32).sqrt();
-                    conf_row[c] = confidence_of(fit.inliers, rms, model.tolerance + RELATIVE_TOLERANCE * rho);
-                }
-            }
-        });
+            },
+        );
     RobustSurface {
         albedo,
         normals,

@@ -62,7 +62,11 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
     let mut residual = Array2::<f32>::zeros((rows, cols));
     let mut confidence = Array2::<f32>::zeros((rows, cols));
     let n = lights.len();
-    let quantum = if set.bit_depth <= 8 { 1.0 / 255.0 } else { SCALE };
+    let quantum = if set.bit_depth <= 8 {
+        1.0 / 255.0
+    } else {
+        SCALE
+    };
 
     albedo
         .axis_iter_mut(Axis(0))
@@ -71,28 +75,30 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
         .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
         .enumerate()
-        .for_each(|(r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
-            let mut obs = vec![0f32; n];
-            for c in 0..cols {
-                for (i, o) in obs.iter_mut().enumerate() {
-                    *o = set.planes[i][[r, c]] as f32 * SCALE;
-                }
-                let g = match solver {
-                    Solver::L2 => apply(&pinv, &obs),
-                    Solver::Weighted => weighted(&lights, &obs),
-                    Solver::Robust => unreachable!("handled by robust::solve"),
-                };
-                let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-                a_row[c] = rho;
-                if rho > 0.0 && rho.is_finite() {
-                    for k in 0..3 {
-                        n_row[[c, k]] = g[k] / rho;
+        .for_each(
+            |(r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
+                let mut obs = vec![0f32; n];
+                for c in 0..cols {
+                    for (i, o) in obs.iter_mut().enumerate() {
+                        *o = set.planes[i][[r, c]] as f32 * SCALE;
                     }
+                    let g = match solver {
+                        Solver::L2 => apply(&pinv, &obs),
+                        Solver::Weighted => weighted(&lights, &obs),
+                        Solver::Robust => unreachable!("handled by robust::solve"),
+                    };
+                    let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+                    a_row[c] = rho;
+                    if rho > 0.0 && rho.is_finite() {
+                        for k in 0..3 {
+                            n_row[[c, k]] = g[k] / rho;
+                        }
+                    }
+                    res_row[c] = reprojection_rms(&lights, &obs, g);
+                    conf_row[c] = robust::confidence_of(n, res_row[c], 3.0 * quantum + 0.02 * rho);
                 }
-                res_row[c] = reprojection_rms(&lights, &obs, g);
-                conf_row[c] = robust::confidence_of(n, res_row[c], 3.0 * quantum + 0.02 * rho);
-            }
-        });
+            },
+        );
     Surface {
         albedo,
         normals,
@@ -104,17 +110,20 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
     }
 }
 
-/// RMS of observed minus re-rendered intensity, with attached shadows clamped at 0.
+/// RMS of observed minus re-rendered intensity (see [`render_observation`]).
 pub fn reprojection_rms(lights: &[[f32; 3]], obs: &[f32], g: [f32; 3]) -> f32 {
     let sum: f32 = lights
         .iter()
         .zip(obs)
-        .map(|(l, &o)| {
-            let pred = (g[0] * l[0] + g[1] * l[1] + g[2] * l[2]).max(0.0);
-            (o - pred) * (o - pred)
-        })
+        .map(|(l, &o)| (o - render_observation(g, *l, 0.0)).powi(2))
         .sum();
     (sum / obs.len() as f32).sqrt()
+}
+
+/// What the camera would record for albedo·normal `g` under light `l` with black level
+/// `black`: attached shadows are black, and the sensor saturates at full scale.
+pub fn render_observation(g: [f32; 3], l: [f32; 3], black: f32) -> f32 {
+    ((g[0] * l[0] + g[1] * l[1] + g[2] * l[2]).max(0.0) + black).min(1.0)
 }
 
 /// (LᵀL)⁻¹Lᵀ as 3 rows of n coefficients.

@@ -28,7 +28,12 @@ pub struct Scene {
 impl Scene {
     /// Build from an analytic height function returning (z, dz/dx, dz/dy), or None off
     /// the object.
-    pub fn from_fn(width: usize, height: usize, surface: impl Fn(f64, f64) -> Option<(f64, f64, f64)> + Sync, albedo: impl Fn(f64, f64) -> f64 + Sync) -> Self {
+    pub fn from_fn(
+        width: usize,
+        height: usize,
+        surface: impl Fn(f64, f64) -> Option<(f64, f64, f64)> + Sync,
+        albedo: impl Fn(f64, f64) -> f64 + Sync,
+    ) -> Self {
         let mut depth = Array2::zeros((height, width));
         let mut normals = Array3::zeros((height, width, 3));
         let mut alb = Array2::zeros((height, width));
@@ -97,7 +102,12 @@ impl Scene {
     /// A plane with steep bumps that cast shadows across it under low lights.
     pub fn shadows(size: usize) -> Self {
         let s = size as f64;
-        let bumps = [(0.3, 0.3, 0.07, 0.12), (0.7, 0.35, 0.05, 0.10), (0.45, 0.7, 0.08, 0.14), (0.78, 0.75, 0.04, 0.08)];
+        let bumps = [
+            (0.3, 0.3, 0.07, 0.12),
+            (0.7, 0.35, 0.05, 0.10),
+            (0.45, 0.7, 0.08, 0.14),
+            (0.78, 0.75, 0.04, 0.08),
+        ];
         Self::from_fn(
             size,
             size,
@@ -129,7 +139,12 @@ impl Scene {
         loop {
             let (x, y) = (c as f64 + dx * t, r as f64 + dy * t);
             let ray_z = z0 + rise * t;
-            if ray_z > max_z || x < 0.0 || y < 0.0 || x > (self.width - 1) as f64 || y > (self.height - 1) as f64 {
+            if ray_z > max_z
+                || x < 0.0
+                || y < 0.0
+                || x > (self.width - 1) as f64
+                || y > (self.height - 1) as f64
+            {
                 return true;
             }
             if self.sample_depth(x, y) > ray_z + 1e-6 {
@@ -144,7 +159,8 @@ impl Scene {
         let (c1, r1) = ((c0 + 1).min(self.width - 1), (r0 + 1).min(self.height - 1));
         let (fx, fy) = (x - c0 as f64, y - r0 as f64);
         let d = &self.depth;
-        (d[[r0, c0]] * (1.0 - fx) + d[[r0, c1]] * fx) * (1.0 - fy) + (d[[r1, c0]] * (1.0 - fx) + d[[r1, c1]] * fx) * fy
+        (d[[r0, c0]] * (1.0 - fx) + d[[r0, c1]] * fx) * (1.0 - fy)
+            + (d[[r1, c0]] * (1.0 - fx) + d[[r1, c1]] * fx) * fy
     }
 }
 
@@ -180,17 +196,29 @@ impl Default for Capture {
 pub fn light_rings(count: usize, min_polar_deg: f64, max_polar_deg: f64) -> Vec<[f64; 3]> {
     (0..count)
         .map(|i| {
-            let t = if count > 1 { i as f64 / (count - 1) as f64 } else { 0.0 };
+            let t = if count > 1 {
+                i as f64 / (count - 1) as f64
+            } else {
+                0.0
+            };
             let polar = (min_polar_deg + t * (max_polar_deg - min_polar_deg)).to_radians();
             let azimuth = i as f64 * 2.399963229728653;
-            [polar.sin() * azimuth.cos(), polar.sin() * azimuth.sin(), polar.cos()]
+            [
+                polar.sin() * azimuth.cos(),
+                polar.sin() * azimuth.sin(),
+                polar.cos(),
+            ]
         })
         .collect()
 }
 
 /// Render one image per light, quantised to the capture's bit depth (values 0..=max).
 pub fn render(scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Vec<Array2<u16>> {
-    let max = if capture.bit_depth == 8 { 255.0 } else { 65535.0 };
+    let max = if capture.bit_depth == 8 {
+        255.0
+    } else {
+        65535.0
+    };
     let max_z = scene.depth.iter().cloned().fold(f64::MIN, f64::max);
     lights
         .par_iter()
@@ -202,7 +230,11 @@ pub fn render(scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Vec<Arra
             Array2::from_shape_fn((scene.height, scene.width), |(r, c)| {
                 let mut v = capture.black_level;
                 if scene.mask[[r, c]] {
-                    let n = [scene.normals[[r, c, 0]], scene.normals[[r, c, 1]], scene.normals[[r, c, 2]]];
+                    let n = [
+                        scene.normals[[r, c, 0]],
+                        scene.normals[[r, c, 1]],
+                        scene.normals[[r, c, 2]],
+                    ];
                     let ndl = n[0] * l[0] + n[1] * l[1] + n[2] * l[2];
                     let visible = ndl > 0.0 && (!capture.cast_shadows || scene.lit(r, c, l, max_z));
                     if visible {
@@ -225,7 +257,12 @@ pub fn render(scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Vec<Arra
 /// Write a data set in the seed's layout: images `im1.png`…, `light_directions.csv`, and
 /// ground truth under `truth/` (`normal.exr`: seed-frame normals with the mask in alpha;
 /// `depth.exr`: heights in pixels; `albedo.exr`).
-pub fn write_set(dir: &Path, scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Result<(), RunError> {
+pub fn write_set(
+    dir: &Path,
+    scene: &Scene,
+    lights: &[[f64; 3]],
+    capture: &Capture,
+) -> Result<(), RunError> {
     let truth = dir.join("truth");
     std::fs::create_dir_all(&truth).map_err(|e| RunError::Output {
         path: truth.display().to_string(),
@@ -237,16 +274,24 @@ pub fn write_set(dir: &Path, scene: &Scene, lights: &[[f64; 3]], capture: &Captu
         let name = format!("im{}.png", i + 1);
         let (w, h) = (scene.width as u32, scene.height as u32);
         let bytes = if capture.bit_depth == 8 {
-            png_bytes(&ImageBuffer::<Luma<u8>, Vec<u8>>::from_fn(w, h, |x, y| Luma([img[[y as usize, x as usize]] as u8])))
+            png_bytes(&ImageBuffer::<Luma<u8>, Vec<u8>>::from_fn(w, h, |x, y| {
+                Luma([img[[y as usize, x as usize]] as u8])
+            }))
         } else {
-            png_bytes(&ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| Luma([img[[y as usize, x as usize]]])))
+            png_bytes(&ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(
+                w,
+                h,
+                |x, y| Luma([img[[y as usize, x as usize]]]),
+            ))
         };
         write_atomic(dir, &name, &bytes)?;
         csv.push_str(&format!("{name}, {}, {}, {}\n", l[0], l[1], l[2]));
     }
     write_atomic(dir, LIGHTS_FILE, csv.as_bytes())?;
     let exr = |f: &dyn Fn(usize, usize) -> [f32; 4]| {
-        let img = Rgba32FImage::from_fn(scene.width as u32, scene.height as u32, |x, y| Rgba(f(y as usize, x as usize)));
+        let img = Rgba32FImage::from_fn(scene.width as u32, scene.height as u32, |x, y| {
+            Rgba(f(y as usize, x as usize))
+        });
         let mut out = std::io::Cursor::new(Vec::new());
         image::DynamicImage::ImageRgba32F(img)
             .write_to(&mut out, image::ImageFormat::OpenExr)
@@ -255,11 +300,30 @@ pub fn write_set(dir: &Path, scene: &Scene, lights: &[[f64; 3]], capture: &Captu
     };
     let m = |r: usize, c: usize| if scene.mask[[r, c]] { 1.0 } else { 0.0 };
     let n = &scene.normals;
-    write_atomic(&truth, "normal.exr", &exr(&|r, c| [n[[r, c, 0]] as f32, n[[r, c, 1]] as f32, n[[r, c, 2]] as f32, m(r, c)]))?;
+    write_atomic(
+        &truth,
+        "normal.exr",
+        &exr(&|r, c| {
+            [
+                n[[r, c, 0]] as f32,
+                n[[r, c, 1]] as f32,
+                n[[r, c, 2]] as f32,
+                m(r, c),
+            ]
+        }),
+    )?;
     let d = |r: usize, c: usize| scene.depth[[r, c]] as f32;
-    write_atomic(&truth, "depth.exr", &exr(&|r, c| [d(r, c), d(r, c), d(r, c), m(r, c)]))?;
+    write_atomic(
+        &truth,
+        "depth.exr",
+        &exr(&|r, c| [d(r, c), d(r, c), d(r, c), m(r, c)]),
+    )?;
     let a = |r: usize, c: usize| scene.albedo[[r, c]] as f32;
-    write_atomic(&truth, "albedo.exr", &exr(&|r, c| [a(r, c), a(r, c), a(r, c), m(r, c)]))?;
+    write_atomic(
+        &truth,
+        "albedo.exr",
+        &exr(&|r, c| [a(r, c), a(r, c), a(r, c), m(r, c)]),
+    )?;
     Ok(())
 }
 
@@ -276,24 +340,38 @@ pub fn read_truth(dir: &Path) -> image::ImageResult<Truth> {
     let open = |n: &str| image::open(dir.join("truth").join(n)).map(|i| i.to_rgba32f());
     let (normal, depth, albedo) = (open("normal.exr")?, open("depth.exr")?, open("albedo.exr")?);
     let (w, h) = normal.dimensions();
-    let px = |img: &Rgba32FImage, r: usize, c: usize, k: usize| img.get_pixel(c as u32, r as u32).0[k];
+    let px =
+        |img: &Rgba32FImage, r: usize, c: usize, k: usize| img.get_pixel(c as u32, r as u32).0[k];
     Ok(Truth {
-        normals: Array3::from_shape_fn((h as usize, w as usize, 3), |(r, c, k)| px(&normal, r, c, k)),
+        normals: Array3::from_shape_fn((h as usize, w as usize, 3), |(r, c, k)| {
+            px(&normal, r, c, k)
+        }),
         depth: Array2::from_shape_fn((h as usize, w as usize), |(r, c)| px(&depth, r, c, 0)),
         albedo: Array2::from_shape_fn((h as usize, w as usize), |(r, c)| px(&albedo, r, c, 0)),
-        mask: Array2::from_shape_fn((h as usize, w as usize), |(r, c)| px(&normal, r, c, 3) > 0.5),
+        mask: Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
+            px(&normal, r, c, 3) > 0.5
+        }),
     })
 }
 
 /// The data sets `photostereo render` writes into `res/`: name, scene, lights, capture.
 pub fn catalogue() -> Vec<(&'static str, Scene, Vec<[f64; 3]>, Capture)> {
-    let seed_lights = vec![[0.0, 0.0, 1.0], [-0.2, 0.0, 1.0], [0.2, 0.0, 1.0], [0.0, -0.2, 1.0]];
+    let seed_lights = vec![
+        [0.0, 0.0, 1.0],
+        [-0.2, 0.0, 1.0],
+        [0.2, 0.0, 1.0],
+        [0.0, -0.2, 1.0],
+    ];
     let sphere_lights = light_rings(24, 10.0, 60.0);
     let low_lights: Vec<[f64; 3]> = (0..24)
         .map(|i| {
             let elevation = (15.0 + 25.0 * (i % 6) as f64 / 5.0).to_radians();
             let azimuth = i as f64 * std::f64::consts::TAU / 24.0 + 0.3;
-            [elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin()]
+            [
+                elevation.cos() * azimuth.cos(),
+                elevation.cos() * azimuth.sin(),
+                elevation.sin(),
+            ]
         })
         .collect();
     let noisy = Capture {
@@ -303,9 +381,35 @@ pub fn catalogue() -> Vec<(&'static str, Scene, Vec<[f64; 3]>, Capture)> {
         ..Capture::default()
     };
     vec![
-        ("bump", Scene::bump(128), seed_lights, Capture::default()),
-        ("sphere", Scene::sphere(256), sphere_lights.clone(), Capture::default()),
-        ("sphere-noisy", Scene::sphere(256), sphere_lights.clone(), noisy.clone()),
+        (
+            "bump",
+            Scene::bump(128),
+            seed_lights.clone(),
+            Capture::default(),
+        ),
+        (
+            "bump-noisy",
+            Scene::bump(128),
+            seed_lights,
+            Capture {
+                bit_depth: 8,
+                noise_sigma: 0.01,
+                seed: 3,
+                ..Capture::default()
+            },
+        ),
+        (
+            "sphere",
+            Scene::sphere(256),
+            sphere_lights.clone(),
+            Capture::default(),
+        ),
+        (
+            "sphere-noisy",
+            Scene::sphere(256),
+            sphere_lights.clone(),
+            noisy.clone(),
+        ),
         (
             "sphere-specular",
             Scene::sphere(256),
@@ -388,8 +492,19 @@ mod tests {
         let s = Scene::shadows(96);
         let low = [(10f64).to_radians().cos(), 0.0, (10f64).to_radians().sin()];
         let lit = render(&s, &[low], &Capture::default());
-        let shadowed = render(&s, &[low], &Capture { cast_shadows: true, ..Capture::default() });
-        let dark: usize = lit[0].iter().zip(shadowed[0].iter()).filter(|(a, b)| a > b).count();
+        let shadowed = render(
+            &s,
+            &[low],
+            &Capture {
+                cast_shadows: true,
+                ..Capture::default()
+            },
+        );
+        let dark: usize = lit[0]
+            .iter()
+            .zip(shadowed[0].iter())
+            .filter(|(a, b)| a > b)
+            .count();
         assert!(dark > 50, "{dark} pixels in cast shadow");
         assert!(lit[0].iter().zip(shadowed[0].iter()).all(|(a, b)| a >= b));
     }

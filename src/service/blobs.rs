@@ -170,7 +170,11 @@ impl BlobStore for LocalStore {
         let mut ids = Vec::new();
         for entry in std::fs::read_dir(&self.root)? {
             let entry = entry?;
-            if let Some(id) = entry.file_name().to_str().and_then(|s| Uuid::parse_str(s).ok()) {
+            if let Some(id) = entry
+                .file_name()
+                .to_str()
+                .and_then(|s| Uuid::parse_str(s).ok())
+            {
                 ids.push(id);
             }
         }

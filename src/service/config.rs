@@ -173,7 +173,10 @@ fn default_workers() -> usize {
 impl From<&ServeArgs> for Config {
     fn from(a: &ServeArgs) -> Self {
         let mut c = Config::new(a.data_dir.clone());
-        c.workers = a.workers.map(|w| w as usize).unwrap_or_else(default_workers);
+        c.workers = a
+            .workers
+            .map(|w| w as usize)
+            .unwrap_or_else(default_workers);
         c.queue_length = a.queue_length;
         c.max_body_bytes = a.max_body_bytes;
         c.max_images = a.max_images;
@@ -191,7 +194,8 @@ impl From<&ServeArgs> for Config {
             .filter(|k| !k.is_empty())
             .collect();
         c.shutdown_grace = a.shutdown_grace;
-        c.sweep_interval = (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
+        c.sweep_interval =
+            (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
         c
     }
 }

@@ -89,7 +89,10 @@ async fn get_status(url: &str) -> anyhow::Result<u16> {
     let line = String::from_utf8_lossy(&head);
     let status_line = line.lines().next().unwrap_or_default();
     let mut fields = status_line.split_whitespace();
-    match (fields.next(), fields.next().and_then(|s| s.parse::<u16>().ok())) {
+    match (
+        fields.next(),
+        fields.next().and_then(|s| s.parse::<u16>().ok()),
+    ) {
         (Some(v), Some(code)) if v.starts_with("HTTP/") => Ok(code),
         _ => bail!("{url}: not an HTTP answer: {status_line:?}"),
     }

@@ -343,7 +343,11 @@ fn settle(
         }
         Err(Stop::Stopped) => Ok(Some(JobStatus::Cancelled)), // the DELETE recorded it
         Err(Stop::Error(e)) => {
-            tracing::info!(status = e.status().as_u16(), detail = e.detail(), "job failed");
+            tracing::info!(
+                status = e.status().as_u16(),
+                detail = e.detail(),
+                "job failed"
+            );
             let problem = e.with_instance(&instance).problem();
             inner
                 .repo
@@ -353,7 +357,11 @@ fn settle(
     };
     match recorded {
         Ok(Some(status)) => {
-            tracing::info!(status = status.as_str(), seconds = elapsed.as_secs_f64(), "job finished");
+            tracing::info!(
+                status = status.as_str(),
+                seconds = elapsed.as_secs_f64(),
+                "job finished"
+            );
             inner.metrics.observe_finished(status, elapsed);
         }
         Ok(None) => {}

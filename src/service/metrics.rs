@@ -74,7 +74,11 @@ impl Metrics {
             "# HELP photostereo_jobs Jobs in the repository by status.\n# TYPE photostereo_jobs gauge"
         );
         for (status, n) in &snap.jobs_by_status {
-            let _ = writeln!(out, "photostereo_jobs{{status=\"{}\"}} {n}", status.as_str());
+            let _ = writeln!(
+                out,
+                "photostereo_jobs{{status=\"{}\"}} {n}",
+                status.as_str()
+            );
         }
         let gauges: [(&str, &str, u64); 5] = [
             (
@@ -124,7 +128,10 @@ impl Metrics {
                 self.rejected_queue_full.load(Ordering::Relaxed),
             ),
         ] {
-            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}");
+            let _ = writeln!(
+                out,
+                "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
+            );
         }
 
         let _ = writeln!(

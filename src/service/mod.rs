@@ -89,7 +89,10 @@ impl AppState {
 
     fn open_blocking(config: Config) -> anyhow::Result<Self> {
         std::fs::create_dir_all(&config.data_dir).with_context(|| {
-            format!("cannot create the data directory {}", config.data_dir.display())
+            format!(
+                "cannot create the data directory {}",
+                config.data_dir.display()
+            )
         })?;
         let db = config.data_dir.join("jobs.sqlite");
         let repo = SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?;
@@ -491,11 +494,15 @@ async fn require_api_key(State(state): State<AppState>, req: Request, next: Next
         .and_then(|v| v.to_str().ok())
         .and_then(|v| {
             let (scheme, key) = v.trim().split_once(' ')?;
-            scheme.eq_ignore_ascii_case("bearer").then(|| key.trim().to_string())
+            scheme
+                .eq_ignore_ascii_case("bearer")
+                .then(|| key.trim().to_string())
         });
     let Some(presented) = presented else {
-        return ApiError::unauthorized("this server needs an API key: send Authorization: Bearer <key>")
-            .into_response();
+        return ApiError::unauthorized(
+            "this server needs an API key: send Authorization: Bearer <key>",
+        )
+        .into_response();
     };
     let mut ok = subtle::Choice::from(0u8);
     for key in keys {
@@ -524,10 +531,12 @@ async fn track_http(State(state): State<AppState>, req: Request, next: Next) -> 
         .unwrap_or_else(|| "unmatched".to_string());
     let started = Instant::now();
     let response = next.run(req).await;
-    state
-        .inner
-        .metrics
-        .observe_http(method, &route, response.status().as_u16(), started.elapsed());
+    state.inner.metrics.observe_http(
+        method,
+        &route,
+        response.status().as_u16(),
+        started.elapsed(),
+    );
     response
 }
 

@@ -14,7 +14,9 @@ use uuid::Uuid;
 use super::error::Problem;
 
 /// Where a job is in its life.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, ToSchema)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, ToSchema,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum JobStatus {
     /// Accepted and waiting for a worker.
@@ -373,9 +375,7 @@ impl JobRepo for SqliteRepo {
         self.with(|c| match before {
             None => query_records(
                 c,
-                &format!(
-                    "SELECT {COLUMNS} FROM jobs ORDER BY created_at DESC, id DESC LIMIT ?1"
-                ),
+                &format!("SELECT {COLUMNS} FROM jobs ORDER BY created_at DESC, id DESC LIMIT ?1"),
                 params![limit],
             ),
             Some((at, id)) => query_records(
@@ -531,10 +531,7 @@ impl JobRepo for SqliteRepo {
             let ids = stmt
                 .query_map(params![before, limit as i64], |r| r.get::<_, String>(0))?
                 .collect::<Result<Vec<_>, _>>()?;
-            Ok(ids
-                .iter()
-                .filter_map(|s| Uuid::parse_str(s).ok())
-                .collect())
+            Ok(ids.iter().filter_map(|s| Uuid::parse_str(s).ok()).collect())
         })
     }
 
@@ -564,10 +561,7 @@ impl JobRepo for SqliteRepo {
             let ids = stmt
                 .query_map([], |r| r.get::<_, String>(0))?
                 .collect::<Result<Vec<_>, _>>()?;
-            Ok(ids
-                .iter()
-                .filter_map(|s| Uuid::parse_str(s).ok())
-                .collect())
+            Ok(ids.iter().filter_map(|s| Uuid::parse_str(s).ok()).collect())
         })
     }
 
@@ -611,10 +605,7 @@ mod tests {
         };
         assert!(!repo.finish(id, &done, 2300).unwrap(), "cancel wins");
         assert_eq!(repo.cancel(id, 2400).unwrap(), None);
-        assert_eq!(
-            repo.get(id).unwrap().unwrap().status,
-            JobStatus::Cancelled
-        );
+        assert_eq!(repo.get(id).unwrap().unwrap().status, JobStatus::Cancelled);
         assert_eq!(repo.expired(2201, 10).unwrap(), vec![id]);
         assert!(repo.delete(id).unwrap());
         assert!(repo.get(id).unwrap().is_none());
@@ -627,8 +618,13 @@ mod tests {
         for i in 0..7 {
             let id = Uuid::new_v4();
             // Two jobs per millisecond: the id breaks ties.
-            repo.insert(&JobRecord::new_queued(id, 100 + i / 2, 3, serde_json::json!({})))
-                .unwrap();
+            repo.insert(&JobRecord::new_queued(
+                id,
+                100 + i / 2,
+                3,
+                serde_json::json!({}),
+            ))
+            .unwrap();
             ids.push(id);
         }
         let mut seen = Vec::new();
@@ -642,7 +638,10 @@ mod tests {
             seen.extend(page);
         }
         assert_eq!(seen.len(), 7);
-        assert!(seen.windows(2).all(|w| (w[0].created_at, w[0].id) > (w[1].created_at, w[1].id)));
+        assert!(
+            seen.windows(2)
+                .all(|w| (w[0].created_at, w[0].id) > (w[1].created_at, w[1].id))
+        );
         let counts = repo.counts().unwrap();
         assert_eq!(counts[0], (JobStatus::Queued, 7));
     }
@@ -654,8 +653,13 @@ mod tests {
         let id = Uuid::new_v4();
         {
             let repo = SqliteRepo::open(&path).unwrap();
-            repo.insert(&JobRecord::new_queued(id, 5, 3, serde_json::json!({"solver": "l2"})))
-                .unwrap();
+            repo.insert(&JobRecord::new_queued(
+                id,
+                5,
+                3,
+                serde_json::json!({"solver": "l2"}),
+            ))
+            .unwrap();
         }
         let repo = SqliteRepo::open(&path).unwrap();
         let rec = repo.get(id).unwrap().unwrap();

@@ -4,8 +4,7 @@ use std::collections::BTreeMap;
 
 use axum::Json;
 use axum::body::Body;
-use axum::extract::multipart::MultipartRejection;
-use axum::extract::{FromRequestParts, Multipart, Path, Query, State};
+use axum::extract::{FromRequest, FromRequestParts, Multipart, Path, Query, Request, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -268,9 +267,26 @@ async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
 )]
 pub async fn create_job(
     State(state): State<AppState>,
-    headers: HeaderMap,
-    multipart: Result<Multipart, MultipartRejection>,
-) -> Result<impl IntoResponse, ApiError> {
+    request: Request,
+) -> Result<Response, ApiError> {
+    let (parts, body) = request.into_parts();
+    let tap = upload::BodyTap::new(body, state.config().max_body_bytes);
+    let answer = accept_job(&state, parts, &tap).await;
+    if answer.is_err() {
+        // Read what the client is still sending, so it gets to read the refusal.
+        tap.drain(LINGER).await;
+    }
+    answer
+}
+
+/// How long a refused upload's remaining body is read and discarded.
+const LINGER: std::time::Duration = std::time::Duration::from_secs(5);
+
+async fn accept_job(
+    state: &AppState,
+    parts: Parts,
+    tap: &upload::BodyTap,
+) -> Result<Response, ApiError> {
     let config = state.config();
     if state.is_shutting_down() {
         return Err(ApiError::unavailable(
@@ -278,7 +294,8 @@ pub async fn create_job(
             "the service is shutting down",
         ));
     }
-    let declared = headers
+    let declared = parts
+        .headers
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok())
         .and_then(|v| v.parse::<u64>().ok());
@@ -288,23 +305,25 @@ pub async fn create_job(
             config.max_body_bytes
         )));
     }
-    let multipart = multipart.map_err(|e| {
-        ApiError::bad_request(format!(
-            "expected a multipart/form-data body: {}",
-            e.body_text()
-        ))
-    })?;
+    let mut multipart = Multipart::from_request(Request::from_parts(parts, tap.body()), &())
+        .await
+        .map_err(|e| {
+            ApiError::bad_request(format!(
+                "expected a multipart/form-data body: {}",
+                e.body_text()
+            ))
+        })?;
     state.check_free_disk().await?;
     if state.jobs().is_full() {
         state.count_queue_full();
-        return Err(queue_full(&state));
+        return Err(queue_full(state));
     }
 
     let id = Uuid::new_v4();
     let mut staging = state.stage_upload(id).await?;
     let received = tokio::time::timeout(
         config.upload_timeout,
-        upload::receive(config, staging.path(), multipart),
+        upload::receive(config, staging.path(), &mut multipart, tap),
     )
     .await
     .map_err(|_| {
@@ -315,12 +334,7 @@ pub async fn create_job(
     })??;
     staging.commit().await?;
 
-    let record = JobRecord::new_queued(
-        id,
-        now_ms(),
-        received.image_count as u32,
-        received.options,
-    );
+    let record = JobRecord::new_queued(id, now_ms(), received.image_count as u32, received.options);
     let stored = record.clone();
     state.repo(move |r| r.insert(&stored)).await?;
     match state.jobs().try_push(id) {
@@ -330,7 +344,7 @@ pub async fn create_job(
         Err(PushError::Full) => {
             state.repo(move |r| r.delete(id)).await?;
             state.count_queue_full();
-            return Err(queue_full(&state));
+            return Err(queue_full(state));
         }
     }
     staging.keep();
@@ -341,7 +355,8 @@ pub async fn create_job(
         StatusCode::ACCEPTED,
         [(header::LOCATION, view.url.clone())],
         Json(view),
-    ))
+    )
+        .into_response())
 }
 
 fn queue_full(state: &AppState) -> ApiError {
@@ -414,7 +429,9 @@ pub async fn list_jobs(
     })
     .into_response();
     if let Some(c) = next_cursor
-        && let Ok(v) = HeaderValue::from_str(&format!("</v1/jobs?limit={limit}&cursor={c}>; rel=\"next\""))
+        && let Ok(v) = HeaderValue::from_str(&format!(
+            "</v1/jobs?limit={limit}&cursor={c}>; rel=\"next\""
+        ))
     {
         response.headers_mut().insert(header::LINK, v);
     }
@@ -422,7 +439,11 @@ pub async fn list_jobs(
 }
 
 fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
-    let bad = || ApiError::bad_request(format!("invalid cursor {c:?}: pass a next_cursor as it was given"));
+    let bad = || {
+        ApiError::bad_request(format!(
+            "invalid cursor {c:?}: pass a next_cursor as it was given"
+        ))
+    };
     let (at, id) = c.split_once('_').ok_or_else(bad)?;
     Ok((
         at.parse().map_err(|_| bad())?,
@@ -565,7 +586,14 @@ pub async fn get_artifact(
         if not_modified(&headers, &etag) {
             return Ok(not_modified_response(&etag, RESHADED));
         }
-        return Ok(artifact_response(content_type, &etag, RESHADED, &name, png.len() as u64, Body::from(png)));
+        return Ok(artifact_response(
+            content_type,
+            &etag,
+            RESHADED,
+            &name,
+            png.len() as u64,
+            Body::from(png),
+        ));
     }
     let Some(info) = job.artifacts.iter().find(|a| a.name == name) else {
         return Err(ApiError::not_found(format!(
@@ -721,7 +749,10 @@ pub async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError
 )]
 pub async fn openapi_doc() -> Response {
     (
-        [(header::CONTENT_TYPE, HeaderValue::from_static("application/json"))],
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/json"),
+        )],
         super::openapi_json(),
     )
         .into_response()
@@ -767,7 +798,10 @@ mod tests {
     #[test]
     fn if_none_match() {
         let mut h = HeaderMap::new();
-        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("\"a\", W/\"b\""));
+        h.insert(
+            header::IF_NONE_MATCH,
+            HeaderValue::from_static("\"a\", W/\"b\""),
+        );
         assert!(not_modified(&h, "\"b\""));
         assert!(not_modified(&h, "\"a\""));
         assert!(!not_modified(&h, "\"c\""));

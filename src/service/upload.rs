@@ -10,10 +10,19 @@ use std::collections::HashMap;
 use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::{Component, Path, PathBuf};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
+use std::time::Duration;
 
-use axum::extract::multipart::{Field, MultipartError};
+use axum::body::{Body, BodyDataStream, Bytes};
+use futures_util::{Stream, StreamExt};
+
 use axum::extract::Multipart;
+use axum::extract::multipart::{Field, MultipartError};
 use image::ImageReader;
+use serde::Deserialize;
 use tokio::io::AsyncWriteExt;
 
 use crate::core::intake::{LIGHTS_FILE as TABLE_CSV, LIGHTS_JSON_FILE as TABLE_JSON};
@@ -25,6 +34,101 @@ use crate::core::{InputError, Options};
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, image_file};
 use super::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use super::error::ApiError;
+
+/// The request body, shared between the multipart parser and the handler: it enforces the
+/// body size limit, and lets the handler drain what is left after refusing an upload, so
+/// that the client reads the refusal instead of a reset connection (a lingering close).
+pub struct BodyTap {
+    state: Arc<TapState>,
+}
+
+struct TapState {
+    stream: Mutex<BodyDataStream>,
+    seen: AtomicU64,
+    limit: u64,
+    exceeded: AtomicBool,
+}
+
+impl BodyTap {
+    pub fn new(body: Body, limit: u64) -> Self {
+        Self {
+            state: Arc::new(TapState {
+                stream: Mutex::new(body.into_data_stream()),
+                seen: AtomicU64::new(0),
+                limit,
+                exceeded: AtomicBool::new(false),
+            }),
+        }
+    }
+
+    /// A body for the multipart parser that reads through the tap.
+    pub fn body(&self) -> Body {
+        Body::from_stream(TapReader(self.state.clone()))
+    }
+
+    /// Whether the body went over the limit.
+    pub fn exceeded(&self) -> bool {
+        self.state.exceeded.load(Ordering::SeqCst)
+    }
+
+    /// Read and discard the rest of the body, for at most `max`.
+    pub async fn drain(&self, max: Duration) {
+        let state = self.state.clone();
+        let _ = tokio::time::timeout(max, async move {
+            loop {
+                let next = std::future::poll_fn(|cx| {
+                    state
+                        .stream
+                        .lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .poll_next_unpin(cx)
+                })
+                .await;
+                if !matches!(next, Some(Ok(_))) {
+                    break;
+                }
+            }
+        })
+        .await;
+    }
+}
+
+struct TapReader(Arc<TapState>);
+
+impl Stream for TapReader {
+    type Item = Result<Bytes, std::io::Error>;
+
+    fn poll_next(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        let state = &self.0;
+        if state.exceeded.load(Ordering::SeqCst) {
+            return Poll::Ready(Some(Err(too_large_error())));
+        }
+        let polled = state
+            .stream
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .poll_next_unpin(cx);
+        match polled {
+            Poll::Ready(Some(Ok(bytes))) => {
+                let seen =
+                    state.seen.fetch_add(bytes.len() as u64, Ordering::SeqCst) + bytes.len() as u64;
+                if seen > state.limit {
+                    state.exceeded.store(true, Ordering::SeqCst);
+                    Poll::Ready(Some(Err(too_large_error())))
+                } else {
+                    Poll::Ready(Some(Ok(bytes)))
+                }
+            }
+            Poll::Ready(Some(Err(e))) => Poll::Ready(Some(Err(std::io::Error::other(e)))),
+            Poll::Ready(None) => Poll::Ready(None),
+            Poll::Pending => Poll::Pending,
+        }
+    }
+}
+
+fn too_large_error() -> std::io::Error {
+    std::io::Error::other("the request body is over the size limit")
+}
 
 /// Bytes kept from the start of each file to recognise its format.
 const HEAD_BYTES: usize = 64;
@@ -63,13 +167,14 @@ struct Parts {
 pub async fn receive(
     config: &Config,
     dir: &Path,
-    mut multipart: Multipart,
+    multipart: &mut Multipart,
+    tap: &BodyTap,
 ) -> Result<Received, ApiError> {
     let mut parts = Parts::default();
     while let Some(mut field) = multipart
         .next_field()
         .await
-        .map_err(|e| multipart_error(e, config))?
+        .map_err(|e| multipart_error(e, tap, config))?
     {
         parts.count += 1;
         if parts.count > config.max_parts {
@@ -93,7 +198,7 @@ pub async fn receive(
                 }
                 let name = file_name(&field, "images")?;
                 let file = image_file(parts.images.len());
-                let head = stream_to_file(&mut field, &dir.join(&file), config).await?;
+                let head = stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
                 let (width, height) = probe(dir.join(&file), name.clone(), head, config).await?;
                 parts.images.push(StoredImage {
                     name,
@@ -108,7 +213,7 @@ pub async fn receive(
                 }
                 once(&parts.lights, "lights")?;
                 parts.lights =
-                    Some(read_small(&mut field, MAX_LIGHTS_BYTES, "lights", config).await?);
+                    Some(read_small(&mut field, MAX_LIGHTS_BYTES, "lights", tap, config).await?);
             }
             "mask" => {
                 once(&parts.mask, "mask")?;
@@ -117,11 +222,11 @@ pub async fn receive(
                     .filter(|n| !n.is_empty())
                     .unwrap_or("mask")
                     .to_string();
-                let head = stream_to_file(&mut field, &dir.join(MASK_FILE), config).await?;
+                let head = stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
                 let (width, height) = probe(dir.join(MASK_FILE), name.clone(), head, config)
                     .await
                     .map_err(|e| {
-                        if e.status().is_client_error() && e.status().as_u16() == 422 {
+                        if e.status() == axum::http::StatusCode::UNPROCESSABLE_ENTITY {
                             ApiError::invalid(format!("mask: {}", e.detail()))
                         } else {
                             e
@@ -136,7 +241,8 @@ pub async fn receive(
             }
             "options" => {
                 once(&parts.options, "options")?;
-                let bytes = read_small(&mut field, MAX_OPTIONS_BYTES, "options", config).await?;
+                let bytes =
+                    read_small(&mut field, MAX_OPTIONS_BYTES, "options", tap, config).await?;
                 parts.options = Some(parse_options(&bytes)?);
             }
             "archive" => {
@@ -145,7 +251,7 @@ pub async fn receive(
                     return Err(both_forms());
                 }
                 let path = dir.join(ARCHIVE_FILE);
-                let head = stream_to_file(&mut field, &path, config).await?;
+                let head = stream_to_file(&mut field, &path, tap, config).await?;
                 if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
                     return Err(ApiError::unsupported_media(
                         "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv)",
@@ -233,9 +339,7 @@ pub async fn receive(
 }
 
 fn both_forms() -> ApiError {
-    ApiError::bad_request(
-        "send either an archive part or images and lights parts, not both",
-    )
+    ApiError::bad_request("send either an archive part or images and lights parts, not both")
 }
 
 fn once<T>(slot: &Option<T>, part: &str) -> Result<(), ApiError> {
@@ -247,8 +351,8 @@ fn once<T>(slot: &Option<T>, part: &str) -> Result<(), ApiError> {
     }
 }
 
-fn multipart_error(e: MultipartError, config: &Config) -> ApiError {
-    if e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
+fn multipart_error(e: MultipartError, tap: &BodyTap, config: &Config) -> ApiError {
+    if tap.exceeded() || e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
         ApiError::too_large(format!(
             "the request body is larger than the limit of {} bytes",
             config.max_body_bytes
@@ -270,18 +374,41 @@ fn file_name(field: &Field<'_>, part: &str) -> Result<String, ApiError> {
 
 /// Parse the `options` part; errors name the field at fault.
 pub fn parse_options(bytes: &[u8]) -> Result<Options, ApiError> {
-    let options = serde_json::from_slice::<Options>(bytes)
-        .map_err(|e| ApiError::from(InputError::Options(e.to_string())))?;
+    let value: serde_json::Value = serde_json::from_slice(bytes)
+        .map_err(|e| ApiError::from(InputError::Options(format!("not valid JSON: {e}"))))?;
+    let options = Options::deserialize(&value)
+        .map_err(|e| ApiError::from(InputError::Options(explain_options_error(&value, e))))?;
     if let Some(names) = &options.outputs {
         outputs::check_selection(names)?;
     }
     Ok(options)
 }
 
+/// serde's message, prefixed with the top-level field that fails on its own.
+fn explain_options_error(value: &serde_json::Value, err: serde_json::Error) -> String {
+    let message = err.to_string();
+    if let serde_json::Value::Object(fields) = value {
+        for (key, v) in fields {
+            let single =
+                serde_json::Value::Object(std::iter::once((key.clone(), v.clone())).collect());
+            if let Err(e) = Options::deserialize(&single) {
+                let e = e.to_string();
+                return if e.contains(&format!("`{key}`")) {
+                    e
+                } else {
+                    format!("field `{key}`: {e}")
+                };
+            }
+        }
+    }
+    message
+}
+
 /// Write a part to `path` chunk by chunk; returns its first bytes.
 async fn stream_to_file(
     field: &mut Field<'_>,
     path: &Path,
+    tap: &BodyTap,
     config: &Config,
 ) -> Result<Vec<u8>, ApiError> {
     let mut file = tokio::fs::File::create(path).await?;
@@ -289,7 +416,7 @@ async fn stream_to_file(
     while let Some(chunk) = field
         .chunk()
         .await
-        .map_err(|e| multipart_error(e, config))?
+        .map_err(|e| multipart_error(e, tap, config))?
     {
         if head.len() < HEAD_BYTES {
             let take = (HEAD_BYTES - head.len()).min(chunk.len());
@@ -306,13 +433,14 @@ async fn read_small(
     field: &mut Field<'_>,
     limit: usize,
     part: &str,
+    tap: &BodyTap,
     config: &Config,
 ) -> Result<Vec<u8>, ApiError> {
     let mut out = Vec::new();
     while let Some(chunk) = field
         .chunk()
         .await
-        .map_err(|e| multipart_error(e, config))?
+        .map_err(|e| multipart_error(e, tap, config))?
     {
         if out.len() + chunk.len() > limit {
             return Err(ApiError::too_large(format!(
@@ -408,7 +536,10 @@ fn check_names<'a>(
             }
         }
     }
-    if let Some(img) = images.iter().find(|i| by_name.contains_key(i.name.as_str())) {
+    if let Some(img) = images
+        .iter()
+        .find(|i| by_name.contains_key(i.name.as_str()))
+    {
         return Err(InputError::UnlistedImage {
             name: img.name.clone(),
         }
@@ -464,9 +595,9 @@ fn is_junk(components: &[String]) -> bool {
 
 fn zip_error(entry: &str, e: zip::result::ZipError) -> ApiError {
     match e {
-        zip::result::ZipError::UnsupportedArchive(what) => ApiError::unsupported_media(format!(
-            "archive entry {entry:?} cannot be read: {what}"
-        )),
+        zip::result::ZipError::UnsupportedArchive(what) => {
+            ApiError::unsupported_media(format!("archive entry {entry:?} cannot be read: {what}"))
+        }
         zip::result::ZipError::CompressionMethodNotSupported(m) => {
             ApiError::unsupported_media(format!(
                 "archive entry {entry:?} uses compression method {m}; only stored and deflate are supported"
@@ -510,9 +641,8 @@ fn extract_archive(
                 "archive entry {raw:?} has an unsafe path (absolute, or leading out of the archive)"
             ))
         };
-        let absolute = raw.starts_with('/')
-            || raw.starts_with('\\')
-            || raw.as_bytes().get(1) == Some(&b':');
+        let absolute =
+            raw.starts_with('/') || raw.starts_with('\\') || raw.as_bytes().get(1) == Some(&b':');
         if absolute {
             return Err(unsafe_path());
         }
@@ -541,10 +671,7 @@ fn extract_archive(
     let flat = entries.iter().all(|(_, c)| c.len() == 1);
     if !flat {
         let top = &entries[0].1[0];
-        if let Some((_, c)) = entries
-            .iter()
-            .find(|(_, c)| c.len() != 2 || &c[0] != top)
-        {
+        if let Some((_, c)) = entries.iter().find(|(_, c)| c.len() != 2 || &c[0] != top) {
             return Err(ApiError::invalid(format!(
                 "archive entry {:?} is out of place: the images and {TABLE_CSV} must be at the top of the archive or all inside one folder",
                 c.join("/")
@@ -579,7 +706,9 @@ fn extract_archive(
             (&mut entry)
                 .take(MAX_LIGHTS_BYTES as u64 + 1)
                 .read_to_end(&mut bytes)
-                .map_err(|e| ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}")))?;
+                .map_err(|e| {
+                    ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}"))
+                })?;
             if bytes.len() > MAX_LIGHTS_BYTES {
                 return Err(ApiError::too_large(format!(
                     "the light table {name:?} is larger than {MAX_LIGHTS_BYTES} bytes"
@@ -676,7 +805,8 @@ mod tests {
         std::fs::write(&path, bytes).unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir(&out).unwrap();
-        extract_archive(&path, &out, limits).map(|(imgs, _)| imgs.into_iter().map(|i| i.name).collect())
+        extract_archive(&path, &out, limits)
+            .map(|(imgs, _)| imgs.into_iter().map(|i| i.name).collect())
     }
 
     const TABLE: &[u8] = b"a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\n";
@@ -684,33 +814,70 @@ mod tests {
     #[test]
     fn accepts_flat_and_one_folder_and_skips_junk() {
         let p = png(4, 4);
-        let flat = zip_of(&[("a.png", &p), ("light_directions.csv", TABLE), ("__MACOSX/._a.png", b"x")]);
+        let flat = zip_of(&[
+            ("a.png", &p),
+            ("light_directions.csv", TABLE),
+            ("__MACOSX/._a.png", b"x"),
+        ]);
         assert_eq!(extract(&flat, &limits()).unwrap(), ["a.png"]);
-        let nested = zip_of(&[("set/a.png", &p), ("set/b.png", &p), ("set/light_directions.csv", TABLE), ("set/.DS_Store", b"x")]);
+        let nested = zip_of(&[
+            ("set/a.png", &p),
+            ("set/b.png", &p),
+            ("set/light_directions.csv", TABLE),
+            ("set/.DS_Store", b"x"),
+        ]);
         assert_eq!(extract(&nested, &limits()).unwrap(), ["a.png", "b.png"]);
     }
 
     #[test]
     fn refuses_unsafe_layouts_junk_and_bombs() {
         let p = png(4, 4);
-        let e = extract(&zip_of(&[("../a.png", &p), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        let e = extract(
+            &zip_of(&[("../a.png", &p), ("light_directions.csv", TABLE)]),
+            &limits(),
+        )
+        .unwrap_err();
         assert_eq!(e.status().as_u16(), 422);
         assert!(e.detail().contains("unsafe path"), "{e}");
-        let e = extract(&zip_of(&[("/etc/a.png", &p), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        let e = extract(
+            &zip_of(&[("/etc/a.png", &p), ("light_directions.csv", TABLE)]),
+            &limits(),
+        )
+        .unwrap_err();
         assert!(e.detail().contains("unsafe path"), "{e}");
-        let e = extract(&zip_of(&[("x/a.png", &p), ("y/light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        let e = extract(
+            &zip_of(&[("x/a.png", &p), ("y/light_directions.csv", TABLE)]),
+            &limits(),
+        )
+        .unwrap_err();
         assert!(e.detail().contains("out of place"), "{e}");
-        let e = extract(&zip_of(&[("a.png", &p), ("notes.txt", b"hello"), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        let e = extract(
+            &zip_of(&[
+                ("a.png", &p),
+                ("notes.txt", b"hello"),
+                ("light_directions.csv", TABLE),
+            ]),
+            &limits(),
+        )
+        .unwrap_err();
         assert_eq!(e.status().as_u16(), 415, "{e}");
         assert!(e.detail().contains("notes.txt"), "{e}");
         let e = extract(&zip_of(&[("a.png", &p)]), &limits()).unwrap_err();
         assert!(e.detail().contains("light_directions.csv"), "{e}");
         // 4 MiB of zeros compresses to a few KiB: the cap stops it while streaming.
         let zeros = vec![0u8; 4 << 20];
-        let e = extract(&zip_of(&[("a.png", &zeros), ("light_directions.csv", TABLE)]), &limits()).unwrap_err();
+        let e = extract(
+            &zip_of(&[("a.png", &zeros), ("light_directions.csv", TABLE)]),
+            &limits(),
+        )
+        .unwrap_err();
         assert_eq!(e.status().as_u16(), 413, "{e}");
-        let many: Vec<(String, Vec<u8>)> = (0..20).map(|i| (format!("{i}.png"), p.clone())).collect();
-        let refs: Vec<(&str, &[u8])> = many.iter().map(|(n, d)| (n.as_str(), d.as_slice())).collect();
+        let many: Vec<(String, Vec<u8>)> =
+            (0..20).map(|i| (format!("{i}.png"), p.clone())).collect();
+        let refs: Vec<(&str, &[u8])> = many
+            .iter()
+            .map(|(n, d)| (n.as_str(), d.as_slice()))
+            .collect();
         let e = extract(&zip_of(&refs), &limits()).unwrap_err();
         assert_eq!(e.status().as_u16(), 413, "{e}");
         let e = extract(b"PK\x03\x04 not really a zip", &limits()).unwrap_err();
@@ -723,11 +890,15 @@ mod tests {
         let path = dir.path().join("x");
         let p = png(5, 3);
         std::fs::write(&path, &p).unwrap();
-        assert_eq!(probe_image(&path, "x.png", &p[..HEAD_BYTES], 100).unwrap(), (5, 3));
+        assert_eq!(
+            probe_image(&path, "x.png", &p[..HEAD_BYTES], 100).unwrap(),
+            (5, 3)
+        );
         let e = probe_image(&path, "x.png", &p[..HEAD_BYTES], 10).unwrap_err();
         assert!(e.is_too_large());
         std::fs::write(&path, b"GIF89a\x01\x00\x01\x00\x00\x00\x00;").unwrap();
-        let e = probe_image(&path, "x.gif", b"GIF89a\x01\x00\x01\x00\x00\x00\x00;", 100).unwrap_err();
+        let e =
+            probe_image(&path, "x.gif", b"GIF89a\x01\x00\x01\x00\x00\x00\x00;", 100).unwrap_err();
         assert!(e.is_unsupported_media(), "{e}");
         let e = probe_image(&path, "x.txt", b"hello", 100).unwrap_err();
         assert!(e.is_unsupported_media(), "{e}");

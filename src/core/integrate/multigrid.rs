@@ -46,8 +46,9 @@ pub(super) trait Stencil: Sync {
     /// `out[c] = Σ_j w_ij x_j` on row `r`, given rows `r − 1`, `r`, `r + 1` of `x` (`up` /
     /// `down` are zero rows outside the grid). `x` must be 0 on inactive cells.
     fn neighbour_sum(&self, r: usize, up: &[f32], cur: &[f32], down: &[f32], out: &mut [f32]);
-    /// `out[c] = d_c = Σ_j w_ij` on row `r` (0 exactly on inactive cells).
-    fn diag_row(&self, r: usize, out: &mut [f32]);
+    /// The diagonal `d_c = Σ_j w_ij` of row `r` (0 exactly on inactive cells) and its
+    /// inverse on active cells (0 on inactive ones).
+    fn diag_row(&self, r: usize, d: &mut [f32], inv: &mut [f32]);
     /// `out = (A x)` on row `r` evaluated in f64 (no cancellation between large heights and
     /// their small Laplacian), rounded to f32; returns `Σ_c x_c (A x)_c` over the row.
     fn apply_row_f64(
@@ -107,25 +108,29 @@ impl Stencil for MaskStencil {
 
     /// With `x = 0` off the mask, the weighted neighbour sum is just the sum of the four
     /// neighbours: no weights are loaded at all.
+    #[inline(always)]
     fn neighbour_sum(&self, _r: usize, up: &[f32], cur: &[f32], down: &[f32], out: &mut [f32]) {
-        let w = cur.len();
-        for ((o, &u), &d) in out.iter_mut().zip(up).zip(down) {
-            *o = u + d;
+        let w = self.w;
+        let (up, cur, down, out) = (&up[..w], &cur[..w], &down[..w], &mut out[..w]);
+        if w == 1 {
+            out[0] = up[0] + down[0];
+            return;
         }
-        if w > 1 {
-            for (o, &l) in out[1..].iter_mut().zip(&cur[..w - 1]) {
-                *o += l;
-            }
-            for (o, &r) in out[..w - 1].iter_mut().zip(&cur[1..]) {
-                *o += r;
-            }
+        out[0] = up[0] + down[0] + cur[1];
+        for c in 1..w - 1 {
+            out[c] = (up[c] + down[c]) + (cur[c - 1] + cur[c + 1]);
         }
+        out[w - 1] = up[w - 1] + down[w - 1] + cur[w - 2];
     }
 
-    fn diag_row(&self, r: usize, out: &mut [f32]) {
-        let f = &self.flags[r * self.w..(r + 1) * self.w];
-        for (o, &f) in out.iter_mut().zip(f) {
-            *o = f32::from(degree(f));
+    #[inline(always)]
+    fn diag_row(&self, r: usize, d: &mut [f32], inv: &mut [f32]) {
+        let w = self.w;
+        let (f, d, inv) = (&self.flags[r * w..(r + 1) * w], &mut d[..w], &mut inv[..w]);
+        for c in 0..w {
+            let v = f32::from(degree(f[c]));
+            d[c] = v;
+            inv[c] = if v > 0.0 { 1.0 / v.max(1.0) } else { 0.0 };
         }
     }
 
@@ -139,25 +144,23 @@ impl Stencil for MaskStencil {
     ) -> f64 {
         let w = self.w;
         let f = &self.flags[r * w..(r + 1) * w];
-        let mut acc = 0.0f64;
-        for c in 0..w {
-            let d = degree(f[c]);
-            if d == 0 {
-                out[c] = 0.0;
-                continue;
+        let (up, cur, down, out) = (&up[..w], &cur[..w], &down[..w], &mut out[..w]);
+        let at = |c: usize| f64::from(cur[c]);
+        let row = |c: usize, nb: f64| {
+            let d = f64::from(degree(f[c]));
+            let s = d * at(c) - (f64::from(up[c]) + f64::from(down[c]) + nb);
+            if d > 0.0 { s as f32 } else { 0.0 }
+        };
+        if w == 1 {
+            out[0] = row(0, 0.0);
+        } else {
+            out[0] = row(0, at(1));
+            for c in 1..w - 1 {
+                out[c] = row(c, at(c - 1) + at(c + 1));
             }
-            let l = if c > 0 { f64::from(cur[c - 1]) } else { 0.0 };
-            let rt = if c + 1 < w {
-                f64::from(cur[c + 1])
-            } else {
-                0.0
-            };
-            let xi = f64::from(cur[c]);
-            let s = f64::from(d) * xi - (l + rt + f64::from(up[c]) + f64::from(down[c]));
-            out[c] = s as f32;
-            acc += xi * s;
+            out[w - 1] = row(w - 1, at(w - 2));
         }
-        acc
+        dot_f64(cur, out)
     }
 }
 
@@ -169,6 +172,7 @@ pub(super) struct WeightStencil {
     wx: Vec<f32>,
     wy: Vec<f32>,
     d: Vec<f32>,
+    inv: Vec<f32>,
 }
 
 impl WeightStencil {
@@ -187,7 +191,18 @@ impl WeightStencil {
                 d[i] = s;
             }
         }
-        Self { h, w, wx, wy, d }
+        let inv = d
+            .iter()
+            .map(|&d| if d > 0.0 { 1.0 / d } else { 0.0 })
+            .collect();
+        Self {
+            h,
+            w,
+            wx,
+            wy,
+            d,
+            inv,
+        }
     }
 
     /// Weighted least squares on a mask: each edge between two mask pixels gets the mean of
@@ -247,27 +262,30 @@ impl Stencil for WeightStencil {
         ]
     }
 
+    #[inline(always)]
     fn neighbour_sum(&self, r: usize, up: &[f32], cur: &[f32], down: &[f32], out: &mut [f32]) {
         let w = self.w;
         let wx = self.row(&self.wx, r);
         let wy = self.row(&self.wy, r);
         // Row r − 1's south weights; on row 0 any finite row will do, `up` is zero there.
         let wyu = self.row(&self.wy, r.saturating_sub(1));
-        for ((((o, &u), &d), &a), &b) in out.iter_mut().zip(up).zip(down).zip(wyu).zip(wy) {
-            *o = a * u + b * d;
+        let (up, cur, down, out) = (&up[..w], &cur[..w], &down[..w], &mut out[..w]);
+        for c in 0..w {
+            out[c] = wyu[c] * up[c] + wy[c] * down[c];
         }
         if w > 1 {
-            for ((o, &l), &k) in out[1..].iter_mut().zip(&cur[..w - 1]).zip(&wx[..w - 1]) {
-                *o += k * l;
+            out[0] += wx[0] * cur[1];
+            for c in 1..w - 1 {
+                out[c] += wx[c - 1] * cur[c - 1] + wx[c] * cur[c + 1];
             }
-            for ((o, &rt), &k) in out[..w - 1].iter_mut().zip(&cur[1..]).zip(&wx[..w - 1]) {
-                *o += k * rt;
-            }
+            out[w - 1] += wx[w - 2] * cur[w - 2];
         }
     }
 
-    fn diag_row(&self, r: usize, out: &mut [f32]) {
-        out.copy_from_slice(self.row(&self.d, r));
+    #[inline(always)]
+    fn diag_row(&self, r: usize, d: &mut [f32], inv: &mut [f32]) {
+        d.copy_from_slice(self.row(&self.d, r));
+        inv.copy_from_slice(self.row(&self.inv, r));
     }
 
     fn apply_row_f64(
@@ -279,7 +297,6 @@ impl Stencil for WeightStencil {
         out: &mut [f32],
     ) -> f64 {
         let w = self.w;
-        let mut acc = 0.0f64;
         for c in 0..w {
             let [we, ww, ws, wn] = self.weights(r, c);
             let xi = f64::from(cur[c]);
@@ -297,115 +314,389 @@ impl Stencil for WeightStencil {
                 s += f64::from(wn) * (xi - f64::from(up[c]));
             }
             out[c] = s as f32;
-            acc += xi * s;
         }
-        acc
+        dot_f64(&cur[..w], &out[..w])
     }
 }
 
-/// Rows per parallel band: about four bands per thread.
-fn band_rows(h: usize) -> usize {
-    h.div_ceil(4 * rayon::current_num_threads()).max(4)
+// ---------------------------------------------------------------------------------------
+// Row-band kernels.
+//
+// Every pass over a level is parallel over bands of rows (an even number of rows each, so
+// that coarse rows belong to exactly one band) and sequential inside a band, streaming the
+// rows through small ring buffers. Each pass fuses several sweeps, so one pass reads and
+// writes each large array once. Kernels that update an array in place first copy the
+// rows just outside every band ("ghosts"), so bands never read rows another band writes.
+// ---------------------------------------------------------------------------------------
+
+/// Band partition of `h` rows.
+#[derive(Clone, Copy)]
+struct Bands {
+    rows: usize,
+    count: usize,
 }
 
-/// Rows `r − 1`, `r`, `r + 1` of a row-major array (zero rows outside the grid).
-fn rows3<'a>(x: &'a [f32], zeros: &'a [f32], h: usize, r: usize) -> [&'a [f32]; 3] {
-    let w = zeros.len();
-    [
-        if r > 0 { &x[(r - 1) * w..r * w] } else { zeros },
-        &x[r * w..(r + 1) * w],
-        if r + 1 < h {
-            &x[(r + 1) * w..(r + 2) * w]
+impl Bands {
+    fn new(h: usize, w: usize) -> Self {
+        // Small grids run as one band: splitting them costs more than it saves.
+        let rows = if h * w < 1 << 15 {
+            h
         } else {
-            zeros
-        },
-    ]
+            h.div_ceil(4 * rayon::current_num_threads()).max(8)
+        };
+        let rows = rows + (rows & 1);
+        Self {
+            rows,
+            count: h.div_ceil(rows),
+        }
+    }
 }
 
-/// `out = A x` (f64 arithmetic, f32 storage); returns `xᵀ A x`.
-pub(super) fn apply<S: Stencil>(st: &S, x: &[f32], out: &mut [f32]) -> f64 {
+/// For every band, the `halo` rows above it then the `halo` rows below it (zero rows
+/// outside the grid), copied from `x` before an in-place pass.
+fn ghosts(x: &[f32], h: usize, w: usize, bands: Bands, halo: usize) -> Vec<f32> {
+    let mut g = vec![0f32; bands.count * 2 * halo * w];
+    for (k, gb) in g.chunks_mut(2 * halo * w).enumerate() {
+        let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+        for j in 0..halo {
+            // Above: row r0 − halo + j; below: row r1 + j.
+            if r0 + j >= halo {
+                let r = r0 + j - halo;
+                gb[j * w..(j + 1) * w].copy_from_slice(&x[r * w..(r + 1) * w]);
+            }
+            let r = r1 + j;
+            if r < h {
+                gb[(halo + j) * w..(halo + j + 1) * w].copy_from_slice(&x[r * w..(r + 1) * w]);
+            }
+        }
+    }
+    g
+}
+
+/// Row `k` of an array being rewritten in place by the band `[r0, r1)`: from the band while
+/// not yet overwritten, else from the ghosts; a zero row outside the grid.
+#[allow(clippy::too_many_arguments)]
+fn fetch<'a>(
+    k: isize,
+    r0: usize,
+    r1: usize,
+    h: usize,
+    band: &'a [f32],
+    ghost: &'a [f32],
+    halo: usize,
+    zeros: &'a [f32],
+) -> &'a [f32] {
+    let w = zeros.len();
+    if k < 0 || k as usize >= h {
+        return zeros;
+    }
+    let k = k as usize;
+    let j = if k < r0 {
+        halo - (r0 - k)
+    } else if k >= r1 {
+        halo + (k - r1)
+    } else {
+        return &band[(k - r0) * w..(k - r0 + 1) * w];
+    };
+    &ghost[j * w..(j + 1) * w]
+}
+
+/// Three rows indexed by `k mod 3`: the window a 5-point stencil needs.
+struct Ring {
+    data: Vec<f32>,
+    w: usize,
+}
+
+impl Ring {
+    fn new(w: usize) -> Self {
+        Self {
+            data: vec![0f32; 3 * w],
+            w,
+        }
+    }
+    fn slot(k: isize) -> usize {
+        k.rem_euclid(3) as usize
+    }
+    fn row(&self, k: isize) -> &[f32] {
+        let s = Self::slot(k) * self.w;
+        &self.data[s..s + self.w]
+    }
+    fn row_mut_raw(&mut self, k: isize) -> &mut [f32] {
+        let s = Self::slot(k) * self.w;
+        &mut self.data[s..s + self.w]
+    }
+    /// Rows `k − 1`, `k`, `k + 1`.
+    fn window(&self, k: isize) -> [&[f32]; 3] {
+        [self.row(k - 1), self.row(k), self.row(k + 1)]
+    }
+}
+
+/// Per-task scratch: two ring buffers of values, rings of the diagonal and its inverse, a
+/// row buffer and a zero row.
+struct Scratch {
+    a: Ring,
+    b: Ring,
+    d: Ring,
+    inv: Ring,
+    nb: Vec<f32>,
+    zeros: Vec<f32>,
+}
+
+impl Scratch {
+    fn new(w: usize) -> Self {
+        Self {
+            a: Ring::new(w),
+            b: Ring::new(w),
+            d: Ring::new(w),
+            inv: Ring::new(w),
+            nb: vec![0f32; w],
+            zeros: vec![0f32; w],
+        }
+    }
+
+    /// Diagonal and inverse of row `k` into the rings (zeros outside the grid).
+    #[inline(always)]
+    fn load_diag<S: Stencil>(&mut self, st: &S, k: isize, h: usize) {
+        let (d, inv) = (self.d.row_mut_raw(k), self.inv.row_mut_raw(k));
+        if in_grid(k, h) {
+            st.diag_row(k as usize, &mut d[..], &mut inv[..]);
+        } else {
+            d.fill(0.0);
+            inv.fill(0.0);
+        }
+    }
+}
+
+/// `Σ a_i b_i` in f64 with independent partial sums (so it pipelines / vectorises).
+#[inline(always)]
+pub(super) fn dot_f64(a: &[f32], b: &[f32]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0f64; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(&x, &y)| f64::from(x) * f64::from(y))
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for j in 0..8 {
+            acc[j] += f64::from(x[j]) * f64::from(y[j]);
+        }
+    }
+    acc.iter().sum::<f64>() + tail
+}
+
+fn in_grid(k: isize, h: usize) -> bool {
+    k >= 0 && (k as usize) < h
+}
+
+/// Gauss–Seidel update of the cells of one colour in row `r`: `out = (b + Σ w x_j) / d`
+/// there (0 on inactive cells), `out = keep` elsewhere. `nb` holds the neighbour sum.
+#[inline(always)]
+fn gs_row(
+    r: usize,
+    colour: usize,
+    b: &[f32],
+    nb: &[f32],
+    inv: &[f32],
+    keep: &[f32],
+    out: &mut [f32],
+) {
+    let n = out.len();
+    let (b, nb, inv) = (&b[..n], &nb[..n], &inv[..n]);
+    // Every cell is computed (so the loop vectorises), then the other colour is restored.
+    for c in 0..n {
+        out[c] = (b[c] + nb[c]) * inv[c];
+    }
+    for c in ((r + colour + 1) & 1..n).step_by(2) {
+        out[c] = keep[c];
+    }
+}
+
+/// Pre-smoothing from a zero guess (red half-sweep, then black) into `x`, fused with the
+/// restriction of the resulting residual: `cb = Pᵀ (b − A x)`.
+fn presmooth_restrict<S: Stencil>(st: &S, b: &[f32], x: &mut [f32], cb: &mut [f32]) {
+    let (h, w) = st.dims();
+    let cw = w.div_ceil(2);
+    let bands = Bands::new(h, w);
+    x.par_chunks_mut(bands.rows * w)
+        .zip(cb.par_chunks_mut(bands.rows / 2 * cw))
+        .enumerate()
+        .for_each_init(
+            || Scratch::new(w),
+            |s, (k, (xband, cband))| {
+                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+                cband.fill(0.0);
+                for kk in r0 as isize - 2..=r1 as isize + 1 {
+                    s.load_diag(st, kk, h);
+                    // Z(kk): red cells b/d, black cells 0.
+                    let zr = s.a.row_mut_raw(kk);
+                    if in_grid(kk, h) {
+                        let r = kk as usize;
+                        let (br, inv) = (&b[r * w..(r + 1) * w], s.inv.row(kk));
+                        for c in 0..w {
+                            zr[c] = br[c] * inv[c];
+                        }
+                        for c in ((r + 1) & 1..w).step_by(2) {
+                            zr[c] = 0.0;
+                        }
+                    } else {
+                        zr.fill(0.0);
+                    }
+                    // X(j): black half-sweep on Z.
+                    let j = kk - 1;
+                    if j >= r0 as isize - 1 {
+                        let xj = s.b.row_mut_raw(j);
+                        if in_grid(j, h) {
+                            let r = j as usize;
+                            let [up, cur, down] = s.a.window(j);
+                            st.neighbour_sum(r, up, cur, down, &mut s.nb);
+                            let br = &b[r * w..(r + 1) * w];
+                            gs_row(r, 1, br, &s.nb, s.inv.row(j), cur, xj);
+                        } else {
+                            xj.fill(0.0);
+                        }
+                    }
+                    // Residual of row i, restricted; X(i) stored.
+                    let i = kk - 2;
+                    if i >= r0 as isize && (i as usize) < r1 {
+                        let r = i as usize;
+                        let [up, cur, down] = s.b.window(i);
+                        let nb = &mut s.nb[..w];
+                        st.neighbour_sum(r, up, cur, down, nb);
+                        let (br, cur, d) = (&b[r * w..(r + 1) * w], &cur[..w], s.d.row(i));
+                        for c in 0..w {
+                            let t = br[c] - (d[c] * cur[c] - nb[c]);
+                            nb[c] = if d[c] > 0.0 { t } else { 0.0 };
+                        }
+                        let out = &mut cband[(r - r0) / 2 * cw..((r - r0) / 2 + 1) * cw];
+                        for (cc, o) in out.iter_mut().enumerate() {
+                            *o += nb[2 * cc] + nb.get(2 * cc + 1).copied().unwrap_or(0.0);
+                        }
+                        xband[(r - r0) * w..(r - r0 + 1) * w].copy_from_slice(cur);
+                    }
+                }
+            },
+        );
+}
+
+/// Coarse correction and post-smoothing, fused: `x += P xc`, then a black half-sweep, then
+/// a red one. Returns `bᵀ x` of the result.
+fn prolong_postsmooth<S: Stencil>(st: &S, b: &[f32], x: &mut [f32], xc: &[f32]) -> f64 {
+    let (h, w) = st.dims();
+    let cw = w.div_ceil(2);
+    let bands = Bands::new(h, w);
+    let halo = 2;
+    let g = ghosts(x, h, w, bands, halo);
+    x.par_chunks_mut(bands.rows * w)
+        .zip(g.par_chunks(2 * halo * w))
+        .enumerate()
+        .map_init(
+            || Scratch::new(w),
+            |s, (k, (xband, gb))| {
+                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+                let mut acc = 0.0f64;
+                for kk in r0 as isize - 2..=r1 as isize + 1 {
+                    s.load_diag(st, kk, h);
+                    // Y(kk) = x + P xc on active cells.
+                    let yr = s.a.row_mut_raw(kk);
+                    if in_grid(kk, h) {
+                        let r = kk as usize;
+                        yr.copy_from_slice(fetch(kk, r0, r1, h, xband, gb, halo, &s.zeros));
+                        let crow = &xc[r / 2 * cw..(r / 2 + 1) * cw];
+                        let nb = &mut s.nb[..w];
+                        for (pair, &v) in nb.chunks_mut(2).zip(crow) {
+                            pair.fill(v);
+                        }
+                        let d = s.d.row(kk);
+                        for c in 0..w {
+                            yr[c] += if d[c] > 0.0 { nb[c] } else { 0.0 };
+                        }
+                    } else {
+                        yr.fill(0.0);
+                    }
+                    // B(j): black half-sweep on Y.
+                    let j = kk - 1;
+                    if j >= r0 as isize - 1 {
+                        let bj = s.b.row_mut_raw(j);
+                        if in_grid(j, h) {
+                            let r = j as usize;
+                            let [up, cur, down] = s.a.window(j);
+                            st.neighbour_sum(r, up, cur, down, &mut s.nb);
+                            let br = &b[r * w..(r + 1) * w];
+                            gs_row(r, 1, br, &s.nb, s.inv.row(j), cur, bj);
+                        } else {
+                            bj.fill(0.0);
+                        }
+                    }
+                    // F(i): red half-sweep on B, stored.
+                    let i = kk - 2;
+                    if i >= r0 as isize && (i as usize) < r1 {
+                        let r = i as usize;
+                        let [up, cur, down] = s.b.window(i);
+                        st.neighbour_sum(r, up, cur, down, &mut s.nb);
+                        let br = &b[r * w..(r + 1) * w];
+                        let out = &mut xband[(r - r0) * w..(r - r0 + 1) * w];
+                        gs_row(r, 0, br, &s.nb, s.inv.row(i), cur, out);
+                        acc += dot_f64(out, br);
+                    }
+                }
+                acc
+            },
+        )
+        .sum()
+}
+
+/// The CG direction update fused with the operator: `p ← z + β p`, then `z ← A p` (in
+/// place: the buffer holding `z` receives `A p`). Returns `pᵀ A p` (f64 stencil).
+pub(super) fn direction_apply<S: Stencil>(st: &S, zq: &mut [f32], p: &mut [f32], beta: f32) -> f64 {
     let (h, w) = st.dims();
     if h * w == 0 {
         return 0.0;
     }
-    let zeros = vec![0f32; w];
-    out.par_chunks_mut(w)
+    let bands = Bands::new(h, w);
+    let halo = 1;
+    let gz = ghosts(zq, h, w, bands, halo);
+    let gp = ghosts(p, h, w, bands, halo);
+    zq.par_chunks_mut(bands.rows * w)
+        .zip(p.par_chunks_mut(bands.rows * w))
+        .zip(gz.par_chunks(2 * halo * w).zip(gp.par_chunks(2 * halo * w)))
         .enumerate()
-        .with_min_len(4)
-        .map(|(r, o)| {
-            let [up, cur, down] = rows3(x, &zeros, h, r);
-            st.apply_row_f64(r, up, cur, down, o)
-        })
+        .map_init(
+            || Scratch::new(w),
+            |s, (k, ((zband, pband), (gzb, gpb)))| {
+                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+                let Scratch { a: pn, zeros, .. } = s;
+                let mut acc = 0.0f64;
+                for kk in r0 as isize - 1..=r1 as isize {
+                    let zr = fetch(kk, r0, r1, h, zband, gzb, halo, zeros);
+                    let pr = fetch(kk, r0, r1, h, pband, gpb, halo, zeros);
+                    for ((o, &z), &p) in pn.row_mut_raw(kk).iter_mut().zip(zr).zip(pr) {
+                        *o = z + beta * p;
+                    }
+                    let i = kk - 1;
+                    if i >= r0 as isize && (i as usize) < r1 {
+                        let r = i as usize;
+                        let [up, cur, down] = pn.window(i);
+                        let o = (r - r0) * w..(r - r0 + 1) * w;
+                        acc += st.apply_row_f64(r, up, cur, down, &mut zband[o.clone()]);
+                        pband[o].copy_from_slice(cur);
+                    }
+                }
+                acc
+            },
+        )
         .sum()
 }
 
-/// One Gauss–Seidel half-sweep over the cells with `(r + c) % 2 == colour`.
-///
-/// Parallel over bands of rows, each band owning its rows mutably. A half-sweep reads only
-/// cells of the other colour, which it never writes, so the rows just outside each band are
-/// copied beforehand and the bands are independent (no unsafe sharing needed).
-fn half_sweep<S: Stencil>(st: &S, b: &[f32], x: &mut [f32], colour: usize) {
-    let (h, w) = st.dims();
-    let rows = band_rows(h);
-    let bands = h.div_ceil(rows);
-    let mut ghosts = vec![0f32; bands * 2 * w];
-    for (k, g) in ghosts.chunks_mut(2 * w).enumerate() {
-        let (r0, r1) = (k * rows, ((k + 1) * rows).min(h));
-        if r0 > 0 {
-            g[..w].copy_from_slice(&x[(r0 - 1) * w..r0 * w]);
-        }
-        if r1 < h {
-            g[w..].copy_from_slice(&x[r1 * w..(r1 + 1) * w]);
-        }
-    }
-    x.par_chunks_mut(rows * w)
-        .zip(ghosts.par_chunks(2 * w))
-        .enumerate()
-        .for_each_init(
-            || (vec![0f32; w], vec![0f32; w]),
-            |(nb, dg), (k, (band, g))| {
-                let (above, below) = g.split_at(w);
-                let n = band.len() / w;
-                for i in 0..n {
-                    let r = k * rows + i;
-                    let (head, tail) = band.split_at_mut(i * w);
-                    let (cur, rest) = tail.split_at_mut(w);
-                    let up = if i == 0 { above } else { &head[(i - 1) * w..] };
-                    let down = if i + 1 == n { below } else { &rest[..w] };
-                    st.neighbour_sum(r, up, cur, down, nb);
-                    st.diag_row(r, dg);
-                    // All cells are computed (vectorised), only this colour is stored.
-                    for ((v, &d), &bb) in nb.iter_mut().zip(dg.iter()).zip(&b[r * w..]) {
-                        *v = if d > 0.0 { (bb + *v) / d } else { 0.0 };
-                    }
-                    for c in ((r + colour) & 1..w).step_by(2) {
-                        cur[c] = nb[c];
-                    }
-                }
-            },
-        );
-}
-
-/// The red half-sweep from a zero initial guess: red cells get `b / d`, all others 0.
-fn first_half_sweep<S: Stencil>(st: &S, b: &[f32], x: &mut [f32]) {
-    let (_, w) = st.dims();
-    x.par_chunks_mut(w)
-        .enumerate()
-        .with_min_len(4)
-        .for_each_init(
-            || vec![0f32; w],
-            |dg, (r, row)| {
-                st.diag_row(r, dg);
-                let b = &b[r * w..(r + 1) * w];
-                for (c, ((v, &d), &bb)) in row.iter_mut().zip(dg.iter()).zip(b).enumerate() {
-                    *v = if (r + c) & 1 == 0 && d > 0.0 {
-                        bb / d
-                    } else {
-                        0.0
-                    };
-                }
-            },
-        );
+/// `out = A x` (f64 arithmetic, f32 storage); returns `xᵀ A x`.
+#[cfg(test)]
+pub(super) fn apply<S: Stencil>(st: &S, x: &[f32], out: &mut [f32]) -> f64 {
+    let mut p = vec![0f32; x.len()];
+    out.copy_from_slice(x);
+    direction_apply(st, out, &mut p, 0.0)
 }
 
 /// One coarse level: its operator and work vectors.
@@ -450,60 +741,6 @@ fn coarsen<S: Stencil>(fine: &S) -> Level {
         x: vec![0.0; ch * cw],
         b: vec![0.0; ch * cw],
     }
-}
-
-/// `cb = Pᵀ (b − A x)`: the fine residual summed over each coarse cell's children.
-fn restrict<S: Stencil>(st: &S, b: &[f32], x: &[f32], coarse: &mut Level) {
-    let (h, w) = st.dims();
-    let cw = coarse.st.w;
-    let zeros = vec![0f32; w];
-    coarse
-        .b
-        .par_chunks_mut(cw)
-        .enumerate()
-        .with_min_len(2)
-        .for_each_init(
-            || (vec![0f32; w], vec![0f32; w]),
-            |(nb, dg), (rr, out)| {
-                out.fill(0.0);
-                for fr in 2 * rr..(2 * rr + 2).min(h) {
-                    let [up, cur, down] = rows3(x, &zeros, h, fr);
-                    st.neighbour_sum(fr, up, cur, down, nb);
-                    st.diag_row(fr, dg);
-                    let b = &b[fr * w..(fr + 1) * w];
-                    for (((t, &d), &xx), &bb) in nb.iter_mut().zip(dg.iter()).zip(cur).zip(b) {
-                        *t = if d > 0.0 { bb - (d * xx - *t) } else { 0.0 };
-                    }
-                    for (o, pair) in out.iter_mut().zip(nb.chunks(2)) {
-                        *o += pair.iter().sum::<f32>();
-                    }
-                }
-            },
-        );
-}
-
-/// `x += P xc` on the active fine cells.
-fn prolong_add<S: Stencil>(st: &S, coarse: &Level, x: &mut [f32]) {
-    let (_, w) = st.dims();
-    let cw = coarse.st.w;
-    let xc = &coarse.x;
-    x.par_chunks_mut(w)
-        .enumerate()
-        .with_min_len(4)
-        .for_each_init(
-            || vec![0f32; w],
-            |dg, (r, row)| {
-                st.diag_row(r, dg);
-                let crow = &xc[(r / 2) * cw..(r / 2 + 1) * cw];
-                for ((pair, dpair), &v) in row.chunks_mut(2).zip(dg.chunks(2)).zip(crow) {
-                    for (x, &d) in pair.iter_mut().zip(dpair) {
-                        if d > 0.0 {
-                            *x += v;
-                        }
-                    }
-                }
-            },
-        );
 }
 
 /// Dense solve on the coarsest level: Cholesky of `A + Q` over the active cells.
@@ -640,25 +877,31 @@ impl Hierarchy {
         self.levels.len() + 1
     }
 
-    /// `x = M b`, M ≈ A⁺ symmetric positive definite. `b` must be 0 on inactive cells; so is
-    /// the output.
-    pub(super) fn apply<S: Stencil>(&mut self, fine: &S, b: &[f32], x: &mut [f32]) {
-        vcycle(fine, b, x, &mut self.levels, &self.dense);
+    /// `x = M b` with `M ≈ A⁺` symmetric positive definite; returns `bᵀ x`. `b` must be 0
+    /// on inactive cells; so is `x`.
+    pub(super) fn apply<S: Stencil>(&mut self, fine: &S, b: &[f32], x: &mut [f32]) -> f64 {
+        vcycle(fine, b, x, &mut self.levels, &self.dense)
     }
 }
 
-fn vcycle<S: Stencil>(st: &S, b: &[f32], x: &mut [f32], levels: &mut [Level], dense: &Dense) {
+fn vcycle<S: Stencil>(
+    st: &S,
+    b: &[f32],
+    x: &mut [f32],
+    levels: &mut [Level],
+    dense: &Dense,
+) -> f64 {
     let Some((next, rest)) = levels.split_first_mut() else {
         dense.solve(b, x);
-        return;
+        return b
+            .iter()
+            .zip(x.iter())
+            .map(|(&u, &v)| f64::from(u) * f64::from(v))
+            .sum();
     };
-    first_half_sweep(st, b, x);
-    half_sweep(st, b, x, 1);
-    restrict(st, b, x, next);
+    presmooth_restrict(st, b, x, &mut next.b);
     vcycle(&next.st, &next.b, &mut next.x, rest, dense);
-    prolong_add(st, next, x);
-    half_sweep(st, b, x, 1);
-    half_sweep(st, b, x, 0);
+    prolong_postsmooth(st, b, x, &next.x)
 }
 
 #[cfg(test)]
@@ -689,6 +932,7 @@ mod tests {
         let (h, w) = (45, 38);
         let mask = disc_mask(h, w);
         let st = MaskStencil::new(&mask, h, w);
+        let only = std::env::var("K").ok();
         let mut hier = Hierarchy::new(&st);
         assert!(hier.depth() >= 3);
         let u: Vec<f32> = (0..h * w)
@@ -766,6 +1010,7 @@ mod tests {
 mod bench_tmp {
     use super::*;
     use std::time::Instant;
+    fn continue_dummy() {}
     #[test]
     #[ignore]
     fn bench_parts() {
@@ -791,27 +1036,44 @@ mod bench_tmp {
             .collect();
         let mut x = vec![0f32; n * n];
         let mut y = vec![0f32; n * n];
-        let k = 10;
+        let k = if only.is_some() { 40 } else { 20 };
         macro_rules! tm {
             ($name:expr, $e:expr) => {{
-                let t = Instant::now();
-                for _ in 0..k {
-                    $e;
+                if only.as_deref().is_some_and(|o| o != $name) {
+                    continue_dummy();
+                } else {
+                    let mut best = f64::INFINITY;
+                    for _ in 0..k {
+                        let t = Instant::now();
+                        $e;
+                        best = best.min(t.elapsed().as_secs_f64());
+                    }
+                    eprintln!("{:>12}: {:.2} ms", $name, best * 1e3);
                 }
-                eprintln!(
-                    "{:>12}: {:.2} ms",
-                    $name,
-                    t.elapsed().as_secs_f64() * 1e3 / k as f64
-                );
             }};
         }
-        tm!("first_half", first_half_sweep(&st, &b, &mut x));
-        tm!("half_sweep", half_sweep(&st, &b, &mut x, 1));
-        tm!("apply", apply(&st, &x, &mut y));
         let (l1, _) = hier.levels.split_first_mut().unwrap();
-        tm!("restrict", restrict(&st, &b, &x, l1));
-        tm!("prolong", prolong_add(&st, l1, &mut x));
+        tm!("pre", presmooth_restrict(&st, &b, &mut x, &mut l1.b));
+        tm!("post", prolong_postsmooth(&st, &b, &mut x, &l1.x));
+        tm!("dir_apply", direction_apply(&st, &mut x, &mut y, 0.5));
         tm!("vcycle", hier.apply(&st, &b, &mut x));
         tm!("copy", x.copy_from_slice(&b));
+        let mut r = b.clone();
+        tm!("update", {
+            let a = 0.5f32;
+            x.par_chunks_mut(1 << 14)
+                .zip(r.par_chunks_mut(1 << 14))
+                .zip(y.par_chunks(1 << 14).zip(b.par_chunks(1 << 14)))
+                .map(|((x, r), (p, ap))| {
+                    let mut acc = 0.0f64;
+                    for i in 0..x.len() {
+                        x[i] += a * p[i];
+                        r[i] -= a * ap[i];
+                        acc += f64::from(r[i]) * f64::from(r[i]);
+                    }
+                    acc
+                })
+                .sum::<f64>()
+        });
     }
 }

@@ -134,12 +134,7 @@ pub(super) struct PcgStats {
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     a.par_chunks(CHUNK)
         .zip(b.par_chunks(CHUNK))
-        .map(|(a, b)| {
-            a.iter()
-                .zip(b)
-                .map(|(&x, &y)| f64::from(x) * f64::from(y))
-                .sum::<f64>()
-        })
+        .map(|(a, b)| multigrid::dot_f64(a, b))
         .sum()
 }
 
@@ -161,51 +156,42 @@ pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>) -> (Vec<f32>, PcgStats)
     }
     let mut hier = Hierarchy::new(st);
     stats.levels = hier.depth();
-    let mut zq = vec![0f32; n];
-    hier.apply(st, &r, &mut zq);
-    let mut p = zq.clone();
-    let mut rz = dot(&r, &zq);
     stats.rel_residual = 1.0;
+    let mut zq = vec![0f32; n]; // M r, then A p
+    let mut p = vec![0f32; n];
+    let mut rz = hier.apply(st, &r, &mut zq);
+    let mut beta = 0.0f32;
     while stats.iterations < MAX_ITER {
         if !(rz > 0.0 && rz.is_finite()) {
             break;
         }
-        let pap = multigrid::apply(st, &p, &mut zq); // zq = A p
+        let pap = multigrid::direction_apply(st, &mut zq, &mut p, beta); // p = z + βp, zq = A p
         if !(pap > 0.0 && pap.is_finite()) {
             break;
         }
         stats.iterations += 1;
-        let alpha = rz / pap;
-        let a32 = alpha as f32;
+        let alpha = (rz / pap) as f32;
         let rr: f64 = x
             .par_chunks_mut(CHUNK)
             .zip(r.par_chunks_mut(CHUNK))
             .zip(p.par_chunks(CHUNK).zip(zq.par_chunks(CHUNK)))
             .map(|((x, r), (p, ap))| {
-                let mut acc = 0.0f64;
-                for i in 0..x.len() {
-                    x[i] += a32 * p[i];
-                    r[i] -= a32 * ap[i];
-                    acc += f64::from(r[i]) * f64::from(r[i]);
+                for (x, &p) in x.iter_mut().zip(p) {
+                    *x += alpha * p;
                 }
-                acc
+                for (r, &ap) in r.iter_mut().zip(ap) {
+                    *r -= alpha * ap;
+                }
+                multigrid::dot_f64(r, r)
             })
             .sum();
         stats.rel_residual = rr.sqrt() / bnorm;
         if stats.rel_residual <= TOL {
             break;
         }
-        hier.apply(st, &r, &mut zq); // zq = M r
-        let rz_new = dot(&r, &zq);
-        let beta = (rz_new / rz) as f32;
+        let rz_new = hier.apply(st, &r, &mut zq); // zq = M r
+        beta = (rz_new / rz) as f32;
         rz = rz_new;
-        p.par_chunks_mut(CHUNK)
-            .zip(zq.par_chunks(CHUNK))
-            .for_each(|(p, z)| {
-                for (p, &z) in p.iter_mut().zip(z) {
-                    *p = z + beta * *p;
-                }
-            });
     }
     (x, stats)
 }

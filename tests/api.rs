@@ -1,0 +1,1198 @@
+//! The HTTP API end to end: a real server on 127.0.0.1:0 and a real HTTP client.
+
+mod common;
+
+use std::collections::{BTreeMap, HashSet};
+use std::time::Duration;
+
+use common::*;
+use photostereo::core::outputs::ARTIFACTS;
+use photostereo::service::{AppState, healthcheck, openapi_json, router};
+use reqwest::multipart::{Form, Part};
+use serde_json::Value;
+
+/// Download every artifact a succeeded job links and check each one: status, Content-Type,
+/// caching headers, and that it decodes. Returns name → bytes.
+async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8>> {
+    let artifacts = job["artifacts"]
+        .as_object()
+        .expect("artifacts of a succeeded job");
+    let (w, h) = (
+        job["result"]["width"].as_u64().unwrap() as u32,
+        job["result"]["height"].as_u64().unwrap() as u32,
+    );
+    for required in [
+        "albedo.png",
+        "normal.png",
+        "height.png",
+        "mask.png",
+        "normal.exr",
+        "shaded.png",
+        "result.json",
+        "mesh.glb",
+    ] {
+        assert!(
+            artifacts.contains_key(required),
+            "{required} missing from {artifacts:?}"
+        );
+    }
+    let mut out = BTreeMap::new();
+    for (name, url) in artifacts {
+        let url = url.as_str().unwrap();
+        assert_eq!(
+            url,
+            format!("/v1/jobs/{}/artifacts/{name}", job["id"].as_str().unwrap())
+        );
+        let r = s.client.get(s.url(url)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{name}");
+        let expected_type = ARTIFACTS.iter().find(|(n, _)| n == name).unwrap().1;
+        assert_eq!(r.headers()["content-type"], expected_type, "{name}");
+        let etag = r.headers()["etag"].to_str().unwrap().to_string();
+        assert!(
+            etag.starts_with('"') && etag.ends_with('"'),
+            "strong etag {etag}"
+        );
+        assert!(
+            r.headers()["cache-control"]
+                .to_str()
+                .unwrap()
+                .contains("immutable")
+        );
+        let bytes = r.bytes().await.unwrap().to_vec();
+        match name.rsplit('.').next().unwrap() {
+            "png" => {
+                let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+                if [
+                    "albedo.png",
+                    "normal.png",
+                    "height.png",
+                    "mask.png",
+                    "shaded.png",
+                ]
+                .contains(&name.as_str())
+                {
+                    assert_eq!((img.width(), img.height()), (w, h), "{name}");
+                }
+            }
+            "exr" => {
+                assert_eq!(&bytes[..4], &[0x76, 0x2f, 0x31, 0x01], "{name}: EXR magic");
+                image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
+                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+            }
+            "glb" => {
+                assert_eq!(&bytes[..4], b"glTF", "{name}: glb magic");
+                assert_eq!(u32::from_le_bytes(bytes[4..8].try_into().unwrap()), 2);
+                assert_eq!(
+                    u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize,
+                    bytes.len()
+                );
+            }
+            "gltf" => {
+                let doc: Value = serde_json::from_slice(&bytes).unwrap();
+                assert!(doc["asset"]["version"].is_string(), "{name}");
+            }
+            "json" => {
+                let report: Value = serde_json::from_slice(&bytes).unwrap();
+                assert_eq!(report["width"], job["result"]["width"]);
+                assert_eq!(report["height"], job["result"]["height"]);
+            }
+            other => panic!("unexpected artifact type {other}"),
+        }
+        // A cached copy is still good.
+        let r = s
+            .client
+            .get(s.url(url))
+            .header("if-none-match", &etag)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 304, "{name}");
+        assert_eq!(r.headers()["etag"].to_str().unwrap(), etag);
+        out.insert(name.clone(), bytes);
+    }
+    out
+}
+
+fn expected_size(set: &str) -> u64 {
+    match set {
+        "synth-images" => 100,
+        "sphere-images" => 460,
+        "dog-images" => 400,
+        _ => unreachable!(),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn seed_sets_as_files_produce_every_artifact() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let mut ids = Vec::new();
+    for set in SEED_SETS {
+        let job = s.submit(folder_form(&seed(set))).await;
+        assert_eq!(job["image_count"], 4);
+        ids.push((set, job["id"].as_str().unwrap().to_string()));
+    }
+    for (set, id) in &ids {
+        let job = s.wait_succeeded(id).await;
+        let size = expected_size(set);
+        assert_eq!(job["result"]["width"], size, "{set}: {job}");
+        assert_eq!(job["result"]["height"], size, "{set}");
+        assert_eq!(job["result"]["light_count"], 4, "{set}");
+        assert!(
+            job["result"]["height_max"].as_f64().is_some(),
+            "{set}: {job}"
+        );
+        assert_eq!(job["progress"], 1.0);
+        for t in ["created_at", "started_at", "finished_at"] {
+            let v = job[t].as_str().unwrap();
+            assert!(v.ends_with('Z') && v.len() == 24, "{t} = {v}");
+        }
+        assert!(job.get("error").is_none());
+        check_artifacts(&s, &job).await;
+    }
+
+    // Re-shading on request, and its light checked.
+    let (_, id) = &ids[0];
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/shaded.png?light=0,0,1")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "image/png");
+    let etag = r.headers()["etag"].to_str().unwrap().to_string();
+    let png = r.bytes().await.unwrap();
+    let img = image::load_from_memory(&png).unwrap();
+    assert_eq!((img.width(), img.height()), (100, 100));
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/shaded.png?light=0,0,1")))
+        .header("if-none-match", etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 304);
+    for bad in ["0,0,0", "1,2", "a,b,c", "inf,0,1"] {
+        let r = s
+            .client
+            .get(s.url(&format!("/v1/jobs/{id}/artifacts/shaded.png?light={bad}")))
+            .send()
+            .await
+            .unwrap();
+        expect_problem(r, 422, &["light"]).await;
+    }
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/albedo.png?light=0,0,1")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 400, &["shaded.png"]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn seed_sets_as_zip_archives() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let layouts = [
+        ("synth-images", None),
+        ("sphere-images", Some("sphere")),
+        ("dog-images", Some("dog-images")),
+    ];
+    let mut ids = Vec::new();
+    for (set, top) in layouts {
+        let zip = zip_folder(&seed(set), top);
+        let form = archive_form(zip).text("options", r#"{"integration": "frankot-chellappa"}"#);
+        let job = s.submit(form).await;
+        assert_eq!(job["options"]["integration"], "frankot-chellappa");
+        ids.push((set, job["id"].as_str().unwrap().to_string()));
+    }
+    for (set, id) in ids {
+        let job = s.wait_succeeded(&id).await;
+        assert_eq!(job["result"]["width"], expected_size(set), "{set}");
+        check_artifacts(&s, &job).await;
+    }
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_requests_get_400() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let synth = seed("synth-images");
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .json(&serde_json::json!({"images": []}))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 400, &["multipart/form-data"]).await;
+
+    let mut no_lights = Form::new();
+    for img in images_of(&synth) {
+        no_lights = no_lights.part("images", file_part(&img));
+    }
+    expect_problem(post(no_lights).await.unwrap(), 400, &["lights"]).await;
+
+    let only_lights = Form::new().part("lights", file_part(&synth.join("light_directions.csv")));
+    expect_problem(post(only_lights).await.unwrap(), 400, &["images"]).await;
+
+    let unknown = folder_form(&synth).text("colour", "red");
+    expect_problem(post(unknown).await.unwrap(), 400, &["\"colour\""]).await;
+
+    let nameless = Form::new()
+        .part("lights", file_part(&synth.join("light_directions.csv")))
+        .part("images", Part::bytes(png(4, 4, 9)));
+    expect_problem(post(nameless).await.unwrap(), 400, &["file name"]).await;
+
+    let twice = folder_form(&synth).text("lights", "a.png, 0, 0, 1");
+    expect_problem(
+        post(twice).await.unwrap(),
+        400,
+        &["lights", "more than once"],
+    )
+    .await;
+
+    let both = folder_form(&synth).part(
+        "archive",
+        Part::bytes(zip_folder(&synth, None)).file_name("a.zip"),
+    );
+    expect_problem(post(both).await.unwrap(), 400, &["either an archive"]).await;
+
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .header("content-type", "multipart/form-data; boundary=XYZ")
+        .body("--XYZ\r\nContent-Disposition: form-data; name=\"lights\"\r\n\r\nabc")
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 400, &["multipart"]).await;
+
+    for q in ["limit=0", "limit=101", "limit=ten", "cursor=nonsense"] {
+        let r = s
+            .client
+            .get(s.url(&format!("/v1/jobs?{q}")))
+            .send()
+            .await
+            .unwrap();
+        expect_problem(r, 400, &[]).await;
+    }
+    // Nothing was accepted, and nothing was left on disk.
+    assert_eq!(
+        s.get_json("/v1/jobs").await["jobs"]
+            .as_array()
+            .unwrap()
+            .len(),
+        0
+    );
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let leftovers = std::fs::read_dir(dir.path().join("jobs")).unwrap().count();
+    assert_eq!(leftovers, 0, "refused uploads leave no files");
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn limits_get_413() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.max_body_bytes = 300_000;
+    c.max_images = 3;
+    c.max_parts = 5;
+    c.max_pixels = 150 * 150;
+    let s = TestServer::start(c).await;
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+
+    // The sphere set is 4 × 212 kB: over the body limit (declared length).
+    expect_problem(
+        post(folder_form(&seed("sphere-images"))).await.unwrap(),
+        413,
+        &["300000 bytes"],
+    )
+    .await;
+    // The same, streamed without a length: caught while reading.
+    let big = std::fs::read(seed("sphere-images").join("real1.bmp")).unwrap();
+    let chunks: Vec<Result<Vec<u8>, std::io::Error>> = big
+        .repeat(2)
+        .chunks(16 * 1024)
+        .map(|c| Ok(c.to_vec()))
+        .collect();
+    let stream = Part::stream(reqwest::Body::wrap_stream(futures_util::stream::iter(
+        chunks,
+    )))
+    .file_name("real1.bmp");
+    let form = Form::new()
+        .text("lights", "real1.bmp, 0, 0, 1")
+        .part("images", stream);
+    expect_problem(post(form).await.unwrap(), 413, &["larger than the limit"]).await;
+
+    // Four images where three are allowed.
+    expect_problem(
+        post(folder_form(&seed("synth-images"))).await.unwrap(),
+        413,
+        &["limit of 3 images"],
+    )
+    .await;
+
+    // Too many parts.
+    let mut form = Form::new()
+        .text("lights", "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1")
+        .text("options", "{}")
+        .part("mask", Part::bytes(png(8, 8, 255)).file_name("mask.png"));
+    for name in ["a.png", "b.png", "c.png"] {
+        form = form.part("images", Part::bytes(png(8, 8, 100)).file_name(name));
+    }
+    expect_problem(post(form).await.unwrap(), 413, &["more than 5 parts"]).await;
+
+    // An image over the pixel limit.
+    let form = Form::new()
+        .text("lights", "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1")
+        .part("images", Part::bytes(png(200, 200, 10)).file_name("a.png"));
+    expect_problem(
+        post(form).await.unwrap(),
+        413,
+        &["\"a.png\"", "200×200", "22500"],
+    )
+    .await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unsupported_formats_get_415() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let table = "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1";
+
+    let form = Form::new().text("lights", table).part(
+        "images",
+        Part::bytes(b"just some notes".to_vec()).file_name("a.png"),
+    );
+    expect_problem(
+        post(form).await.unwrap(),
+        415,
+        &["\"a.png\"", "not a supported image format"],
+    )
+    .await;
+
+    let gif = b"GIF89a\x01\x00\x01\x00\x80\x00\x00\x00\x00\x00\xff\xff\xff!\xf9\x04\x01\x00\x00\x00\x00,\x00\x00\x00\x00\x01\x00\x01\x00\x00\x02\x02D\x01\x00;".to_vec();
+    let form = Form::new()
+        .text("lights", table)
+        .part("images", Part::bytes(gif).file_name("a.png"));
+    expect_problem(post(form).await.unwrap(), 415, &["\"a.png\""]).await;
+
+    let form = Form::new().part(
+        "archive",
+        Part::bytes(b"%PDF-1.4".to_vec()).file_name("set.zip"),
+    );
+    expect_problem(post(form).await.unwrap(), 415, &["not a zip"]).await;
+
+    let p = png(8, 8, 50);
+    let zip = zip_entries(&[
+        ("a.png", &p),
+        ("b.png", &p),
+        ("c.png", &p),
+        ("readme.txt", b"hello"),
+        ("light_directions.csv", table.as_bytes()),
+    ]);
+    expect_problem(post(archive_form(zip)).await.unwrap(), 415, &["readme.txt"]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn invalid_inputs_get_422_with_the_cores_message() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let synth = seed("synth-images");
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let with_table = |table: &str| {
+        let mut f = Form::new().text("lights", table.to_string());
+        for img in images_of(&synth) {
+            f = f.part("images", file_part(&img));
+        }
+        f
+    };
+
+    let bad_number = "im1.png, 0, 0, 1\nim2.png, x, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1";
+    expect_problem(
+        post(with_table(bad_number)).await.unwrap(),
+        422,
+        &["row 2", "\"x\""],
+    )
+    .await;
+
+    let zero = "im1.png, 0, 0, 0\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1";
+    expect_problem(
+        post(with_table(zero)).await.unwrap(),
+        422,
+        &["row 1", "zero"],
+    )
+    .await;
+
+    let missing =
+        "im1.png, 0, 0, 1\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1\nim5.png, -1, 0, 1";
+    expect_problem(
+        post(with_table(missing)).await.unwrap(),
+        422,
+        &["\"im5.png\"", "not provided"],
+    )
+    .await;
+
+    let unlisted = "im1.png, 0, 0, 1\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1";
+    expect_problem(
+        post(with_table(unlisted)).await.unwrap(),
+        422,
+        &["\"im4.png\"", "no row"],
+    )
+    .await;
+
+    let json_table = r#"[{"name": "im1.png", "direction": [0, 0]}]"#;
+    expect_problem(
+        post(with_table(json_table)).await.unwrap(),
+        422,
+        &["invalid JSON"],
+    )
+    .await;
+
+    let options = folder_form(&synth).text("options", r#"{"solver": "l2", "colour": true}"#);
+    expect_problem(post(options).await.unwrap(), 422, &["options", "colour"]).await;
+    let options = folder_form(&synth).text("options", r#"{"integration": 7}"#);
+    expect_problem(
+        post(options).await.unwrap(),
+        422,
+        &["options", "integration"],
+    )
+    .await;
+    let options = folder_form(&synth).text("options", "{not json");
+    expect_problem(post(options).await.unwrap(), 422, &["options"]).await;
+    let options =
+        folder_form(&synth).text("options", r#"{"outputs": ["albedo.png", "portrait.jpg"]}"#);
+    expect_problem(post(options).await.unwrap(), 422, &["portrait.jpg"]).await;
+    let options = folder_form(&synth).text("options", r#"{"mask": "given"}"#);
+    expect_problem(post(options).await.unwrap(), 422, &["mask"]).await;
+
+    let wrong_mask =
+        folder_form(&synth).part("mask", Part::bytes(png(50, 50, 255)).file_name("mask.png"));
+    expect_problem(
+        post(wrong_mask).await.unwrap(),
+        422,
+        &["mask", "50×50", "100×100"],
+    )
+    .await;
+
+    // A 400×400 dog image posing as im4.png among 100×100 images.
+    let mut sizes = Form::new().part("lights", file_part(&synth.join("light_directions.csv")));
+    for img in images_of(&synth).iter().take(3) {
+        sizes = sizes.part("images", file_part(img));
+    }
+    let dog = std::fs::read(seed("dog-images").join("dog1.png")).unwrap();
+    sizes = sizes.part("images", Part::bytes(dog).file_name("im4.png"));
+    expect_problem(
+        post(sizes).await.unwrap(),
+        422,
+        &["\"im4.png\"", "400×400", "same size"],
+    )
+    .await;
+
+    let p = png(8, 8, 50);
+    let table = b"a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1";
+    let evil = zip_entries(&[
+        ("../a.png", &p),
+        ("b.png", &p),
+        ("c.png", &p),
+        ("light_directions.csv", table),
+    ]);
+    expect_problem(
+        post(archive_form(evil)).await.unwrap(),
+        422,
+        &["unsafe path"],
+    )
+    .await;
+    let nested = zip_entries(&[
+        ("x/y/a.png", &p),
+        ("x/y/b.png", &p),
+        ("x/y/c.png", &p),
+        ("x/y/light_directions.csv", table),
+    ]);
+    expect_problem(
+        post(archive_form(nested)).await.unwrap(),
+        422,
+        &["one folder"],
+    )
+    .await;
+    let no_table = zip_entries(&[("a.png", &p), ("b.png", &p), ("c.png", &p)]);
+    expect_problem(
+        post(archive_form(no_table)).await.unwrap(),
+        422,
+        &["light_directions.csv"],
+    )
+    .await;
+
+    assert_eq!(
+        s.get_json("/v1/jobs").await["jobs"]
+            .as_array()
+            .unwrap()
+            .len(),
+        0
+    );
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unknown_things_get_404_and_unfinished_jobs_409() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.workers = 1;
+    c.stage_delay = Duration::from_millis(400);
+    let s = TestServer::start(c).await;
+
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{}", uuid::Uuid::new_v4())))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["no job"]).await;
+    let r = s
+        .client
+        .get(s.url("/v1/jobs/not-a-uuid"))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["not-a-uuid"]).await;
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/jobs/{}", uuid::Uuid::new_v4())))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["no job"]).await;
+    let r = s.client.get(s.url("/v2/anything")).send().await.unwrap();
+    expect_problem(r, 404, &["/v2/anything"]).await;
+    let r = s.client.put(s.url("/v1/jobs")).send().await.unwrap();
+    expect_problem(r, 405, &["PUT"]).await;
+
+    let job = s.submit(folder_form(&seed("synth-images"))).await;
+    let id = job["id"].as_str().unwrap();
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/secrets.txt")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["secrets.txt", "albedo.png"]).await;
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/..%2F..%2Fjobs.sqlite")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &[]).await;
+
+    let running = s
+        .wait_for(id, Duration::from_secs(30), |j| {
+            j["status"] == "running" && j["stage"].is_string()
+        })
+        .await;
+    assert!(running["progress"].as_f64().unwrap() < 1.0);
+    assert!(running["started_at"].is_string());
+    assert_eq!(running["attempts"], 1);
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/albedo.png")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 409, &["running"]).await;
+
+    let done = s.wait_succeeded(id).await;
+    assert_eq!(done["progress"], 1.0);
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/albedo.png")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn full_queue_gets_503_and_low_disk_507() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.workers = 1;
+    c.queue_length = 1;
+    c.stage_delay = Duration::from_millis(300);
+    let s = TestServer::start(c).await;
+    let synth = seed("synth-images");
+
+    let a = s.submit(folder_form(&synth)).await;
+    let a = a["id"].as_str().unwrap().to_string();
+    s.wait_for(&a, Duration::from_secs(30), |j| j["status"] == "running")
+        .await;
+    let b = s.submit(folder_form(&synth)).await;
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(folder_form(&synth))
+        .send()
+        .await
+        .unwrap();
+    let retry = r
+        .headers()
+        .get("retry-after")
+        .map(|v| v.to_str().unwrap().to_string());
+    expect_problem(r, 503, &["queue is full"]).await;
+    assert!(retry.unwrap().parse::<u64>().unwrap() > 0);
+    let metrics = s
+        .client
+        .get(s.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        metrics.contains("photostereo_jobs_rejected_queue_full_total 1"),
+        "{metrics}"
+    );
+    assert!(metrics.contains("photostereo_queue_depth 1"), "{metrics}");
+
+    // Cancelling the queued job frees its slot.
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/jobs/{}", b["id"].as_str().unwrap())))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    s.submit(folder_form(&synth)).await;
+    s.stop().await;
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.min_free_disk = u64::MAX;
+    let s = TestServer::start(c).await;
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(folder_form(&synth))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 507, &["free"]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn api_keys_guard_v1_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.api_keys = vec!["first-key".into(), "second-key".into()];
+    let s = TestServer::start(c).await;
+
+    let r = s.client.get(s.url("/v1/jobs")).send().await.unwrap();
+    assert_eq!(
+        r.headers()["www-authenticate"],
+        "Bearer realm=\"photostereo\""
+    );
+    expect_problem(r, 401, &["Bearer"]).await;
+    let r = s
+        .client
+        .get(s.url("/v1/jobs"))
+        .bearer_auth("second-kez")
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 401, &["not valid"]).await;
+    let r = s
+        .client
+        .get(s.url("/v1/jobs"))
+        .header("authorization", "Basic Zmlyc3Qta2V5")
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 401, &[]).await;
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(folder_form(&seed("synth-images")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 401, &[]).await;
+
+    let r = s
+        .client
+        .get(s.url("/v1/jobs"))
+        .bearer_auth("second-key")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .bearer_auth("first-key")
+        .multipart(folder_form(&seed("synth-images")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 202);
+    for open in ["/healthz", "/readyz", "/metrics", "/openapi.json"] {
+        let r = s.client.get(s.url(open)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{open}");
+    }
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn twenty_jobs_at_once_all_finish_within_the_pool_size() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.workers = 2;
+    c.queue_length = 32;
+    c.stage_delay = Duration::from_millis(5);
+    let s = TestServer::start(c).await;
+    let synth = seed("synth-images");
+    let submissions = (0..20).map(|_| {
+        let client = s.client.clone();
+        let url = s.url("/v1/jobs");
+        let form = folder_form(&synth);
+        async move { client.post(url).multipart(form).send().await.unwrap() }
+    });
+    let answers = futures_util::future::join_all(submissions).await;
+    let mut ids = HashSet::new();
+    for r in answers {
+        assert_eq!(r.status(), 202);
+        let job: Value = r.json().await.unwrap();
+        ids.insert(job["id"].as_str().unwrap().to_string());
+    }
+    assert_eq!(ids.len(), 20);
+    for id in &ids {
+        s.wait_succeeded(id).await;
+    }
+    let max = s.state.max_running();
+    assert!((1..=2).contains(&max), "max running {max}");
+    let metrics = s
+        .client
+        .get(s.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        metrics.contains(&format!("photostereo_workers_running_max {max}")),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("photostereo_jobs{status=\"succeeded\"} 20"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("photostereo_stage_seconds_count{stage=\"solve\"} 20"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains(
+            "photostereo_http_requests_total{method=\"POST\",route=\"/v1/jobs\",status=\"202\"} 20"
+        ),
+        "{metrics}"
+    );
+
+    // Paging sees every job once, newest first.
+    let mut seen = Vec::new();
+    let mut url = "/v1/jobs?limit=7".to_string();
+    loop {
+        let page = s.get_json(&url).await;
+        for j in page["jobs"].as_array().unwrap() {
+            seen.push((
+                j["created_at"].as_str().unwrap().to_string(),
+                j["id"].as_str().unwrap().to_string(),
+            ));
+        }
+        match page["next_cursor"].as_str() {
+            Some(c) => url = format!("/v1/jobs?limit=7&cursor={c}"),
+            None => break,
+        }
+    }
+    assert_eq!(seen.len(), 20);
+    assert_eq!(
+        seen.iter()
+            .map(|(_, id)| id.clone())
+            .collect::<HashSet<_>>(),
+        ids
+    );
+    assert!(seen.windows(2).all(|w| w[0].0 >= w[1].0), "newest first");
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn delete_cancels_running_and_queued_jobs_then_removes_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.workers = 1;
+    c.stage_delay = Duration::from_millis(500);
+    let s = TestServer::start(c).await;
+
+    let running = s.submit(synthetic_form(256, 6)).await;
+    let running = running["id"].as_str().unwrap().to_string();
+    let queued = s.submit(folder_form(&seed("synth-images"))).await;
+    let queued = queued["id"].as_str().unwrap().to_string();
+    s.wait_for(&running, Duration::from_secs(30), |j| {
+        j["status"] == "running"
+    })
+    .await;
+
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/jobs/{running}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let job: Value = r.json().await.unwrap();
+    assert_eq!(job["status"], "cancelled");
+    assert!(job["finished_at"].is_string());
+
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/jobs/{queued}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.json::<Value>().await.unwrap()["status"], "cancelled");
+
+    // The worker lets go of the running job at its next stage; nothing runs afterwards.
+    let start = std::time::Instant::now();
+    while s.state.jobs().busy() > 0 {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "the worker did not stop"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for id in [&running, &queued] {
+        let job = s.get_json(&format!("/v1/jobs/{id}")).await;
+        assert_eq!(job["status"], "cancelled", "{job}");
+        assert!(job.get("artifacts").is_none());
+        let r = s
+            .client
+            .get(s.url(&format!("/v1/jobs/{id}/artifacts/albedo.png")))
+            .send()
+            .await
+            .unwrap();
+        expect_problem(r, 409, &["cancelled"]).await;
+    }
+    assert_eq!(
+        s.get_json(&format!("/v1/jobs/{queued}")).await["attempts"],
+        0
+    );
+    assert!(
+        !dir.path()
+            .join("jobs")
+            .join(&running)
+            .join("output")
+            .exists()
+    );
+
+    // A finished job is deleted with its files.
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/jobs/{running}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 204);
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{running}")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &[]).await;
+    assert!(!dir.path().join("jobs").join(&running).exists());
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_over_its_time_limit_fails_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.job_timeout = Duration::from_millis(200);
+    c.stage_delay = Duration::from_millis(300);
+    let s = TestServer::start(c).await;
+    let job = s.submit(folder_form(&seed("synth-images"))).await;
+    let job = s.wait_finished(job["id"].as_str().unwrap()).await;
+    assert_eq!(job["status"], "failed", "{job}");
+    assert_eq!(job["error"]["type"], "urn:photostereo:problem:job-timeout");
+    assert!(
+        job["error"]["detail"]
+            .as_str()
+            .unwrap()
+            .contains("time limit of 200ms"),
+        "{job}"
+    );
+    assert!(job.get("artifacts").is_none());
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn failed_reconstructions_report_a_problem() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    // Coplanar lights: the table parses, the images match, but normals cannot be solved.
+    let table = "a.png, 1, 0, 1\nb.png, -1, 0, 1\nc.png, 0.5, 0, 1";
+    let mut form = Form::new().text("lights", table);
+    for (i, n) in ["a.png", "b.png", "c.png"].iter().enumerate() {
+        form = form.part(
+            "images",
+            Part::bytes(png(16, 16, 40 + i as u8 * 30)).file_name(*n),
+        );
+    }
+    let job = s.submit(form).await;
+    let id = job["id"].as_str().unwrap();
+    let job = s.wait_finished(id).await;
+    assert_eq!(job["status"], "failed", "{job}");
+    assert_eq!(job["error"]["status"], 422, "{job}");
+    assert_eq!(job["error"]["instance"], format!("/v1/jobs/{id}"));
+    assert!(!job["error"]["detail"].as_str().unwrap().is_empty());
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/albedo.png")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 409, &["failed"]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn restart_serves_finished_jobs_unchanged_and_runs_queued_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let synth = seed("synth-images");
+
+    // First life: one job finishes; one is interrupted by the stop; two never start.
+    let mut c = config(dir.path());
+    c.workers = 1;
+    let s = TestServer::start(c.clone()).await;
+    let done = s.submit(folder_form(&seed("dog-images"))).await;
+    let done_id = done["id"].as_str().unwrap().to_string();
+    let done = s.wait_succeeded(&done_id).await;
+    let before = check_artifacts(&s, &done).await;
+    s.stop().await;
+
+    let mut slow = c.clone();
+    slow.stage_delay = Duration::from_millis(400);
+    slow.shutdown_grace = Duration::from_millis(100);
+    let s = TestServer::start(slow).await;
+    let mut pending = Vec::new();
+    for _ in 0..3 {
+        let job = s.submit(folder_form(&synth)).await;
+        pending.push(job["id"].as_str().unwrap().to_string());
+    }
+    s.wait_for(&pending[0], Duration::from_secs(30), |j| {
+        j["status"] == "running"
+    })
+    .await;
+    s.stop().await;
+
+    // Second life on the same data directory.
+    let s = TestServer::start(c).await;
+    let again = s.get_json(&format!("/v1/jobs/{done_id}")).await;
+    assert_eq!(again["status"], "succeeded");
+    assert_eq!(again["finished_at"], done["finished_at"]);
+    let after = check_artifacts(&s, &again).await;
+    assert_eq!(
+        before, after,
+        "artifacts are served byte for byte as before"
+    );
+    for id in &pending {
+        let job = s.wait_succeeded(id).await;
+        check_artifacts(&s, &job).await;
+    }
+    let first = s.get_json(&format!("/v1/jobs/{}", pending[0])).await;
+    assert_eq!(
+        first["attempts"], 2,
+        "the interrupted job ran again: {first}"
+    );
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn operations_endpoints_and_request_ids() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let r = s.client.get(s.url("/healthz")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert!(r.headers().contains_key("x-request-id"));
+    assert_eq!(r.json::<Value>().await.unwrap()["status"], "ok");
+    let r = s
+        .client
+        .get(s.url("/readyz"))
+        .header("x-request-id", "abc-123")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["x-request-id"], "abc-123");
+
+    let r = s.client.get(s.url("/metrics")).send().await.unwrap();
+    assert!(
+        r.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/plain")
+    );
+    let text = r.text().await.unwrap();
+    for family in [
+        "photostereo_jobs{status=\"queued\"}",
+        "photostereo_queue_depth",
+        "photostereo_workers_running",
+        "photostereo_workers_running_max",
+        "photostereo_http_requests_total",
+        "# TYPE photostereo_stage_seconds summary",
+    ] {
+        assert!(text.contains(family), "{family} missing from\n{text}");
+    }
+
+    let r = s.client.get(s.url("/docs/")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert!(r.text().await.unwrap().contains("swagger"));
+
+    healthcheck(&s.url("/healthz")).await.unwrap();
+    assert!(healthcheck(&s.url("/nope")).await.is_err());
+
+    // Stopping: not ready, and no new jobs.
+    s.state.begin_shutdown();
+    let r = s.client.get(s.url("/readyz")).send().await.unwrap();
+    expect_problem(r, 503, &["shutting down"]).await;
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(folder_form(&seed("synth-images")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 503, &["shutting down"]).await;
+    s.stop().await;
+    let closed = format!(
+        "http://{}/healthz",
+        std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+    );
+    assert!(healthcheck(&closed).await.is_err());
+}
+
+#[tokio::test]
+async fn router_answers_in_process() {
+    use tower::ServiceExt;
+    let dir = tempfile::tempdir().unwrap();
+    let state = AppState::open(config(dir.path())).await.unwrap();
+    let app = router(state.clone());
+    let req = axum::http::Request::get("/nowhere")
+        .body(axum::body::Body::empty())
+        .unwrap();
+    let res = app.clone().oneshot(req).await.unwrap();
+    assert_eq!(res.status(), 404);
+    assert_eq!(res.headers()["content-type"], "application/problem+json");
+    let req = axum::http::Request::get("/v1/jobs")
+        .body(axum::body::Body::empty())
+        .unwrap();
+    let res = app.oneshot(req).await.unwrap();
+    assert_eq!(res.status(), 200);
+    state.shutdown().await;
+}
+
+#[tokio::test]
+async fn served_openapi_document_is_the_checked_in_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let r = s.client.get(s.url("/openapi.json")).send().await.unwrap();
+    assert_eq!(r.headers()["content-type"], "application/json");
+    let served = r.text().await.unwrap();
+    assert_eq!(served, openapi_json());
+    let doc: Value = serde_json::from_str(&served).unwrap();
+    for path in [
+        "/v1/jobs",
+        "/v1/jobs/{id}",
+        "/v1/jobs/{id}/artifacts/{name}",
+        "/healthz",
+        "/readyz",
+        "/metrics",
+        "/openapi.json",
+    ] {
+        assert!(doc["paths"][path].is_object(), "{path} missing");
+    }
+    for schema in ["Problem", "JobView", "JobList", "Options", "JobStatus"] {
+        assert!(
+            doc["components"]["schemas"][schema].is_object(),
+            "{schema} missing"
+        );
+    }
+    let file = repo_root().join("openapi/openapi.json");
+    if std::env::var_os("UPDATE_OPENAPI").is_some_and(|v| v == "1") {
+        std::fs::create_dir_all(file.parent().unwrap()).unwrap();
+        std::fs::write(&file, &served).unwrap();
+    }
+    let checked_in = std::fs::read_to_string(&file).unwrap_or_default();
+    assert!(
+        checked_in == served,
+        "openapi/openapi.json is out of date: run `UPDATE_OPENAPI=1 cargo test --release --test api served_openapi` and commit it"
+    );
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readme_walkthrough_script_runs_against_a_real_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let work = tempfile::tempdir().unwrap();
+    let bump = repo_root().join("res/bump");
+    assert!(
+        bump.join("light_directions.csv").is_file(),
+        "res/bump missing: render it with `photostereo render res`"
+    );
+    std::os::unix::fs::symlink(repo_root().join("res"), work.path().join("res")).unwrap();
+    let script = repo_root().join("tests/walkthrough.sh");
+    let base = s.base.clone();
+    let cwd = work.path().to_path_buf();
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new("bash")
+            .arg(script)
+            .arg(base)
+            .current_dir(cwd)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let log = format!(
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "walkthrough failed:\n{log}");
+    for f in ["albedo.png", "normal.png", "height.png"] {
+        let bytes =
+            std::fs::read(work.path().join(f)).unwrap_or_else(|e| panic!("{f}: {e}\n{log}"));
+        image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).unwrap();
+    }
+    let glb = std::fs::read(work.path().join("mesh.glb")).unwrap();
+    assert_eq!(&glb[..4], b"glTF");
+    s.stop().await;
+}

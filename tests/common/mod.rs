@@ -1,0 +1,299 @@
+//! Shared helpers of the HTTP API tests: a real server on 127.0.0.1:0, the seed data,
+//! multipart forms and zips, polling, problem bodies.
+
+#![allow(dead_code)]
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use photostereo::service::{AppState, Config, serve_with};
+use reqwest::multipart::{Form, Part};
+use serde_json::Value;
+use tokio::net::TcpListener;
+use tokio::sync::oneshot;
+
+pub const SEED_SETS: [&str; 3] = ["synth-images", "sphere-images", "dog-images"];
+
+pub fn repo_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// A seed data set; the tests fail (not skip) when the seed data is missing.
+pub fn seed(name: &str) -> PathBuf {
+    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_root().join("../shared/seed-data"));
+    let dir = root.join(name);
+    assert!(
+        dir.join("light_directions.csv").is_file(),
+        "seed data missing: {} (the API tests need ../shared/seed-data)",
+        dir.display()
+    );
+    dir
+}
+
+/// Test settings: a fresh data directory, two workers, no disk-space floor.
+pub fn config(dir: &Path) -> Config {
+    let mut c = Config::new(dir);
+    c.workers = 2;
+    c.min_free_disk = 0;
+    c.shutdown_grace = Duration::from_secs(30);
+    c
+}
+
+/// A real server on an ephemeral port, stopped gracefully by [`TestServer::stop`].
+pub struct TestServer {
+    pub base: String,
+    pub state: AppState,
+    pub client: reqwest::Client,
+    stop: Option<oneshot::Sender<()>>,
+    task: tokio::task::JoinHandle<anyhow::Result<()>>,
+}
+
+impl TestServer {
+    pub async fn start(config: Config) -> Self {
+        let state = AppState::open(config)
+            .await
+            .expect("open the service state");
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let base = format!("http://{}", listener.local_addr().unwrap());
+        let (tx, rx) = oneshot::channel::<()>();
+        let task = tokio::spawn(serve_with(listener, state.clone(), async move {
+            let _ = rx.await;
+        }));
+        let client = reqwest::Client::builder()
+            .timeout(Duration::from_secs(120))
+            .build()
+            .unwrap();
+        Self {
+            base,
+            state,
+            client,
+            stop: Some(tx),
+            task,
+        }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    /// Graceful stop: no new connections, in-flight requests finish, jobs get the grace.
+    pub async fn stop(mut self) {
+        if let Some(tx) = self.stop.take() {
+            let _ = tx.send(());
+        }
+        drop(self.client);
+        tokio::time::timeout(Duration::from_secs(60), self.task)
+            .await
+            .expect("the server stops within 60 s")
+            .unwrap()
+            .unwrap();
+    }
+
+    pub async fn get_json(&self, path: &str) -> Value {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "GET {path}");
+        r.json().await.unwrap()
+    }
+
+    /// Submit a form; asserts 202 + Location and returns the job.
+    pub async fn submit(&self, form: Form) -> Value {
+        let r = self
+            .client
+            .post(self.url("/v1/jobs"))
+            .multipart(form)
+            .send()
+            .await
+            .unwrap();
+        let status = r.status();
+        let location = r
+            .headers()
+            .get("location")
+            .map(|v| v.to_str().unwrap().to_string());
+        let body: Value = r.json().await.unwrap();
+        assert_eq!(status, 202, "submit: {body}");
+        let id = body["id"].as_str().unwrap();
+        assert_eq!(location.as_deref(), Some(format!("/v1/jobs/{id}").as_str()));
+        assert_eq!(body["status"], "queued");
+        body
+    }
+
+    /// Poll a job until `done(job)` or the timeout.
+    pub async fn wait_for(
+        &self,
+        id: &str,
+        timeout: Duration,
+        done: impl Fn(&Value) -> bool,
+    ) -> Value {
+        let start = Instant::now();
+        loop {
+            let job = self.get_json(&format!("/v1/jobs/{id}")).await;
+            if done(&job) {
+                return job;
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "job {id} still {job} after {timeout:?}"
+            );
+            tokio::time::sleep(Duration::from_millis(25)).await;
+        }
+    }
+
+    /// Poll until the job is finished (succeeded, failed or cancelled).
+    pub async fn wait_finished(&self, id: &str) -> Value {
+        self.wait_for(id, Duration::from_secs(120), |j| {
+            matches!(
+                j["status"].as_str(),
+                Some("succeeded" | "failed" | "cancelled")
+            )
+        })
+        .await
+    }
+
+    pub async fn wait_succeeded(&self, id: &str) -> Value {
+        let job = self.wait_finished(id).await;
+        assert_eq!(job["status"], "succeeded", "job {id}: {job}");
+        job
+    }
+}
+
+/// The image files of a data-set folder, sorted by name.
+pub fn images_of(dir: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| {
+            p.is_file()
+                && p.extension().is_some_and(|e| {
+                    ["png", "bmp", "jpg", "jpeg", "tif", "tiff"]
+                        .contains(&e.to_string_lossy().to_ascii_lowercase().as_str())
+                })
+        })
+        .collect();
+    files.sort();
+    files
+}
+
+pub fn file_part(path: &Path) -> Part {
+    Part::bytes(std::fs::read(path).unwrap())
+        .file_name(path.file_name().unwrap().to_string_lossy().into_owned())
+}
+
+/// `lights` + one `images` part per image, as a client uploading a folder would.
+pub fn folder_form(dir: &Path) -> Form {
+    let mut form = Form::new().part("lights", file_part(&dir.join("light_directions.csv")));
+    for img in images_of(dir) {
+        form = form.part("images", file_part(&img));
+    }
+    form
+}
+
+/// A zip of a data-set folder, at the top or inside `top`.
+pub fn zip_folder(dir: &Path, top: Option<&str>) -> Vec<u8> {
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default()
+        .compression_method(zip::CompressionMethod::Deflated);
+    if let Some(top) = top {
+        w.add_directory(format!("{top}/"), opts).unwrap();
+    }
+    let mut files = images_of(dir);
+    files.push(dir.join("light_directions.csv"));
+    for f in files {
+        let name = f.file_name().unwrap().to_string_lossy().into_owned();
+        let name = match top {
+            Some(t) => format!("{t}/{name}"),
+            None => name,
+        };
+        w.start_file(name, opts).unwrap();
+        w.write_all(&std::fs::read(&f).unwrap()).unwrap();
+    }
+    w.finish().unwrap().into_inner()
+}
+
+/// A zip with the given entries, as is.
+pub fn zip_entries(entries: &[(&str, &[u8])]) -> Vec<u8> {
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    for (name, data) in entries {
+        w.start_file(*name, zip::write::SimpleFileOptions::default())
+            .unwrap();
+        w.write_all(data).unwrap();
+    }
+    w.finish().unwrap().into_inner()
+}
+
+pub fn archive_form(zip: Vec<u8>) -> Form {
+    Form::new().part("archive", Part::bytes(zip).file_name("set.zip"))
+}
+
+/// Assert a problem+json answer with this status whose detail contains every needle;
+/// returns the body.
+pub async fn expect_problem(r: reqwest::Response, status: u16, needles: &[&str]) -> Value {
+    assert_eq!(
+        r.status().as_u16(),
+        status,
+        "expected {status}, got {} {:?}",
+        r.status(),
+        r.headers()
+    );
+    let ct = r
+        .headers()
+        .get("content-type")
+        .map(|v| v.to_str().unwrap().to_string())
+        .unwrap_or_default();
+    assert_eq!(ct, "application/problem+json");
+    let body: Value = r.json().await.unwrap();
+    assert_eq!(body["status"], status, "{body}");
+    assert!(
+        body["type"]
+            .as_str()
+            .unwrap()
+            .starts_with("urn:photostereo:problem:"),
+        "{body}"
+    );
+    assert!(!body["title"].as_str().unwrap().is_empty(), "{body}");
+    let detail = body["detail"].as_str().unwrap();
+    for n in needles {
+        assert!(detail.contains(n), "detail {detail:?} lacks {n:?}");
+    }
+    body
+}
+
+/// A small gray PNG.
+pub fn png(w: u32, h: u32, v: u8) -> Vec<u8> {
+    let img = image::GrayImage::from_pixel(w, h, image::Luma([v]));
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// A synthetic set of `n` lit images of a bump, `size`×`size`, with its light table.
+pub fn synthetic_form(size: u32, n: usize) -> Form {
+    let lights: Vec<[f64; 3]> = (0..n)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::TAU / n as f64;
+            [0.5 * a.cos(), 0.5 * a.sin(), 1.0]
+        })
+        .collect();
+    let mut table = String::new();
+    let mut form = Form::new();
+    let c = size as f64 / 2.0;
+    for (i, l) in lights.iter().enumerate() {
+        let name = format!("s{i}.png");
+        table.push_str(&format!("{name}, {}, {}, {}\n", l[0], l[1], l[2]));
+        let norm = (l[0] * l[0] + l[1] * l[1] + l[2] * l[2]).sqrt();
+        let img = image::GrayImage::from_fn(size, size, |x, y| {
+            let (dx, dy) = ((x as f64 - c) / c, (y as f64 - c) / c);
+            let (p, q) = (-0.6 * dx, -0.6 * dy);
+            let n = [-p, -q, 1.0];
+            let nn = (n[0] * n[0] + n[1] * n[1] + 1.0f64).sqrt();
+            let s = (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]) / (nn * norm);
+            image::Luma([(s.max(0.0) * 0.8 * 255.0) as u8])
+        });
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, image::ImageFormat::Png).unwrap();
+        form = form.part("images", Part::bytes(bytes.into_inner()).file_name(name));
+    }
+    form.text("lights", table)
+}
