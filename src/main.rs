@@ -9,6 +9,7 @@ use clap::{Args, Parser, Subcommand};
 use photostereo::core::intake::{self, Limits};
 use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
 use photostereo::core::{Options, metrics, pipeline, synth};
+use photostereo::service;
 use serde::de::DeserializeOwned;
 
 #[derive(Parser)]
@@ -24,6 +25,12 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the HTTP service.
+    Serve(service::ServeArgs),
+    /// Print the OpenAPI document (the committed copy is openapi/openapi.json).
+    Openapi,
+    /// Exit 0 when the service answers its health URL (for container HEALTHCHECKs).
+    Healthcheck(service::HealthcheckArgs),
     /// Reconstruct a folder holding images and light_directions.csv (or .json).
     Reconstruct(ReconstructArgs),
     /// Render the project's own data sets, with ground truth, into a folder (e.g. res/).
@@ -211,9 +218,19 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?)
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Serve(args) => runtime().and_then(|rt| rt.block_on(service::serve(args))),
+        Command::Openapi => {
+            println!("{}", service::openapi_json());
+            Ok(())
+        }
+        Command::Healthcheck(args) => runtime().and_then(|rt| rt.block_on(service::healthcheck(&args.url))),
         Command::Reconstruct(args) => reconstruct(args),
         Command::Render { dir, only } => render(dir, only),
         Command::Evaluate { dir, integration } => evaluate(dir, integration),
