@@ -219,7 +219,9 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
-    Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?)
+    Ok(tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?)
 }
 
 fn main() -> ExitCode {
@@ -230,7 +232,9 @@ fn main() -> ExitCode {
             println!("{}", service::openapi_json());
             Ok(())
         }
-        Command::Healthcheck(args) => runtime().and_then(|rt| rt.block_on(service::healthcheck(&args.url))),
+        Command::Healthcheck(args) => {
+            runtime().and_then(|rt| rt.block_on(service::healthcheck(&args.url)))
+        }
         Command::Reconstruct(args) => reconstruct(args),
         Command::Render { dir, only } => render(dir, only),
         Command::Evaluate { dir, integration } => evaluate(dir, integration),

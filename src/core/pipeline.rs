@@ -326,7 +326,8 @@ fn write_meshes(
     wanted: &dyn Fn(&str) -> bool,
 ) -> Result<Vec<String>, RunError> {
     use super::mesh::{self, MeshError};
-    let mut jobs: Vec<(&str, Box<dyn Fn() -> Result<Vec<u8>, MeshError> + Sync>)> = Vec::new();
+    type Encode<'a> = Box<dyn Fn() -> Result<Vec<u8>, MeshError> + Sync + 'a>;
+    let mut jobs: Vec<(&str, Encode)> = Vec::new();
     if wanted("mesh.glb") {
         jobs.push(("mesh.glb", Box::new(|| mesh::glb(rec, &opts.mesh))));
     }

@@ -6,7 +6,7 @@ use utoipa::{Modify, OpenApi};
 
 use super::error::Problem;
 use super::repo::JobStatus;
-use super::routes::{Health, JobList, JobView, ResultSummary};
+use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
 
 #[derive(OpenApi)]
 #[openapi(
@@ -15,7 +15,7 @@ use super::routes::{Health, JobList, JobView, ResultSummary};
         version = "1",
         description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`."
     ),
-    components(schemas(Problem, JobStatus, JobView, JobList, ResultSummary, Health)),
+    components(schemas(Problem, JobStatus, JobView, JobList, ResultSummary, Health, ImageFile)),
     modifiers(&BearerScheme),
     tags(
         (name = "jobs", description = "Reconstruction jobs and their artifacts"),
@@ -28,6 +28,7 @@ struct BearerScheme;
 
 impl Modify for BearerScheme {
     fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        openapi.info.license = None;
         if let Some(components) = openapi.components.as_mut() {
             components.add_security_scheme(
                 "bearer",

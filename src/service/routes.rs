@@ -115,24 +115,31 @@ pub struct JobList {
 #[derive(ToSchema)]
 #[allow(dead_code)] // documents the multipart body; the handler streams it
 pub struct JobUpload {
-    /// One file part per image; each part's file name is the name the light table uses.
-    #[schema(value_type = Vec<String>, content_media_type = "application/octet-stream")]
+    /// One file part per image (repeat the part); each part's file name is the name the
+    /// light table uses for it.
+    #[schema(value_type = Vec<ImageFile>, required = false)]
     images: Option<Vec<Vec<u8>>>,
     /// The light table: CSV rows `name, x, y, z[, intensity]`, or JSON
     /// `[{"name", "direction": [x, y, z], "intensity"?}]` (text or file part).
-    #[schema(value_type = String)]
+    #[schema(value_type = String, required = false)]
     lights: Option<String>,
     /// Optional mask image, same size as the images (non-zero = object).
-    #[schema(value_type = String, content_media_type = "application/octet-stream")]
+    #[schema(value_type = ImageFile, required = false)]
     mask: Option<Vec<u8>>,
     /// Optional reconstruction options as JSON (unknown fields are refused).
-    #[schema(value_type = Options)]
+    #[schema(value_type = Options, required = false)]
     options: Option<String>,
     /// Instead of images + lights: a .zip of a folder with the images and
     /// `light_directions.csv`, at its top or inside one folder.
-    #[schema(value_type = String, content_media_type = "application/zip")]
+    #[schema(value_type = String, content_media_type = "application/zip", required = false)]
     archive: Option<Vec<u8>>,
 }
+
+/// An image file: PNG, BMP, JPEG, TIFF or OpenEXR, 8 or 16 bits, gray or colour.
+#[derive(ToSchema)]
+#[schema(value_type = String, content_media_type = "application/octet-stream")]
+#[allow(dead_code)]
+pub struct ImageFile(Vec<u8>);
 
 /// Liveness / readiness answer.
 #[derive(Debug, Serialize, ToSchema)]

@@ -392,3 +392,45 @@ fn timings_2048() {
     );
     eprintln!("  hemisphere r={rad:.0} depth rms: {err:.4} px");
 }
+
+#[test]
+#[ignore]
+fn stage_times_tmp() {
+    let n = 2048;
+    let rad = 0.45 * n as f64;
+    let c = n as f64 / 2.0;
+    let s = hemisphere(c, c, rad);
+    let mask = disc(n, n, c, c, 0.95 * rad);
+    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
+    for _ in 0..2 {
+        let t = Instant::now();
+        let m = contiguous(mask.view());
+        let any = m.iter().any(|&v| v);
+        eprintln!("contig+any {:?} {any}", t.elapsed());
+        let t = Instant::now();
+        let comps = Components::new(&m, n, n);
+        eprintln!("components {:?}", t.elapsed());
+        let t = Instant::now();
+        let st = MaskStencil::new(&m, n, n);
+        eprintln!("stencil {:?}", t.elapsed());
+        let t = Instant::now();
+        let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+        eprintln!("rhs {:?}", t.elapsed());
+        let t = Instant::now();
+        comps.remove_means(&mut b);
+        eprintln!("remove_means {:?}", t.elapsed());
+        let t = Instant::now();
+        let h = multigrid::Hierarchy::new(&st);
+        eprintln!("hierarchy {:?} {}", t.elapsed(), h.depth());
+        let t = Instant::now();
+        let (z, _) = poisson::solve_pcg(&st, b);
+        eprintln!("pcg {:?}", t.elapsed());
+        let t = Instant::now();
+        let zz = finish(z, &m, n, n);
+        eprintln!("finish {:?}", t.elapsed());
+        std::hint::black_box(zz);
+        let t = Instant::now();
+        let _ = integrate(&p, &q, &mask, Integration::Poisson);
+        eprintln!("total {:?}", t.elapsed());
+    }
+}
