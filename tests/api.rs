@@ -306,6 +306,7 @@ async fn limits_get_413() {
     c.max_images = 3;
     c.max_parts = 5;
     c.max_pixels = 150 * 150;
+    c.upload_timeout = Duration::from_millis(300);
     let s = TestServer::start(c).await;
     let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
 
@@ -331,6 +332,22 @@ async fn limits_get_413() {
         .text("lights", "real1.bmp, 0, 0, 1")
         .part("images", stream);
     expect_problem(post(form).await.unwrap(), 413, &["larger than the limit"]).await;
+
+    // An upload slower than the upload time limit.
+    let slow = futures_util::stream::unfold(0u32, |i| async move {
+        if i == 8 {
+            return None;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        Some((Ok::<_, std::io::Error>(vec![0u8; 1024]), i + 1))
+    });
+    let form = Form::new().text("lights", "a.png, 0, 0, 1").part(
+        "images",
+        Part::stream(reqwest::Body::wrap_stream(slow)).file_name("a.png"),
+    );
+    let started = std::time::Instant::now();
+    expect_problem(post(form).await.unwrap(), 408, &["within 300ms"]).await;
+    assert!(started.elapsed() < Duration::from_secs(5));
 
     // Four images where three are allowed.
     expect_problem(

@@ -280,8 +280,9 @@ pub async fn create_job(
     let tap = upload::BodyTap::new(body, state.config().max_body_bytes);
     let answer = accept_job(&state, parts, &tap).await;
     if answer.is_err() {
-        // Read what the client is still sending, so it gets to read the refusal.
-        tap.drain(LINGER).await;
+        // Answer now, and read what the client is still sending in the background (a
+        // lingering close), so that it gets to read the refusal.
+        tokio::spawn(async move { tap.drain(LINGER).await });
     }
     answer
 }

@@ -38,6 +38,7 @@ use super::error::ApiError;
 /// The request body, shared between the multipart parser and the handler: it enforces the
 /// body size limit, and lets the handler drain what is left after refusing an upload, so
 /// that the client reads the refusal instead of a reset connection (a lingering close).
+#[derive(Clone)]
 pub struct BodyTap {
     state: Arc<TapState>,
 }

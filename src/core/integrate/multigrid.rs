@@ -49,16 +49,10 @@ pub(super) trait Stencil: Sync {
     /// The diagonal `d_c = Σ_j w_ij` of row `r` (0 exactly on inactive cells) and its
     /// inverse on active cells (0 on inactive ones).
     fn diag_row(&self, r: usize, d: &mut [f32], inv: &mut [f32]);
-    /// `out = (A x)` on row `r` evaluated in f64 (no cancellation between large heights and
-    /// their small Laplacian), rounded to f32; returns `Σ_c x_c (A x)_c` over the row.
-    fn apply_row_f64(
-        &self,
-        r: usize,
-        up: &[f32],
-        cur: &[f32],
-        down: &[f32],
-        out: &mut [f32],
-    ) -> f64;
+    /// `out = A x` on row `r`, in the difference form `Σ_j w_ij (x_i − x_j)`: neighbouring
+    /// heights are close, so their differences are exact in f32 and the small Laplacian of
+    /// large smooth heights loses nothing to cancellation (`d x − Σ w x_j` would).
+    fn apply_row(&self, r: usize, up: &[f32], cur: &[f32], down: &[f32], out: &mut [f32]);
 }
 
 /// Unit weights between adjacent mask pixels: the plain Poisson integrator. One byte per
@@ -135,33 +129,23 @@ impl Stencil for MaskStencil {
     }
 
     #[inline(always)]
-    fn apply_row_f64(
-        &self,
-        r: usize,
-        up: &[f32],
-        cur: &[f32],
-        down: &[f32],
-        out: &mut [f32],
-    ) -> f64 {
+    fn apply_row(&self, r: usize, up: &[f32], cur: &[f32], down: &[f32], out: &mut [f32]) {
         let w = self.w;
         let f = &self.flags[r * w..(r + 1) * w];
         let (up, cur, down, out) = (&up[..w], &cur[..w], &down[..w], &mut out[..w]);
-        let at = |c: usize| f64::from(cur[c]);
-        let row = |c: usize, nb: f64| {
-            let d = f64::from(degree(f[c]));
-            let s = d * at(c) - (f64::from(up[c]) + f64::from(down[c]) + nb);
-            if d > 0.0 { s as f32 } else { 0.0 }
-        };
+        let bit = |c: usize, b: u8| f32::from(u8::from(f[c] & b != 0));
+        let vertical =
+            |c: usize| bit(c, SOUTH) * (cur[c] - down[c]) + bit(c, NORTH) * (cur[c] - up[c]);
         if w == 1 {
-            out[0] = row(0, 0.0);
-        } else {
-            out[0] = row(0, at(1));
-            for c in 1..w - 1 {
-                out[c] = row(c, at(c - 1) + at(c + 1));
-            }
-            out[w - 1] = row(w - 1, at(w - 2));
+            out[0] = vertical(0);
+            return;
         }
-        dot_f64(cur, out)
+        out[0] = vertical(0) + bit(0, EAST) * (cur[0] - cur[1]);
+        for c in 1..w - 1 {
+            out[c] = vertical(c)
+                + (bit(c, EAST) * (cur[c] - cur[c + 1]) + bit(c, WEST) * (cur[c] - cur[c - 1]));
+        }
+        out[w - 1] = vertical(w - 1) + bit(w - 1, WEST) * (cur[w - 1] - cur[w - 2]);
     }
 }
 
@@ -174,6 +158,7 @@ pub(super) struct WeightStencil {
     wy: Vec<f32>,
     d: Vec<f32>,
     inv: Vec<f32>,
+    zero_row: Vec<f32>,
 }
 
 impl WeightStencil {
@@ -203,6 +188,7 @@ impl WeightStencil {
             wy,
             d,
             inv,
+            zero_row: vec![0.0; w],
         }
     }
 
@@ -291,34 +277,26 @@ impl Stencil for WeightStencil {
     }
 
     #[inline(always)]
-    fn apply_row_f64(
-        &self,
-        r: usize,
-        up: &[f32],
-        cur: &[f32],
-        down: &[f32],
-        out: &mut [f32],
-    ) -> f64 {
+    fn apply_row(&self, r: usize, up: &[f32], cur: &[f32], down: &[f32], out: &mut [f32]) {
         let w = self.w;
+        let wx = self.row(&self.wx, r);
+        let wy = self.row(&self.wy, r);
+        let wyu = if r > 0 {
+            self.row(&self.wy, r - 1)
+        } else {
+            &self.zero_row
+        };
+        let (up, cur, down, out) = (&up[..w], &cur[..w], &down[..w], &mut out[..w]);
         for c in 0..w {
-            let [we, ww, ws, wn] = self.weights(r, c);
-            let xi = f64::from(cur[c]);
-            let mut s = 0.0f64;
-            if we > 0.0 {
-                s += f64::from(we) * (xi - f64::from(cur[c + 1]));
-            }
-            if ww > 0.0 {
-                s += f64::from(ww) * (xi - f64::from(cur[c - 1]));
-            }
-            if ws > 0.0 {
-                s += f64::from(ws) * (xi - f64::from(down[c]));
-            }
-            if wn > 0.0 {
-                s += f64::from(wn) * (xi - f64::from(up[c]));
-            }
-            out[c] = s as f32;
+            out[c] = wy[c] * (cur[c] - down[c]) + wyu[c] * (cur[c] - up[c]);
         }
-        dot_f64(&cur[..w], &out[..w])
+        if w > 1 {
+            out[0] += wx[0] * (cur[0] - cur[1]);
+            for c in 1..w - 1 {
+                out[c] += wx[c] * (cur[c] - cur[c + 1]) + wx[c - 1] * (cur[c] - cur[c - 1]);
+            }
+            out[w - 1] += wx[w - 2] * (cur[w - 1] - cur[w - 2]);
+        }
     }
 }
 
@@ -760,7 +738,8 @@ fn direction_band_body<S: Stencil>(
             let r = i as usize;
             let [up, cur, down] = pn.window(i);
             let o = (r - r0) * w..(r - r0 + 1) * w;
-            acc += st.apply_row_f64(r, up, cur, down, &mut zband[o.clone()]);
+            st.apply_row(r, up, cur, down, &mut zband[o.clone()]);
+            acc += dot_f64(cur, &zband[o.clone()]);
             pband[o].copy_from_slice(cur);
         }
     }
