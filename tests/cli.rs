@@ -156,3 +156,15 @@ fn bad_input_fails_with_a_message_naming_the_problem() {
         "{err}"
     );
 }
+
+#[test]
+fn readme_walkthrough_is_the_script_the_api_tests_run() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let script = std::fs::read_to_string(root.join("tests/walkthrough.sh")).unwrap();
+    let body = &script[script.find("BASE=${1:-").expect("script sets BASE")..];
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    assert!(
+        readme.contains(body.trim_end()),
+        "README's walk-through differs from tests/walkthrough.sh"
+    );
+}
