@@ -1,6 +1,8 @@
 //! The `photostereo` binary: reconstruct a folder, render the project's data sets, or
 //! serve the HTTP API.
 
+mod bench;
+
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -49,6 +51,9 @@ enum Command {
         #[arg(long, value_parser = kebab::<Integration>, default_value = "poisson")]
         integration: Integration,
     },
+    /// Time the core (decode, full job, each stage), its peak memory and, with --http /
+    /// --load, the in-process HTTP service on rendered data sets; prints Markdown tables.
+    Bench(bench::BenchArgs),
 }
 
 #[derive(Args)]
@@ -229,7 +234,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Serve(args) => runtime().and_then(|rt| rt.block_on(service::serve(args))),
         Command::Openapi => {
-            println!("{}", service::openapi_json());
+            print!("{}", service::openapi_json());
             Ok(())
         }
         Command::Healthcheck(args) => {
@@ -238,6 +243,7 @@ fn main() -> ExitCode {
         Command::Reconstruct(args) => reconstruct(args),
         Command::Render { dir, only } => render(dir, only),
         Command::Evaluate { dir, integration } => evaluate(dir, integration),
+        Command::Bench(args) => bench::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

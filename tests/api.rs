@@ -1213,3 +1213,64 @@ async fn readme_walkthrough_script_runs_against_a_real_server() {
     assert_eq!(&glb[..4], b"glTF");
     s.stop().await;
 }
+
+#[test]
+fn documented_walkthrough_is_the_scripts_text() {
+    let script = std::fs::read_to_string(repo_root().join("tests/walkthrough.sh")).unwrap();
+    let commands = &script[script.find("BASE=").expect("the script sets BASE")..];
+    let docs: Vec<_> = ["README.md", "docs/http-api.md"]
+        .iter()
+        .filter_map(|p| {
+            std::fs::read_to_string(repo_root().join(p))
+                .ok()
+                .map(|t| (p, t))
+        })
+        .filter(|(_, text)| text.contains("-F lights=@res/bump/light_directions.csv"))
+        .collect();
+    assert!(!docs.is_empty(), "no document shows the curl walk-through");
+    for (path, text) in docs {
+        assert!(
+            text.contains(commands),
+            "{path}: the curl walk-through differs from tests/walkthrough.sh"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn finished_jobs_expire_after_the_retention_period() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.retention = Duration::from_millis(300);
+    c.sweep_interval = Duration::from_millis(100);
+    let s = TestServer::start(c).await;
+    let job = s.submit(folder_form(&seed("synth-images"))).await;
+    let id = job["id"].as_str().unwrap().to_string();
+    s.wait_succeeded(&id).await;
+    let start = std::time::Instant::now();
+    loop {
+        let r = s
+            .client
+            .get(s.url(&format!("/v1/jobs/{id}")))
+            .send()
+            .await
+            .unwrap();
+        if r.status() == 404 {
+            break;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "job {id} never expired"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // The record goes first, then the files.
+    let files = dir.path().join("jobs").join(&id);
+    while files.exists() {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "{files:?} never removed"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    s.stop().await;
+}

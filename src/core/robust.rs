@@ -54,8 +54,11 @@ pub struct RobustSurface {
 
 struct Model {
     lights: Vec<[f32; 3]>,
-    /// Σ lᵢlᵢᵀ over every light.
-    full: [[f64; 3]; 3],
+    /// Each light's outer product lᵢlᵢᵀ, packed (xx, xy, xz, yy, yz, zz).
+    outer: Vec<[f64; 6]>,
+    /// Σ lᵢlᵢᵀ over every light, packed, and its inverse.
+    full: [f64; 6],
+    full_inverse: Option<[[f64; 3]; 3]>,
     black: f32,
     dark: f32,
     tolerance: f32,
@@ -69,13 +72,18 @@ struct Fit {
 
 impl Model {
     fn new(lights: Vec<[f32; 3]>, black: f32, sigma: f32, quantum: f32) -> Self {
-        let mut full = [[0.0; 3]; 3];
-        for l in &lights {
-            add_outer(&mut full, l, 1.0);
+        let outer: Vec<[f64; 6]> = lights.iter().map(packed_outer).collect();
+        let mut full = [0.0; 6];
+        for o in &outer {
+            for k in 0..6 {
+                full[k] += o[k];
+            }
         }
         let floor = sigma.max(quantum);
         Self {
+            full_inverse: invert3(&unpack(&full)),
             lights,
+            outer,
             full,
             black,
             dark: 3.0 * floor,
@@ -83,26 +91,40 @@ impl Model {
         }
     }
 
-    /// Least squares over the observations not in `out`.
+    /// Least squares over the observations not in `out`: the normal matrix is the full
+    /// LᵀL minus the few excluded lights' outer products (6 unique entries each).
     fn solve(&self, y: &[f32], out: &[bool]) -> Option<[f32; 3]> {
         let mut m = self.full;
-        let mut rhs = [0.0f64; 3];
+        let mut rhs = [0f32; 3];
         let mut kept = 0;
-        for ((l, &v), &o) in self.lights.iter().zip(y).zip(out) {
-            if o {
-                add_outer(&mut m, l, -1.0);
+        for i in 0..self.lights.len() {
+            let l = self.lights[i];
+            if out[i] {
+                let o = &self.outer[i];
+                for k in 0..6 {
+                    m[k] -= o[k];
+                }
             } else {
                 kept += 1;
-                for k in 0..3 {
-                    rhs[k] += v as f64 * l[k] as f64;
-                }
+                let v = y[i];
+                rhs[0] += v * l[0];
+                rhs[1] += v * l[1];
+                rhs[2] += v * l[2];
             }
         }
         if kept < 3 {
             return None;
         }
-        let inv = invert3(&m)?;
-        Some([0, 1, 2].map(|r| (0..3).map(|k| inv[r][k] * rhs[k]).sum::<f64>() as f32))
+        let inv = if kept == self.lights.len() {
+            self.full_inverse?
+        } else {
+            invert3(&unpack(&m))?
+        };
+        let rhs = rhs.map(f64::from);
+        Some(
+            [0, 1, 2]
+                .map(|r| (inv[r][0] * rhs[0] + inv[r][1] * rhs[1] + inv[r][2] * rhs[2]) as f32),
+        )
     }
 
     fn fit(
@@ -117,10 +139,29 @@ impl Model {
             *yi = o - self.black;
             *x = *yi <= self.dark || o >= SATURATED;
         }
-        // Highlights are only ever too bright: leave the brightest sixth out of the
-        // first fit when enough remain, and let the re-fits take back what fits.
         let lit = out.iter().filter(|o| !**o).count();
-        if lit >= 8 {
+        let Some(mut g) = self.solve(y, out) else {
+            // Too few lit observations: plain least squares, flagged.
+            out.fill(false);
+            let g = self.solve(y, out).unwrap_or([0.0; 3]);
+            return Fit {
+                g,
+                inliers: 0,
+                reliable: false,
+            };
+        };
+        // Highlights are only ever too bright and drag the first fit towards them: when
+        // it leaves an observation far too bright, fit again without the brightest sixth,
+        // and let the re-fits take back what fits.
+        let tol = self.tolerance + RELATIVE_TOLERANCE * norm(g);
+        let too_bright = || {
+            self.lights
+                .iter()
+                .zip(y.iter())
+                .zip(out.iter())
+                .any(|((l, &v), &o)| !o && v - dot(g, *l) > tol)
+        };
+        if lit >= 8 && too_bright() {
             scratch.clear();
             scratch.extend(
                 y.iter()
@@ -133,17 +174,10 @@ impl Model {
             for (x, &v) in out.iter_mut().zip(y.iter()) {
                 *x |= v >= cut;
             }
+            if let Some(g2) = self.solve(y, out) {
+                g = g2;
+            }
         }
-        let Some(mut g) = self.solve(y, out) else {
-            // Too few lit observations: plain least squares, flagged.
-            out.fill(false);
-            let g = self.solve(y, out).unwrap_or([0.0; 3]);
-            return Fit {
-                g,
-                inliers: 0,
-                reliable: false,
-            };
-        };
         // Re-fit on the observations the model explains: in the fit where it predicts
         // light; set aside where it predicts shadow (they then cost y², nothing to fit),
         // and, when outliers are identifiable, where the shadow-aware re-rendering
@@ -192,7 +226,8 @@ impl Model {
             }
             sum
         };
-        if let Some(g_ls) = self.solve(y, next)
+        if next != out
+            && let Some(g_ls) = self.solve(y, next)
             && cost(g_ls) < cost(g)
         {
             g = g_ls;
@@ -214,12 +249,13 @@ pub fn confidence_of(kept: usize, rms: f32, tolerance: f32) -> f32 {
     support * (-(rms / tolerance.max(1e-9)).powi(2)).exp()
 }
 
-fn add_outer(m: &mut [[f64; 3]; 3], l: &[f32; 3], sign: f64) {
-    for r in 0..3 {
-        for c in 0..3 {
-            m[r][c] += sign * l[r] as f64 * l[c] as f64;
-        }
-    }
+fn packed_outer(l: &[f32; 3]) -> [f64; 6] {
+    let [x, y, z] = l.map(f64::from);
+    [x * x, x * y, x * z, y * y, y * z, z * z]
+}
+
+fn unpack(m: &[f64; 6]) -> [[f64; 3]; 3] {
+    [[m[0], m[1], m[2]], [m[1], m[3], m[4]], [m[2], m[4], m[5]]]
 }
 
 fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
@@ -241,7 +277,10 @@ fn gather(rows: &[ndarray::ArrayView1<'_, u16>], c: usize, obs: &mut [f32]) {
     }
 }
 
-/// Estimate black level and noise from a subsample of pixels (about 20 000).
+/// Pixels the pre-pass samples: enough for stable medians, a small cost next to the solve.
+const SAMPLE_PIXELS: f64 = 12_000.0;
+
+/// Estimate black level and noise from a subsample of pixels (at most about 12 000).
 pub fn estimate(set: &ImageSet) -> CaptureEstimate {
     let lights: Vec<[f32; 3]> = set
         .lights
@@ -250,7 +289,10 @@ pub fn estimate(set: &ImageSet) -> CaptureEstimate {
         .collect();
     let n = lights.len();
     let quantum = quantum(set);
-    let stride = (((set.width * set.height) as f64 / 20_000.0).sqrt().floor() as usize).max(1);
+    let stride = (((set.width * set.height) as f64 / SAMPLE_PIXELS)
+        .sqrt()
+        .ceil() as usize)
+        .max(1);
     let mut black = 0.0f32;
     let mut sigma = quantum;
     // Two rounds: the first fit is biased by the unknown black level, the second is not.
