@@ -68,6 +68,9 @@ struct Fit {
     g: [f32; 3],
     inliers: usize,
     reliable: bool,
+    /// Σ (observed − re-rendered)² over every observation, and over the kept ones.
+    sse_all: f32,
+    sse_inliers: f32,
 }
 
 impl Model {
@@ -144,11 +147,8 @@ impl Model {
             // Too few lit observations: plain least squares, flagged.
             out.fill(false);
             let g = self.solve(y, out).unwrap_or([0.0; 3]);
-            return Fit {
-                g,
-                inliers: 0,
-                reliable: false,
-            };
+            self.residuals(g, obs, scratch);
+            return self.finish(g, false, out, scratch);
         };
         // Highlights are only ever too bright and drag the first fit towards them: when
         // it leaves an observation far too bright, fit again without the brightest sixth,
@@ -214,30 +214,58 @@ impl Model {
         // observations is the other candidate, and the lower objective wins.
         // The objective renders like the camera: shadows black, saturation clipped.
         let tol = self.tolerance + RELATIVE_TOLERANCE * norm(g);
-        for (i, l) in self.lights.iter().enumerate() {
-            next[i] = identifiable && (obs[i] - render_observation(g, *l, self.black)).abs() > tol;
+        self.residuals(g, obs, scratch);
+        for (x, r) in next.iter_mut().zip(scratch.iter()) {
+            *x = identifiable && r.abs() > tol;
         }
-        let cost = |g: [f32; 3]| -> f32 {
-            let mut sum = 0.0;
-            for ((l, &o), &skip) in self.lights.iter().zip(obs).zip(next.iter()) {
-                if !skip {
-                    sum += (o - render_observation(g, *l, self.black)).powi(2);
-                }
-            }
-            sum
-        };
         if next != out
             && let Some(g_ls) = self.solve(y, next)
-            && cost(g_ls) < cost(g)
         {
-            g = g_ls;
-            out.copy_from_slice(next);
+            let cost = |r: &[f32]| -> f32 {
+                r.iter()
+                    .zip(next.iter())
+                    .filter(|(_, s)| !**s)
+                    .map(|(v, _)| v * v)
+                    .sum()
+            };
+            let before = cost(scratch);
+            self.residuals(g_ls, obs, scratch);
+            if cost(scratch) < before {
+                g = g_ls;
+                out.copy_from_slice(next);
+            } else {
+                self.residuals(g, obs, scratch);
+            }
         }
-        let inliers = out.iter().filter(|o| !**o).count();
+        self.finish(g, true, out, scratch)
+    }
+
+    /// Observed minus re-rendered, per light, into `r`.
+    fn residuals(&self, g: [f32; 3], obs: &[f32], r: &mut Vec<f32>) {
+        r.clear();
+        r.extend(
+            self.lights
+                .iter()
+                .zip(obs)
+                .map(|(l, &o)| o - render_observation(g, *l, self.black)),
+        );
+    }
+
+    fn finish(&self, g: [f32; 3], reliable: bool, out: &[bool], r: &[f32]) -> Fit {
+        let (mut sse_all, mut sse_inliers, mut inliers) = (0.0, 0.0, 0);
+        for (v, &dropped) in r.iter().zip(out) {
+            sse_all += v * v;
+            if !dropped {
+                sse_inliers += v * v;
+                inliers += 1;
+            }
+        }
         Fit {
             g,
-            inliers,
-            reliable: true,
+            inliers: if reliable { inliers } else { 0 },
+            reliable,
+            sse_all,
+            sse_inliers,
         }
     }
 }
@@ -405,17 +433,9 @@ pub fn solve(set: &ImageSet) -> RobustSurface {
                     in_row[c] = fit.inliers as u16;
                     bad_row[c] = !fit.reliable;
                     // Reprojection over every observation, the shadow model included.
-                    let (mut sum, mut inlier_sum) = (0.0, 0.0);
-                    for ((l, &o), &dropped) in model.lights.iter().zip(&obs).zip(&out) {
-                        let pred = render_observation(fit.g, *l, model.black);
-                        sum += (o - pred) * (o - pred);
-                        if !dropped {
-                            inlier_sum += (o - pred) * (o - pred);
-                        }
-                    }
-                    res_row[c] = (sum / n as f32).sqrt();
+                    res_row[c] = (fit.sse_all / n as f32).sqrt();
                     if fit.reliable && fit.inliers >= 3 {
-                        let rms = (inlier_sum / fit.inliers as f32).sqrt();
+                        let rms = (fit.sse_inliers / fit.inliers as f32).sqrt();
                         conf_row[c] = confidence_of(
                             fit.inliers,
                             rms,
