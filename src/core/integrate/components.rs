@@ -1,6 +1,8 @@
 //! 4-connected components of the mask, stored as labelled row runs (no per-pixel label
 //! array: a 4096² mask has a few thousand runs, not 16 M labels).
 
+use rayon::prelude::*;
+
 /// A maximal horizontal run of mask pixels `[c0, c1)` in row `r`.
 #[derive(Debug, Clone, Copy)]
 struct Run {
@@ -15,6 +17,8 @@ struct Run {
 pub(super) struct Components {
     w: usize,
     runs: Vec<Run>,
+    /// Runs of row `r` are `runs[row_start[r]..row_start[r + 1]]`.
+    row_start: Vec<usize>,
     labels: Vec<usize>,
     count: usize,
 }
@@ -81,6 +85,7 @@ impl Components {
         Self {
             w,
             runs,
+            row_start,
             labels,
             count,
         }
@@ -93,28 +98,63 @@ impl Components {
 
     /// Mean of `data` over each component, accumulated in f64.
     pub(super) fn means(&self, data: &[f32]) -> Vec<f64> {
-        let mut sum = vec![0.0f64; self.count];
-        let mut n = vec![0usize; self.count];
-        for (run, &l) in self.runs.iter().zip(&self.labels) {
-            let s = run.r * self.w;
-            sum[l] += data[s + run.c0..s + run.c1]
-                .iter()
-                .map(|&v| f64::from(v))
-                .sum::<f64>();
-            n[l] += run.c1 - run.c0;
-        }
+        let w = self.w;
+        let run_sum = |run: &Run| -> (f64, usize) {
+            let s = run.r * w;
+            let v = &data[s + run.c0..s + run.c1];
+            (v.iter().map(|&v| f64::from(v)).sum(), v.len())
+        };
+        let (sum, n) = if self.count <= 1 << 12 {
+            // Few components: per-task accumulators are small, sum the runs in parallel.
+            self.runs
+                .par_iter()
+                .zip(self.labels.par_iter())
+                .with_min_len(256)
+                .fold(
+                    || (vec![0.0f64; self.count], vec![0usize; self.count]),
+                    |(mut sum, mut n), (run, &l)| {
+                        let (s, k) = run_sum(run);
+                        sum[l] += s;
+                        n[l] += k;
+                        (sum, n)
+                    },
+                )
+                .reduce(
+                    || (vec![0.0f64; self.count], vec![0usize; self.count]),
+                    |(mut s1, mut n1), (s2, n2)| {
+                        s1.iter_mut().zip(&s2).for_each(|(a, b)| *a += b);
+                        n1.iter_mut().zip(&n2).for_each(|(a, b)| *a += b);
+                        (s1, n1)
+                    },
+                )
+        } else {
+            let mut sum = vec![0.0f64; self.count];
+            let mut n = vec![0usize; self.count];
+            for (run, &l) in self.runs.iter().zip(&self.labels) {
+                let (s, k) = run_sum(run);
+                sum[l] += s;
+                n[l] += k;
+            }
+            (sum, n)
+        };
         sum.iter().zip(&n).map(|(&s, &n)| s / n as f64).collect()
     }
 
     /// Subtract each component's mean from its pixels (pixels off the mask are untouched).
     pub(super) fn remove_means(&self, data: &mut [f32]) {
         let means = self.means(data);
-        for (run, &l) in self.runs.iter().zip(&self.labels) {
-            let s = run.r * self.w;
-            let m = means[l];
-            for v in &mut data[s + run.c0..s + run.c1] {
-                *v = (f64::from(*v) - m) as f32;
-            }
+        let w = self.w;
+        if w == 0 {
+            return;
         }
+        let (runs, labels, starts) = (&self.runs, &self.labels, &self.row_start);
+        data.par_chunks_mut(w).enumerate().for_each(|(r, row)| {
+            for k in starts[r]..starts[r + 1] {
+                let (run, m) = (runs[k], means[labels[k]]);
+                for v in &mut row[run.c0..run.c1] {
+                    *v = (f64::from(*v) - m) as f32;
+                }
+            }
+        });
     }
 }

@@ -11,13 +11,15 @@
 //! ```
 //!
 //! ("sin" numerator = central differences, denominator = the 5-point Laplacian). Unlike
-//! the plain `jω` form this never divides by zero away from DC and has no checkerboard
-//! null space at Nyquist.
+//! the continuous `iω / ω²` form it is exact for the discrete equations (a discretely
+//! integrable field is reproduced to round-off), and unlike a pure central-difference
+//! `sin / sin²` form its denominator vanishes only at DC (no checkerboard null space at
+//! Nyquist).
 //!
 //! Boundary: deliberately periodic, no mirror extension. With an even/odd mirror
 //! extension this exact least-squares problem becomes the Neumann problem that the
-//! `poisson` integrator already solves on a full mask with a (4× cheaper) DCT, so the
-//! extension would only duplicate it. Frankot–Chellappa therefore stays the classical,
+//! `poisson` integrator already solves on a full mask with a DCT, on a quarter of the
+//! samples, so the extension would only duplicate it. Frankot–Chellappa therefore stays the classical,
 //! mask-unaware global method (gradients are 0 off the mask); it is accurate on
 //! periodic-ish surfaces and on objects that do not touch the frame edge.
 
@@ -165,10 +167,8 @@ mod tests {
                 3.0 * (2.0 * PI * c / w as f64).sin() + 2.0 * (4.0 * PI * r / h as f64).cos()
             })
             .collect();
-        // For a pure sinusoid, the trapezoid gradient samples are (tan(ω/2)·2/ω)·analytic;
-        // instead, solve the two-point equations directly via the spectral identity:
-        // p = derivative operator applied in Fourier space. Simpler check: pure sinusoid
-        // with p = 2 tan(ω/2) · (quarter-phase-shifted sinusoid).
+        // z = A sin(ωc) satisfies z[c+1] − z[c] = (p[c] + p[c+1])/2 exactly for
+        // p = 2A tan(ω/2) cos(ωc) (and likewise for the cosine in r).
         let ox = 2.0 * PI / w as f64;
         let oy = 4.0 * PI / h as f64;
         let mut p = vec![0f32; h * w];

@@ -19,53 +19,115 @@
 use super::fourier::transpose;
 use super::multigrid::{self, Hierarchy, Stencil};
 use rayon::prelude::*;
-use rustdct::{DctPlanner, TransformType2And3};
+use rustdct::TransformType2And3;
+use rustdct::algorithm::Type2And3ConvertToFft;
+use rustdct::rustfft::FftPlanner;
 use std::f64::consts::PI;
 use std::sync::Arc;
 
 /// Relative residual at which CG stops.
 pub(super) const TOL: f64 = 1e-6;
-/// Hard cap on CG iterations (a V-cycle preconditioner needs ~10; this only bounds time on
-/// pathological inputs).
+/// Hard cap on CG iterations (solid masks need ~8, ragged ones a few dozen; this only
+/// bounds the time on pathological inputs).
 pub(super) const MAX_ITER: usize = 200;
 /// Elements per rayon task in vector operations.
 const CHUNK: usize = 1 << 14;
 
-fn finite(v: f32) -> f64 {
-    if v.is_finite() { f64::from(v) } else { 0.0 }
+fn finite(v: f32) -> f32 {
+    if v.is_finite() { v } else { 0.0 }
 }
 
-/// Right-hand side `b` of the normal equations for the operator `st` (computed in f64,
-/// stored in f32).
+/// Right-hand side `b` of the normal equations for the operator `st` (non-finite gradients
+/// count as 0).
 pub(super) fn rhs<S: Stencil>(st: &S, p: &[f32], q: &[f32]) -> Vec<f32> {
     let (h, w) = st.dims();
     let mut b = vec![0f32; h * w];
     if h * w == 0 {
         return b;
     }
-    let gx = |i: usize| 0.5 * (finite(p[i]) + finite(p[i + 1]));
-    let gy = |i: usize| 0.5 * (finite(q[i]) + finite(q[i + w]));
-    b.par_chunks_mut(w).enumerate().for_each(|(r, row)| {
-        for (c, o) in row.iter_mut().enumerate() {
-            let [we, ww, ws, wn] = st.weights(r, c);
-            let i = r * w + c;
-            let mut s = 0.0f64;
-            if we > 0.0 {
-                s -= f64::from(we) * gx(i);
-            }
-            if ww > 0.0 {
-                s += f64::from(ww) * gx(i - 1);
-            }
-            if ws > 0.0 {
-                s -= f64::from(ws) * gy(i);
-            }
-            if wn > 0.0 {
-                s += f64::from(wn) * gy(i - w);
-            }
-            *o = s as f32;
-        }
-    });
+    b.par_chunks_mut(w).enumerate().for_each_init(
+        || RhsScratch::new(w),
+        |s, (r, out)| rhs_row(st, p, q, r, out, s),
+    );
     b
+}
+
+/// Row buffers of [`rhs_row`].
+struct RhsScratch {
+    /// Edge gradient × weight, shifted by one: `gx[c + 1]` is the edge `c → c + 1`.
+    gx: Vec<f32>,
+    up: Vec<f32>,
+    down: Vec<f32>,
+    east: Vec<f32>,
+    south: Vec<f32>,
+}
+
+impl RhsScratch {
+    fn new(w: usize) -> Self {
+        let v = || vec![0f32; w];
+        Self {
+            gx: vec![0f32; w + 1],
+            up: v(),
+            down: v(),
+            east: v(),
+            south: v(),
+        }
+    }
+}
+
+multiversion! {
+    fn rhs_row<S: Stencil>(
+        st: &S, p: &[f32], q: &[f32], r: usize, out: &mut [f32], s: &mut RhsScratch,
+    ) -> () => rhs_row_body
+}
+
+/// One row of `b`. Weighted edge gradients are formed once per edge in f32 (both end pixels
+/// see the same value, so `b` is an exact divergence); their differences are taken in f64.
+#[inline(always)]
+fn rhs_row_body<S: Stencil>(
+    st: &S,
+    p: &[f32],
+    q: &[f32],
+    r: usize,
+    out: &mut [f32],
+    s: &mut RhsScratch,
+) {
+    let (h, w) = st.dims();
+    let RhsScratch {
+        gx,
+        up,
+        down,
+        east,
+        south,
+    } = s;
+    // Vertical edges above (row r − 1 → r) and below (r → r + 1).
+    for (g, above) in [(&mut *up, true), (&mut *down, false)] {
+        let other = if above {
+            r.checked_sub(1)
+        } else {
+            Some(r + 1).filter(|&a| a < h)
+        };
+        match other {
+            Some(a) => {
+                let (top, bottom) = if above { (a, r) } else { (r, a) };
+                st.edge_row(top, east, south);
+                for c in 0..w {
+                    let v = 0.5 * (finite(q[top * w + c]) + finite(q[bottom * w + c]));
+                    g[c] = south[c] * v;
+                }
+            }
+            None => g.fill(0.0),
+        }
+    }
+    st.edge_row(r, east, south);
+    let pr = &p[r * w..(r + 1) * w];
+    for c in 0..w.saturating_sub(1) {
+        gx[c + 1] = east[c] * (0.5 * (finite(pr[c]) + finite(pr[c + 1])));
+    }
+    for c in 0..w {
+        let s = f64::from(gx[c]) - f64::from(gx[c + 1]) + (f64::from(up[c]) - f64::from(down[c]));
+        out[c] = s as f32;
+    }
 }
 
 /// Apply a DCT-II (or III) to every length-`len` row, rows in parallel.
@@ -92,9 +154,14 @@ pub(super) fn solve_dct(mut b: Vec<f32>, h: usize, w: usize) -> Vec<f32> {
     if n == 0 {
         return b;
     }
-    let mut planner = DctPlanner::new();
-    let pw = planner.plan_dct2(w);
-    let ph = planner.plan_dct2(h);
+    // rustdct's planner picks a scalar split-radix algorithm for power-of-two lengths; its
+    // FFT-based algorithm over rustfft's SIMD FFT measured ~1.4× faster at 2048².
+    let mut fft = FftPlanner::new();
+    let mut plan = |n: usize| -> Arc<dyn TransformType2And3<f32>> {
+        Arc::new(Type2And3ConvertToFft::new(fft.plan_fft_forward(n)))
+    };
+    let pw = plan(w);
+    let ph = if h == w { Arc::clone(&pw) } else { plan(h) };
     rows_dct(&pw, &mut b, w, false);
     let mut t = vec![0f32; n];
     transpose(&b, h, w, &mut t); // t is w × h: t[l][k], l = x frequency, k = y frequency
@@ -160,38 +227,34 @@ pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>) -> (Vec<f32>, PcgStats)
     let mut zq = vec![0f32; n]; // M r, then A p
     let mut p = vec![0f32; n];
     let mut rz = hier.apply(st, &r, &mut zq);
-    let mut beta = 0.0f32;
+    // The update x += α p of each step is applied lazily, by the next direction update
+    // (which reads p anyway), or after the loop.
+    let (mut alpha, mut beta) = (0.0f32, 0.0f32);
+    let stop_sq = (TOL * bnorm).powi(2);
     while stats.iterations < MAX_ITER {
         if !(rz > 0.0 && rz.is_finite()) {
             break;
         }
-        let pap = multigrid::direction_apply(st, &mut zq, &mut p, beta); // p = z + βp, zq = A p
+        // x += α p_old; p = z + β p_old; zq = A p.
+        let pap = multigrid::direction_apply(st, &mut zq, &mut p, &mut x, alpha, beta);
+        alpha = 0.0;
         if !(pap > 0.0 && pap.is_finite()) {
             break;
         }
         stats.iterations += 1;
-        let alpha = (rz / pap) as f32;
-        let rr: f64 = x
-            .par_chunks_mut(CHUNK)
-            .zip(r.par_chunks_mut(CHUNK))
-            .zip(p.par_chunks(CHUNK).zip(zq.par_chunks(CHUNK)))
-            .map(|((x, r), (p, ap))| {
-                for (x, &p) in x.iter_mut().zip(p) {
-                    *x += alpha * p;
-                }
-                for (r, &ap) in r.iter_mut().zip(ap) {
-                    *r -= alpha * ap;
-                }
-                multigrid::dot_f64(r, r)
-            })
-            .sum();
+        alpha = (rz / pap) as f32;
+        // r -= α A p; zq = M r unless converged.
+        let last = stats.iterations == MAX_ITER;
+        let (rr, rz_new) = hier.step(st, &mut r, &mut zq, alpha, |rr| rr <= stop_sq || last);
         stats.rel_residual = rr.sqrt() / bnorm;
-        if stats.rel_residual <= TOL {
-            break;
-        }
-        let rz_new = hier.apply(st, &r, &mut zq); // zq = M r
+        let Some(rz_new) = rz_new else { break };
         beta = (rz_new / rz) as f32;
         rz = rz_new;
+    }
+    if alpha != 0.0 {
+        x.par_chunks_mut(CHUNK)
+            .zip(p.par_chunks(CHUNK))
+            .for_each(|(x, p)| x.iter_mut().zip(p).for_each(|(x, &p)| *x += alpha * p));
     }
     (x, stats)
 }

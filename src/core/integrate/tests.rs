@@ -339,11 +339,27 @@ fn weighted_poisson_matches_and_down_weights() {
         &mask,
     );
     let weighted = rms(&integrate_weighted(&pc, &qc, &mask, &conf), &truth, &mask);
-    eprintln!("corrupted patch: poisson {plain:.3} px, weighted {weighted:.3} px");
+    // The solver itself, with the 1e-3-floored edges of the zero-confidence patch.
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let st = WeightStencil::from_pixel_weights(&m, conf.as_slice().unwrap(), n, n, MIN_EDGE_WEIGHT);
+    let mut b = poisson::rhs(&st, pc.as_slice().unwrap(), qc.as_slice().unwrap());
+    Components::new(&m, n, n).remove_means(&mut b);
+    let (_, stats) = poisson::solve_pcg(&st, b);
+    eprintln!("corrupted patch: poisson {plain:.3} px, weighted {weighted:.3} px; {stats:?}");
     assert!(weighted < 0.5 * plain, "{weighted} vs {plain}");
+    assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
 }
 
-/// 2048² timings: `cargo test --release --lib integrate -- --ignored --nocapture`.
+/// Peak resident memory of this process so far (Linux), in MiB.
+fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// 2048² timings, best of 7 interleaved rounds (the machine may be shared):
+/// `cargo test --release --lib integrate -- --ignored --nocapture`.
 #[test]
 #[ignore]
 fn timings_2048() {
@@ -351,86 +367,182 @@ fn timings_2048() {
     let rad = 0.45 * n as f64;
     let c = n as f64 / 2.0;
     let s = hemisphere(c, c, rad);
+    // The 128-px test bumps scaled up to the frame (same slopes).
+    let k = n as f64 / 128.0;
+    let bumps = move |x: f64, y: f64| {
+        let (z, zx, zy) = gaussians(x / k, y / k);
+        (z * k, zx, zy)
+    };
     let full = Array2::from_elem((n, n), true);
     let mask = disc(n, n, c, c, 0.95 * rad);
-    let (pf, qf) = gradients(&normals_of(&gaussians, &full), &full);
+    let (pf, qf) = gradients(&normals_of(&bumps, &full), &full);
     let (pd, qd) = gradients(&normals_of(&s, &mask), &mask);
-    let time = |p: &Array2<f32>, q: &Array2<f32>, m: &Array2<bool>, method| {
-        let _ = integrate(p, q, m, method); // warm-up
-        let mut best = f64::INFINITY;
-        for _ in 0..3 {
+    type Run<'a> = (
+        &'a str,
+        &'a Array2<f32>,
+        &'a Array2<f32>,
+        &'a Array2<bool>,
+        Integration,
+    );
+    let runs: [Run; 4] = [
+        (
+            "frankot-chellappa, full frame",
+            &pf,
+            &qf,
+            &full,
+            Integration::FrankotChellappa,
+        ),
+        (
+            "poisson, full frame (DCT)",
+            &pf,
+            &qf,
+            &full,
+            Integration::Poisson,
+        ),
+        (
+            "frankot-chellappa, disc mask",
+            &pd,
+            &qd,
+            &mask,
+            Integration::FrankotChellappa,
+        ),
+        (
+            "poisson, disc mask (MG-PCG)",
+            &pd,
+            &qd,
+            &mask,
+            Integration::Poisson,
+        ),
+    ];
+    let mut best = [f64::INFINITY; 4];
+    let mut rms_of = [0.0; 4];
+    for round in 0..7 {
+        for (i, &(_, p, q, m, method)) in runs.iter().enumerate() {
             let t = Instant::now();
             let z = integrate(p, q, m, method);
-            best = best.min(t.elapsed().as_secs_f64());
-            std::hint::black_box(z);
+            best[i] = best[i].min(t.elapsed().as_secs_f64() * 1e3);
+            if round == 0 {
+                let truth = if i < 2 {
+                    heights_of(&bumps, n, n)
+                } else {
+                    heights_of(&s, n, n)
+                };
+                rms_of[i] = rms(&z, &truth, m);
+            }
         }
-        best * 1e3
-    };
-    let fc_full = time(&pf, &qf, &full, Integration::FrankotChellappa);
-    let po_full = time(&pf, &qf, &full, Integration::Poisson);
-    let fc_disc = time(&pd, &qd, &mask, Integration::FrankotChellappa);
-    let po_disc = time(&pd, &qd, &mask, Integration::Poisson);
+    }
     let m: Vec<bool> = mask.iter().copied().collect();
     let st = MaskStencil::new(&m, n, n);
     let mut b = poisson::rhs(&st, pd.as_slice().unwrap(), qd.as_slice().unwrap());
     Components::new(&m, n, n).remove_means(&mut b);
-    let t = Instant::now();
     let (_, stats) = poisson::solve_pcg(&st, b);
-    let pcg = t.elapsed().as_secs_f64() * 1e3;
-    let z = integrate(&pd, &qd, &mask, Integration::Poisson);
-    let err = rms(&z, &heights_of(&s, n, n), &mask);
     eprintln!(
-        "2048² (best of 3, {} rayon threads):",
+        "2048² on {} rayon threads, best of 7:",
         rayon::current_num_threads()
     );
-    eprintln!("  frankot-chellappa full frame: {fc_full:.0} ms");
-    eprintln!("  poisson full frame (DCT):     {po_full:.0} ms");
-    eprintln!("  frankot-chellappa disc mask:  {fc_disc:.0} ms");
+    for (i, (name, ..)) in runs.iter().enumerate() {
+        eprintln!(
+            "  {name:<32} {:>6.0} ms   depth rms {:.4} px",
+            best[i], rms_of[i]
+        );
+    }
     eprintln!(
-        "  poisson disc mask (MG-PCG):   {po_disc:.0} ms = {:.2}× FC  [PCG alone {pcg:.0} ms, {stats:?}]",
-        po_disc / fc_disc
+        "  poisson / FC on the disc: {:.2}×   {stats:?}",
+        best[3] / best[2]
     );
-    eprintln!("  hemisphere r={rad:.0} depth rms: {err:.4} px");
+    eprintln!("  peak RSS {:.0} MiB", peak_rss_mib().unwrap_or(f64::NAN));
 }
 
+/// 4096² disc: time, iterations and peak memory of the masked solver.
 #[test]
 #[ignore]
-fn stage_times_tmp() {
-    let n = 2048;
+fn timings_4096() {
+    let n = 4096;
     let rad = 0.45 * n as f64;
     let c = n as f64 / 2.0;
     let s = hemisphere(c, c, rad);
     let mask = disc(n, n, c, c, 0.95 * rad);
     let (p, q) = gradients(&normals_of(&s, &mask), &mask);
-    for _ in 0..2 {
-        let t = Instant::now();
-        let m = contiguous(mask.view());
-        let any = m.iter().any(|&v| v);
-        eprintln!("contig+any {:?} {any}", t.elapsed());
-        let t = Instant::now();
-        let comps = Components::new(&m, n, n);
-        eprintln!("components {:?}", t.elapsed());
-        let t = Instant::now();
-        let st = MaskStencil::new(&m, n, n);
-        eprintln!("stencil {:?}", t.elapsed());
-        let t = Instant::now();
-        let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
-        eprintln!("rhs {:?}", t.elapsed());
-        let t = Instant::now();
-        comps.remove_means(&mut b);
-        eprintln!("remove_means {:?}", t.elapsed());
-        let t = Instant::now();
-        let h = multigrid::Hierarchy::new(&st);
-        eprintln!("hierarchy {:?} {}", t.elapsed(), h.depth());
-        let t = Instant::now();
-        let (z, _) = poisson::solve_pcg(&st, b);
-        eprintln!("pcg {:?}", t.elapsed());
-        let t = Instant::now();
-        let zz = finish(z, &m, n, n);
-        eprintln!("finish {:?}", t.elapsed());
-        std::hint::black_box(zz);
-        let t = Instant::now();
-        let _ = integrate(&p, &q, &mask, Integration::Poisson);
-        eprintln!("total {:?}", t.elapsed());
-    }
+    let before = peak_rss_mib().unwrap_or(f64::NAN);
+    let t = Instant::now();
+    let z = integrate(&p, &q, &mask, Integration::Poisson);
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let after = peak_rss_mib().unwrap_or(f64::NAN);
+    let err = rms(&z, &heights_of(&s, n, n), &mask);
+    eprintln!(
+        "4096² disc poisson: {ms:.0} ms, depth rms {err:.4} px, peak RSS {before:.0} → {after:.0} MiB"
+    );
+    let t = Instant::now();
+    let _ = integrate(&p, &q, &mask, Integration::FrankotChellappa);
+    eprintln!("4096² disc FC: {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let st = MaskStencil::new(&m, n, n);
+    let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+    Components::new(&m, n, n).remove_means(&mut b);
+    let t = Instant::now();
+    let (_, stats) = poisson::solve_pcg(&st, b);
+    eprintln!(
+        "4096² PCG alone: {:.0} ms, {stats:?}",
+        t.elapsed().as_secs_f64() * 1e3
+    );
+}
+
+/// A ragged mask (25% random holes: thin bridges, isolated pixels, ~90 components):
+/// the solver must converge and satisfy the normal equations; heights on a ragged mask
+/// of an integrable field are still exact per component.
+#[test]
+fn ragged_mask_converges() {
+    let (h, w) = (150, 173);
+    let mut seed = 12345u64;
+    let mut rnd = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed % 1000) as f64 / 1000.0
+    };
+    let mask = Array2::from_shape_fn((h, w), |_| rnd() < 0.75);
+    let s = |x: f64, y: f64| {
+        let (z, zx, zy) = gaussians(x * 0.8, y * 0.9);
+        (z + 0.1 * x, 0.8 * zx + 0.1, 0.9 * zy)
+    };
+    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let comps = Components::new(&m, h, w);
+    let st = MaskStencil::new(&m, h, w);
+    let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+    comps.remove_means(&mut b);
+    let (z, stats) = poisson::solve_pcg(&st, b.clone());
+    eprintln!("ragged mask: {} components, {stats:?}", comps.count());
+    assert!(comps.count() > 50);
+    assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
+    assert!(stats.iterations <= 40, "{stats:?}");
+    // True residual of the normal equations (its floor is set by storing z in f32).
+    let mut az = vec![0f32; h * w];
+    multigrid::apply(&st, &z, &mut az);
+    let num: f64 = az
+        .iter()
+        .zip(&b)
+        .map(|(&a, &b)| f64::from(a - b).powi(2))
+        .sum();
+    let den: f64 = b.iter().map(|&b| f64::from(b).powi(2)).sum();
+    let true_rel = (num / den).sqrt();
+    assert!(true_rel < 1e-4, "true residual {true_rel}");
+    // Heights match the surface up to one constant per component.
+    let truth = heights_of(&s, h, w);
+    let mut err: Vec<f32> = (0..h * w)
+        .map(|i| {
+            if m[i] {
+                z[i] - truth[(i / w, i % w)] as f32
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    comps.remove_means(&mut err);
+    let n = m.iter().filter(|&&v| v).count() as f64;
+    let e = (err.iter().map(|&v| f64::from(v).powi(2)).sum::<f64>() / n).sqrt();
+    eprintln!("ragged mask: true relative residual {true_rel:.1e}, depth rms {e:.4} px");
+    assert!(e < 0.05, "rms {e}");
+    let zi = integrate(&p, &q, &mask, Integration::Poisson);
+    assert!(zi.iter().all(|v| v.is_finite()));
 }
