@@ -50,6 +50,7 @@ use uuid::Uuid;
 pub use config::{Config, LogFormat, ServeArgs};
 pub use error::{ApiError, Problem};
 pub use health::{HealthcheckArgs, healthcheck};
+pub use upload::{parse_options, unpack_archive};
 
 use blobs::{BlobStore, LocalStore, MANIFEST_FILE};
 use jobs::JobQueue;
@@ -358,7 +359,13 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
     let known: HashSet<Uuid> = inner.repo.ids()?.into_iter().collect();
     for id in inner.store.job_ids()? {
         let tidy = if known.contains(&id) {
-            inner.store.remove_partials(id)
+            inner.store.remove_partials(id).and_then(|()| {
+                // A stop between recording a job's end and removing its inputs.
+                match inner.repo.get(id) {
+                    Ok(Some(rec)) if rec.status.is_terminal() => inner.store.remove_inputs(id),
+                    _ => Ok(()),
+                }
+            })
         } else {
             inner.store.remove_job(id) // an upload that never became a job
         };
@@ -542,6 +549,9 @@ async fn track_http(State(state): State<AppState>, req: Request, next: Next) -> 
 
 /// Serve `state` on `listener` until `shutdown` completes, then stop gracefully: no new
 /// connections, in-flight requests finish, running jobs get the shutdown grace.
+///
+/// Connections get the shutdown grace too: one still open then (a client that never
+/// finishes sending its request head, say) is abandoned rather than waited for.
 pub async fn serve_with(
     listener: TcpListener,
     state: AppState,
@@ -549,14 +559,27 @@ pub async fn serve_with(
 ) -> anyhow::Result<()> {
     let app = router(state.clone());
     let stopping = state.clone();
-    axum::serve(listener, app)
-        .with_graceful_shutdown(async move {
-            shutdown.await;
-            tracing::info!("shutting down: finishing requests and running jobs");
-            stopping.begin_shutdown();
-        })
-        .await
-        .context("serving HTTP")?;
+    let (signalled, on_signal) = tokio::sync::oneshot::channel::<()>();
+    let server = axum::serve(listener, app).with_graceful_shutdown(async move {
+        shutdown.await;
+        tracing::info!("shutting down: finishing requests and running jobs");
+        stopping.begin_shutdown();
+        let _ = signalled.send(());
+    });
+    let grace = state.inner.config.shutdown_grace;
+    let deadline = async move {
+        match on_signal.await {
+            Ok(()) => tokio::time::sleep(grace).await,
+            Err(_) => std::future::pending().await,
+        }
+    };
+    tokio::select! {
+        served = std::future::IntoFuture::into_future(server) => served.context("serving HTTP")?,
+        () = deadline => tracing::warn!(
+            grace = %util::format_duration(grace),
+            "connections still open after the shutdown grace are dropped"
+        ),
+    }
     state.shutdown().await;
     Ok(())
 }

@@ -144,6 +144,8 @@ struct StoredImage {
     file: String,
     width: u32,
     height: u32,
+    /// Bits per sample (8, 16 or 32), as the core will decode it.
+    depth: u8,
 }
 
 /// A received, checked job, ready to be queued.
@@ -200,12 +202,14 @@ pub async fn receive(
                 let name = file_name(&field, "images")?;
                 let file = image_file(parts.images.len());
                 let head = stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
-                let (width, height) = probe(dir.join(&file), name.clone(), head, config).await?;
+                let (width, height, depth) =
+                    probe(dir.join(&file), name.clone(), head, config).await?;
                 parts.images.push(StoredImage {
                     name,
                     file,
                     width,
                     height,
+                    depth,
                 });
             }
             "lights" => {
@@ -224,7 +228,7 @@ pub async fn receive(
                     .unwrap_or("mask")
                     .to_string();
                 let head = stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
-                let (width, height) = probe(dir.join(MASK_FILE), name.clone(), head, config)
+                let (width, height, depth) = probe(dir.join(MASK_FILE), name.clone(), head, config)
                     .await
                     .map_err(|e| {
                         if e.status() == axum::http::StatusCode::UNPROCESSABLE_ENTITY {
@@ -238,6 +242,7 @@ pub async fn receive(
                     file: MASK_FILE.to_string(),
                     width,
                     height,
+                    depth,
                 });
             }
             "options" => {
@@ -382,7 +387,34 @@ pub fn parse_options(bytes: &[u8]) -> Result<Options, ApiError> {
     if let Some(names) = &options.outputs {
         outputs::check_selection(names)?;
     }
+    check_option_values(&options)?;
     Ok(options)
+}
+
+/// Values JSON can carry but a reconstruction cannot use: refused now rather than in the
+/// job (a `height_scale` past the f32 range would even be stored as `null`).
+fn check_option_values(o: &Options) -> Result<(), ApiError> {
+    let bad = |why: String| ApiError::from(InputError::Options(why));
+    let l = o.shading_light;
+    let norm = l.iter().map(|c| c * c).sum::<f64>().sqrt();
+    if !(norm.is_finite() && norm > 0.0) {
+        return Err(bad(format!(
+            "field `shading_light` must be three finite numbers, not all zero (and not huge), got {l:?}"
+        )));
+    }
+    if !o.mesh.height_scale.is_finite() {
+        return Err(bad(
+            "field `mesh`: height_scale must be a finite number within ±3.4e38".into(),
+        ));
+    }
+    if let Some(p) = o.mesh.pixel_size
+        && !(p.is_finite() && p > 0.0)
+    {
+        return Err(bad(format!(
+            "field `mesh`: pixel_size must be a positive number of metres, got {p}"
+        )));
+    }
+    Ok(())
 }
 
 /// serde's message, prefixed with the top-level field that fails on its own.
@@ -453,14 +485,14 @@ async fn read_small(
     Ok(out)
 }
 
-/// Recognise the image format from its signature and read its dimensions from the header
-/// (no decoding), off the async runtime.
+/// Recognise the image format from its signature and read its dimensions and bit depth
+/// from the header (no decoding), off the async runtime.
 async fn probe(
     path: PathBuf,
     name: String,
     head: Vec<u8>,
     config: &Config,
-) -> Result<(u32, u32), ApiError> {
+) -> Result<(u32, u32, u8), ApiError> {
     let max_pixels = config.max_pixels;
     Ok(tokio::task::spawn_blocking(move || probe_image(&path, &name, &head, max_pixels)).await??)
 }
@@ -470,14 +502,15 @@ fn probe_image(
     name: &str,
     head: &[u8],
     max_pixels: u64,
-) -> Result<(u32, u32), InputError> {
+) -> Result<(u32, u32, u8), InputError> {
+    use image::ImageDecoder;
     let format = image::guess_format(head).map_err(|_| InputError::UnsupportedFormat {
         name: name.into(),
         reason: "unrecognised file signature".into(),
     })?;
     let file = File::open(path).map_err(|e| InputError::io(path, e))?;
-    let (w, h) = ImageReader::with_format(BufReader::new(file), format)
-        .into_dimensions()
+    let decoder = ImageReader::with_format(BufReader::new(file), format)
+        .into_decoder()
         .map_err(|e| match e {
             image::ImageError::Unsupported(u) => InputError::UnsupportedFormat {
                 name: name.into(),
@@ -488,6 +521,10 @@ fn probe_image(
                 reason: other.to_string(),
             },
         })?;
+    let (w, h) = decoder.dimensions();
+    // Bits per sample of what the decoder will produce (the core's bit depth).
+    let colour = decoder.color_type();
+    let depth = 8 * colour.bytes_per_pixel() / colour.channel_count().max(1);
     let pixels = u64::from(w) * u64::from(h);
     if pixels > max_pixels {
         return Err(InputError::TooLarge {
@@ -498,7 +535,7 @@ fn probe_image(
             limit: max_pixels,
         });
     }
-    Ok((w, h))
+    Ok((w, h, depth))
 }
 
 /// Pair the table's rows with the uploaded images, in table order.
@@ -560,6 +597,15 @@ fn check_sizes(ordered: &[&StoredImage]) -> Result<(), ApiError> {
                 first: first.name.clone(),
                 expected_width: first.width,
                 expected_height: first.height,
+            }
+            .into());
+        }
+        if img.depth != first.depth {
+            return Err(InputError::BitDepthMismatch {
+                name: img.name.clone(),
+                depth: img.depth,
+                first: first.name.clone(),
+                expected: first.depth,
             }
             .into());
         }
@@ -753,12 +799,13 @@ fn extract_archive(
         }
         out.flush()?;
         drop(out);
-        let (width, height) = probe_image(&target, &name, &head, limits.max_pixels)?;
+        let (width, height, depth) = probe_image(&target, &name, &head, limits.max_pixels)?;
         images.push(StoredImage {
             name,
             file,
             width,
             height,
+            depth,
         });
     }
     let table = table.ok_or_else(|| {
@@ -767,6 +814,19 @@ fn extract_archive(
         ))
     })?;
     Ok((images, table))
+}
+
+/// The archive reader on its own, for property tests and fuzzing: unpack the zip file at
+/// `zip` into the directory `dir` under `config`'s caps (`max_parts` entries,
+/// `max_unpacked_bytes`, `max_images`, `max_pixels`), exactly as an `archive` part is
+/// unpacked. Returns the images' names (in archive order) and the light table's bytes.
+pub fn unpack_archive(
+    zip: &Path,
+    dir: &Path,
+    config: &Config,
+) -> Result<(Vec<String>, Vec<u8>), ApiError> {
+    let (images, table) = extract_archive(zip, dir, &ArchiveLimits::from(config))?;
+    Ok((images.into_iter().map(|i| i.name).collect(), table))
 }
 
 #[cfg(test)]
@@ -893,7 +953,7 @@ mod tests {
         std::fs::write(&path, &p).unwrap();
         assert_eq!(
             probe_image(&path, "x.png", &p[..HEAD_BYTES], 100).unwrap(),
-            (5, 3)
+            (5, 3, 8)
         );
         let e = probe_image(&path, "x.png", &p[..HEAD_BYTES], 10).unwrap_err();
         assert!(e.is_too_large());
@@ -915,5 +975,16 @@ mod tests {
         let e = parse_options(br#"{"colour": 1}"#).unwrap_err();
         assert!(e.detail().contains("colour"), "{e}");
         assert!(parse_options(br#"{"integration": "path"}"#).is_ok());
+        for (bad, needle) in [
+            (r#"{"mesh": {"height_scale": 1e39}}"#, "height_scale"),
+            (r#"{"mesh": {"pixel_size": 0}}"#, "pixel_size"),
+            (r#"{"mesh": {"pixel_size": -1}}"#, "pixel_size"),
+            (r#"{"shading_light": [0, 0, 0]}"#, "shading_light"),
+            (r#"{"shading_light": [1e300, 1e300, 1]}"#, "shading_light"),
+        ] {
+            let e = parse_options(bad.as_bytes()).unwrap_err();
+            assert_eq!(e.status().as_u16(), 422, "{bad}");
+            assert!(e.detail().contains(needle), "{bad}: {e}");
+        }
     }
 }
