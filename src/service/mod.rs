@@ -35,6 +35,7 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::header;
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
+use sha2::{Digest, Sha256};
 use subtle::ConstantTimeEq;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
@@ -489,7 +490,7 @@ pub fn router(state: AppState) -> Router {
 }
 
 /// `Authorization: Bearer <key>` on the /v1 routes when keys are configured. Keys are
-/// compared in constant time.
+/// compared in constant time (as digests, so their lengths do not show either).
 async fn require_api_key(State(state): State<AppState>, req: Request, next: Next) -> Response {
     let keys = &state.inner.config.api_keys;
     if keys.is_empty() {
@@ -511,9 +512,14 @@ async fn require_api_key(State(state): State<AppState>, req: Request, next: Next
         )
         .into_response();
     };
+    // Compare SHA-256 digests, not the keys: equal-length inputs keep the comparison's
+    // time independent of the configured keys' lengths as well as their bytes.
+    let presented = Sha256::digest(presented.as_bytes());
     let mut ok = subtle::Choice::from(0u8);
     for key in keys {
-        ok |= key.as_bytes().ct_eq(presented.as_bytes());
+        ok |= Sha256::digest(key.as_bytes())
+            .as_slice()
+            .ct_eq(presented.as_slice());
     }
     if bool::from(ok) {
         next.run(req).await
