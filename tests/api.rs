@@ -1274,3 +1274,20 @@ async fn finished_jobs_expire_after_the_retention_period() {
     }
     s.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_data_directory_serves_one_server_at_a_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let first = AppState::open(config(dir.path())).await.unwrap();
+    let err = match AppState::open(config(dir.path())).await {
+        Ok(_) => panic!("a second server opened a data directory in use"),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(
+        err.contains("in use by another photostereo server"),
+        "{err}"
+    );
+    first.shutdown().await;
+    let again = AppState::open(config(dir.path())).await.unwrap();
+    again.shutdown().await;
+}

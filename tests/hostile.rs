@@ -663,6 +663,61 @@ async fn a_slow_upload_gets_408_and_its_connection_is_closed() {
     nothing_accepted(&s).await;
 }
 
+/// With `--max-uploads 1`, a second upload while one is being received gets 503 with
+/// Retry-After; once the first connection goes away, uploads are taken again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_past_the_concurrency_limit_get_503() {
+    let dir = tempfile::tempdir().unwrap();
+    let flags: Vec<&str> = FLAGS
+        .iter()
+        .copied()
+        .chain(["--max-uploads", "1"])
+        .collect();
+    let s = BinServer::start(dir.path(), &flags);
+    let mut stream = TcpStream::connect(s.addr()).await.unwrap();
+    let head = multipart_head(s.addr(), "Transfer-Encoding: chunked\r\n");
+    stream.write_all(head.as_bytes()).await.unwrap();
+    let opening = format!(
+        "--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"lights\"\r\n\r\n{TABLE3}\r\n"
+    );
+    let chunk = format!("{:x}\r\n{opening}\r\n", opening.len());
+    stream.write_all(chunk.as_bytes()).await.unwrap();
+    // The first upload holds the only permit once its first part is being read.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(three_pngs(Part::text(TABLE3)))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.headers()["retry-after"], "5");
+    expect_problem(r, 503, &["1 uploads are being received", "retry later"]).await;
+    assert_alive(&s, "concurrent uploads").await;
+
+    drop(stream);
+    let started = Instant::now();
+    loop {
+        let r = s
+            .client
+            .post(s.url("/v1/jobs"))
+            .multipart(three_pngs(Part::text(TABLE3)))
+            .send()
+            .await
+            .unwrap();
+        if r.status() == 202 {
+            break;
+        }
+        assert_eq!(r.status(), 503);
+        assert!(
+            started.elapsed() < Duration::from_secs(10),
+            "the abandoned upload still holds its permit"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
 /// A client that never finishes its request head (and one that never sends anything)
 /// must not keep the server from stopping on SIGTERM.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -71,6 +71,11 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_JOB_TIMEOUT", default_value = "30m", value_parser = parse_duration)]
     pub job_timeout: Duration,
 
+    /// Uploads (POST /v1/jobs bodies) received at once; past this, submissions get 503
+    /// with Retry-After.
+    #[arg(long, env = "PHOTOSTEREO_MAX_UPLOADS", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    pub max_uploads: u32,
+
     /// Longest an upload (one POST /v1/jobs body) may take (408 past it).
     #[arg(long, env = "PHOTOSTEREO_UPLOAD_TIMEOUT", default_value = "10m", value_parser = parse_duration)]
     pub upload_timeout: Duration,
@@ -115,6 +120,7 @@ pub struct Config {
     pub max_unpacked_bytes: u64,
     pub retention: Duration,
     pub job_timeout: Duration,
+    pub max_uploads: usize,
     pub upload_timeout: Duration,
     pub min_free_disk: u64,
     pub api_keys: Vec<String>,
@@ -146,6 +152,7 @@ impl Config {
             max_unpacked_bytes: 2 << 30,
             retention: Duration::from_secs(7 * 86_400),
             job_timeout: Duration::from_secs(30 * 60),
+            max_uploads: 16,
             upload_timeout: Duration::from_secs(10 * 60),
             min_free_disk: 1 << 30,
             api_keys: Vec::new(),
@@ -185,6 +192,7 @@ impl From<&ServeArgs> for Config {
         c.max_unpacked_bytes = a.max_unpacked_bytes;
         c.retention = a.retention;
         c.job_timeout = a.job_timeout;
+        c.max_uploads = a.max_uploads as usize;
         c.upload_timeout = a.upload_timeout;
         c.min_free_disk = a.min_free_disk;
         c.api_keys = a
@@ -223,6 +231,7 @@ mod tests {
         assert_eq!(c.retention, d.retention);
         assert_eq!(c.job_timeout, d.job_timeout);
         assert_eq!(c.upload_timeout, d.upload_timeout);
+        assert_eq!(c.max_uploads, d.max_uploads);
         assert_eq!(c.min_free_disk, d.min_free_disk);
         assert_eq!(c.max_unpacked_bytes, d.max_unpacked_bytes);
         assert_eq!(c.queue_length, d.queue_length);

@@ -76,6 +76,11 @@ pub(crate) struct Inner {
     metrics: Metrics,
     shutting_down: AtomicBool,
     stop: watch::Sender<bool>,
+    /// One permit per upload being received (`max_uploads`).
+    uploads: Arc<tokio::sync::Semaphore>,
+    /// The data directory's lock file, held (flock) while this server uses it, so that a
+    /// second server cannot run the same jobs or tidy away the first one's uploads.
+    data_lock: std::sync::Mutex<Option<std::fs::File>>,
 }
 
 impl AppState {
@@ -96,11 +101,13 @@ impl AppState {
                 config.data_dir.display()
             )
         })?;
+        let data_lock = lock_data_dir(&config.data_dir)?;
         let db = config.data_dir.join("jobs.sqlite");
         let repo = SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?;
         let store = LocalStore::open(&config.data_dir)
             .with_context(|| format!("opening {}", config.data_dir.display()))?;
         let (stop, _) = watch::channel(false);
+        let config_uploads = config.max_uploads.max(1);
         let inner = Arc::new(Inner {
             jobs: JobQueue::new(config.queue_length),
             config,
@@ -109,6 +116,8 @@ impl AppState {
             metrics: Metrics::default(),
             shutting_down: AtomicBool::new(false),
             stop,
+            uploads: Arc::new(tokio::sync::Semaphore::new(config_uploads)),
+            data_lock: std::sync::Mutex::new(Some(data_lock)),
         });
         let requeued = recover(&inner)?;
         if requeued > 0 {
@@ -218,7 +227,16 @@ impl AppState {
             }
         }
         jobs.join_finished_threads();
+        // Let a next server (a restart in the same process) have the data directory.
+        if let Ok(mut lock) = self.inner.data_lock.lock() {
+            lock.take();
+        }
         tracing::info!("stopped");
+    }
+
+    /// A permit to receive one upload, or `None` when `max_uploads` are under way.
+    pub(crate) fn try_upload_permit(&self) -> Option<tokio::sync::OwnedSemaphorePermit> {
+        self.inner.uploads.clone().try_acquire_owned().ok()
     }
 
     pub(crate) fn count_submitted(&self) {
@@ -487,6 +505,28 @@ pub fn router(state: AppState) -> Router {
         .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
         .layer(CatchPanicLayer::custom(routes::panic_response))
         .with_state(state)
+}
+
+/// Take the data directory's lock file, or say which directory is in use.
+fn lock_data_dir(dir: &std::path::Path) -> anyhow::Result<std::fs::File> {
+    let path = dir.join("lock");
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => anyhow::bail!(
+            "the data directory {} is in use by another photostereo server (it holds {})",
+            dir.display(),
+            path.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            Err(e).with_context(|| format!("locking {}", path.display()))
+        }
+    }
 }
 
 /// `Authorization: Bearer <key>` on the /v1 routes when keys are configured. Keys are

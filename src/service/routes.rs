@@ -267,7 +267,7 @@ async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
         (status = 413, description = "Body, image, part count, image count or archive over a limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "An image (or archive) in an unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid light table, options, names, sizes or archive layout", body = Problem, content_type = "application/problem+json"),
-        (status = 503, description = "The queue is full (or the service is stopping): retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
+        (status = 503, description = "The queue is full, the most uploads at once are under way, or the service is stopping: retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 507, description = "Not enough free disk space", body = Problem, content_type = "application/problem+json"),
     ),
@@ -323,6 +323,15 @@ async fn accept_job(
             ))
         })?;
     state.check_free_disk().await?;
+    let Some(_receiving) = state.try_upload_permit() else {
+        return Err(ApiError::unavailable(
+            super::config::RETRY_AFTER_SECS,
+            format!(
+                "{} uploads are being received already (the limit); retry later",
+                config.max_uploads
+            ),
+        ));
+    };
     if state.jobs().is_full() {
         state.count_queue_full();
         return Err(queue_full(state));
