@@ -73,7 +73,7 @@ pub struct ServeArgs {
 
     /// Uploads (POST /v1/jobs bodies) received at once; past this, submissions get 503
     /// with Retry-After.
-    #[arg(long, env = "PHOTOSTEREO_MAX_UPLOADS", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=4096))]
+    #[arg(long, env = "PHOTOSTEREO_MAX_UPLOADS", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..=4096))]
     pub max_uploads: u32,
 
     /// Longest an upload (one POST /v1/jobs body) may take (408 past it).
@@ -152,7 +152,7 @@ impl Config {
             max_unpacked_bytes: 2 << 30,
             retention: Duration::from_secs(7 * 86_400),
             job_timeout: Duration::from_secs(30 * 60),
-            max_uploads: 16,
+            max_uploads: 64,
             upload_timeout: Duration::from_secs(10 * 60),
             min_free_disk: 1 << 30,
             api_keys: Vec::new(),
