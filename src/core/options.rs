@@ -42,6 +42,10 @@ pub enum Integration {
     /// Least-squares (Poisson) integration over the mask only.
     #[default]
     Poisson,
+    /// Poisson with each pixel's equations weighted by the solver's confidence: pixels
+    /// with few usable observations (fallback normals) follow their neighbours instead of
+    /// their own gradients, so they make no spikes.
+    WeightedPoisson,
 }
 
 /// How the mesh's vertex normals are made.

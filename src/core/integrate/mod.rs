@@ -4,10 +4,14 @@
 //! Frame: arrays are `[row, col]`; x = column (right), y = row (down), z towards the camera.
 //! `p = dz/dx` (along columns), `q = dz/dy` (along rows); heights are in pixel units.
 //!
-//! Discretisation shared by `poisson` and `frankot-chellappa` (and by [`curl`]): the height
-//! difference across the edge between two 4-adjacent pixels is the mean of their two
-//! gradient samples (`z[r][c+1] − z[r][c] = (p[r][c] + p[r][c+1]) / 2`), i.e. the
-//! trapezoidal rule — second-order accurate where the one-sided `path` rule is first-order.
+//! Discretisation of `poisson` (and of [`curl`]): the height difference across the edge
+//! between two 4-adjacent pixels is the slope of the mean of their two normals — the two
+//! gradient samples averaged with weights `n_z` (`poisson::edge_slope`). On gentle slopes
+//! that is the trapezoidal rule (`z[r][c+1] − z[r][c] = (p[r][c] + p[r][c+1]) / 2`, which
+//! `frankot-chellappa` uses in its spectral form); near a silhouette, where `p ~ 1/n_z`
+//! grows without bound, the plain mean overshoots by pixels per edge while the mean normal
+//! gives the chord of the local circle. Both are second-order accurate where the one-sided
+//! `path` rule is first-order.
 //!
 //! | method | domain | solver | cost |
 //! |---|---|---|---|
@@ -90,10 +94,10 @@ pub fn gradients(normals: &Array3<f32>, mask: &Array2<bool>) -> (Array2<f32>, Ar
     (p, q)
 }
 
-/// Integrability residual `dp/dy − dq/dx` of the gradient field, discretised exactly as the
-/// integrators see it: the circulation of the edge gradients around the unit square whose
+/// Integrability residual `dp/dy − dq/dx` of the gradient field, discretised exactly as
+/// `poisson` sees it: the circulation of the edge gradients around the unit square whose
 /// top-left pixel is `(r, c)`,
-/// `(gx[r+1][c] − gx[r][c]) − (gy[r][c+1] − gy[r][c])` with `gx`, `gy` the edge means.
+/// `(gx[r+1][c] − gx[r][c]) − (gy[r][c+1] − gy[r][c])` with `gx`, `gy` the edge slopes.
 /// It is zero for any discretely integrable field; 0 where any of the four pixels is off
 /// the mask (or outside the frame).
 pub fn curl(p: &Array2<f32>, q: &Array2<f32>, mask: &Array2<bool>) -> Array2<f32> {
@@ -114,11 +118,13 @@ pub fn curl(p: &Array2<f32>, q: &Array2<f32>, mask: &Array2<bool>) -> Array2<f32
         .enumerate()
         .for_each(|(r, o)| {
             let (i, j) = (r * w, (r + 1) * w);
+            let g = |k: usize| [p[k], q[k]];
             for c in 0..w - 1 {
                 if m[i + c] && m[i + c + 1] && m[j + c] && m[j + c + 1] {
-                    let dpy = (p[j + c] + p[j + c + 1]) - (p[i + c] + p[i + c + 1]);
-                    let dqx = (q[i + c + 1] + q[j + c + 1]) - (q[i + c] + q[j + c]);
-                    o[c] = 0.5 * (dpy - dqx);
+                    let (a, b, d, e) = (g(i + c), g(i + c + 1), g(j + c), g(j + c + 1));
+                    let dpy = poisson::edge_slope(d, e, 0) - poisson::edge_slope(a, b, 0);
+                    let dqx = poisson::edge_slope(b, e, 1) - poisson::edge_slope(a, d, 1);
+                    o[c] = dpy - dqx;
                 }
             }
         });
@@ -145,7 +151,8 @@ pub fn integrate(
         return Array2::zeros((h, w));
     }
     let z = match method {
-        Integration::Poisson => {
+        // Without a confidence map every pixel weighs the same: plain `poisson`.
+        Integration::Poisson | Integration::WeightedPoisson => {
             // Only gradients between mask pixels are read.
             let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
             poisson_heights(&ps, &qs, &m, h, w, None)
@@ -170,6 +177,21 @@ pub fn integrate(
         }
     };
     finish(z, &m, h, w)
+}
+
+/// Heights by `method`, where `weighted-poisson` takes its weights from `confidence` (the
+/// solver's per-pixel reliability) and every other method ignores them.
+pub fn integrate_with_confidence(
+    p: &Array2<f32>,
+    q: &Array2<f32>,
+    mask: &Array2<bool>,
+    method: Integration,
+    confidence: &Array2<f32>,
+) -> Array2<f32> {
+    match method {
+        Integration::WeightedPoisson => integrate_weighted(p, q, mask, confidence),
+        _ => integrate(p, q, mask, method),
+    }
 }
 
 /// Weighted least-squares Poisson integration: as `poisson`, but the equation on the edge
