@@ -168,17 +168,17 @@ fn steep_silhouettes_integrate_without_bias() {
     }
 }
 
-#[test]
-fn confidence_weighted_integration_ignores_fallback_normals() {
-    // The seed dog's situation: 4 lights at grazing elevation over steep bumps. Cast
-    // shadows leave many pixels with fewer than 3 lit observations, whose fallback normals
-    // are wrong; plain Poisson spreads them into the height map, weighted Poisson does not.
-    let lights: Vec<[f64; 3]> = (0..4)
+/// Steep bumps lit by `count` lights at `elevation_deg`, with cast shadows, rendered into a
+/// temporary folder: robust normals integrated by each method, and the flagged count.
+fn low_light_bumps(
+    count: usize,
+    elevation_deg: f64,
+    methods: &[Integration],
+) -> (Vec<Accuracy>, usize) {
+    let lights: Vec<[f64; 3]> = (0..count)
         .map(|i| {
-            let (e, az) = (
-                25f64.to_radians(),
-                0.3 + i as f64 * std::f64::consts::FRAC_PI_2,
-            );
+            let e = elevation_deg.to_radians();
+            let az = 0.3 + i as f64 * std::f64::consts::TAU / count as f64;
             [e.cos() * az.cos(), e.cos() * az.sin(), e.sin()]
         })
         .collect();
@@ -191,24 +191,88 @@ fn confidence_weighted_integration_ignores_fallback_normals() {
     let truth = synth::read_truth(dir.path()).unwrap();
     let mut set = intake::load_dir(dir.path(), None, &Limits::default()).unwrap();
     set.mask = Some(truth.mask.clone());
-    let run = |integration| {
-        let opts = Options {
-            solver: Solver::Robust,
-            integration,
-            ..Options::default()
-        };
-        reconstruct(&set, &opts, &mut |_| true).unwrap()
-    };
-    let (plain, weighted) = (run(Integration::Poisson), run(Integration::WeightedPoisson));
-    let flagged = weighted.report.unreliable_pixels;
+    let mut flagged = 0;
+    let scores = methods
+        .iter()
+        .map(|&integration| {
+            let opts = Options {
+                solver: Solver::Robust,
+                integration,
+                ..Options::default()
+            };
+            let rec = reconstruct(&set, &opts, &mut |_| true).unwrap();
+            flagged = rec.report.unreliable_pixels;
+            metrics::accuracy(&rec, &truth, &truth.mask)
+        })
+        .collect();
+    (scores, flagged)
+}
+
+#[test]
+fn confidence_weighted_integration_ignores_fallback_normals() {
+    // The seed dog's situation: 4 lights at grazing elevation over steep bumps. Cast
+    // shadows leave many pixels with fewer than 3 lit observations, whose fallback normals
+    // are wrong; plain Poisson spreads them into the height map, weighted Poisson does not.
+    use Integration::{Poisson, RobustPoisson, WeightedPoisson};
+    let (s, flagged) = low_light_bumps(4, 25.0, &[Poisson, WeightedPoisson, RobustPoisson]);
     assert!(
         flagged > 200,
         "the scene must exercise fallback normals: {flagged}"
     );
-    let score = |rec: &Reconstruction| metrics::accuracy(rec, &truth, &truth.mask);
-    let (plain, weighted) = (score(&plain), score(&weighted));
+    let (plain, weighted, robust) = (s[0], s[1], s[2]);
     assert!(
         weighted.depth_rms < 0.15 && weighted.depth_rms < 0.5 * plain.depth_rms,
         "weighted {weighted:?} vs plain {plain:?}"
     );
+    assert!(robust.depth_rms < 0.15, "{robust:?}");
+    // 6 lights at 20°: few pixels flagged, but cast-shadow edges leave some confidently
+    // wrong normals; letting inconsistent edges go is what helps there.
+    let (s, _) = low_light_bumps(6, 20.0, &[Poisson, RobustPoisson]);
+    assert!(s[1].depth_rms < 0.5 * s[0].depth_rms, "{s:?}");
+}
+
+#[test]
+fn robust_integration_keeps_both_sides_of_a_depth_step() {
+    // A wavy tilted plane with a plateau 15 px higher; the one-pixel wall between them is
+    // seen at grazing angle (slope clamped at 20, far from the 15 px step). Plain Poisson
+    // bends both sides towards the wall; `robust-poisson` lets the wall's edges go.
+    let (cx, cy, r0) = (60.0, 64.0, 30.0);
+    let s = Scene::from_fn(
+        128,
+        128,
+        |x, y| {
+            let (dx, dy) = (x - cx, y - cy);
+            let r = dx.hypot(dy);
+            let base = 0.1 * x + 3.0 * (y / 20.0).sin();
+            let (bp, bq) = (0.1, 0.15 * (y / 20.0).cos());
+            Some(if (r - r0).abs() < 0.5 {
+                (base + 7.5, bp - 20.0 * dx / r, bq - 20.0 * dy / r)
+            } else if r < r0 {
+                (base + 15.0, bp, bq)
+            } else {
+                (base, bp, bq)
+            })
+        },
+        |_, _| 0.5,
+    );
+    let n: Array3<f32> = s.normals.mapv(|v| v as f32);
+    let (p, q) = integrate::gradients(&n, &s.mask);
+    let side = |inner: bool| {
+        Array2::from_shape_fn((128, 128), |(r, c)| {
+            let d = (c as f64 - cx).hypot(r as f64 - cy);
+            if inner { d < r0 - 0.5 } else { d >= r0 + 0.5 }
+        })
+    };
+    let shape_error = |m| {
+        let z = integrate::integrate(&p, &q, &s.mask, m);
+        [true, false].map(|inner| depth_rms(&z, &s.depth, &side(inner)))
+    };
+    let plain = shape_error(Integration::Poisson);
+    let robust = shape_error(Integration::RobustPoisson);
+    for k in 0..2 {
+        assert!(
+            robust[k] < 0.2 && robust[k] < 0.5 * plain[k],
+            "robust {robust:?} vs plain {plain:?}"
+        );
+    }
 }

@@ -46,6 +46,10 @@ pub enum Integration {
     /// with few usable observations (fallback normals) follow their neighbours instead of
     /// their own gradients, so they make no spikes.
     WeightedPoisson,
+    /// `weighted-poisson`, then re-weighted a few times so that edges whose gradient
+    /// disagrees with the surface by far more than is typical (depth steps, the wrong
+    /// normals left) are let go: discontinuity-preserving.
+    RobustPoisson,
 }
 
 /// How the mesh's vertex normals are made.

@@ -151,6 +151,10 @@ pub fn integrate(
         return Array2::zeros((h, w));
     }
     let z = match method {
+        Integration::RobustPoisson => {
+            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+            robust_poisson(&ps, &qs, &m, h, w, None)
+        }
         // Without a confidence map every pixel weighs the same: plain `poisson`.
         Integration::Poisson | Integration::WeightedPoisson => {
             // Only gradients between mask pixels are read.
@@ -190,7 +194,123 @@ pub fn integrate_with_confidence(
 ) -> Array2<f32> {
     match method {
         Integration::WeightedPoisson => integrate_weighted(p, q, mask, confidence),
+        Integration::RobustPoisson => {
+            let (h, w) = mask.dim();
+            assert_eq!(confidence.dim(), (h, w));
+            let m = contiguous(mask.view());
+            if !m.iter().any(|&v| v) {
+                return Array2::zeros((h, w));
+            }
+            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+            let wt = contiguous(confidence.view());
+            let z = robust_poisson(&ps, &qs, &m, h, w, Some(&wt));
+            finish(z, &m, h, w)
+        }
         _ => integrate(p, q, mask, method),
+    }
+}
+
+/// Re-weighting rounds of `robust-poisson` after its first (weighted) solve.
+const IRLS_ROUNDS: usize = 4;
+/// Smallest residual scale, in pixels per edge, below which `robust-poisson` lets nothing
+/// go: height errors that small are noise, not depth steps.
+const MIN_BREAK: f32 = 0.05;
+
+/// Iteratively reweighted least squares with Cauchy weights on the edge equations
+/// `z_j − z_i = g_ij`: each round, an edge's weight is its base weight (confidence, or 1)
+/// over `1 + (r/τ)²`, `r` its residual and `τ` three robust standard deviations of all
+/// residuals (floored at [`MIN_BREAK`]). Edges across a depth step, or next to a wrong
+/// normal, carry residuals far beyond τ and stop pulling their neighbours.
+fn robust_poisson(
+    p: &[f32],
+    q: &[f32],
+    mask: &[bool],
+    h: usize,
+    w: usize,
+    weights: Option<&[f32]>,
+) -> Vec<f32> {
+    use self::poisson::{edge_slope, finite};
+    let comps = Components::new(mask, h, w);
+    let wt = |i: usize| {
+        weights.map_or(1.0, |v| {
+            if v[i].is_finite() {
+                v[i].clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        })
+    };
+    let g = |i: usize| [finite(p[i]), finite(q[i])];
+    let n = h * w;
+    let (mut bx, mut by) = (vec![0f32; n], vec![0f32; n]);
+    let (mut gx, mut gy) = (vec![0f32; n], vec![0f32; n]);
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            if !mask[i] {
+                continue;
+            }
+            if c + 1 < w && mask[i + 1] {
+                bx[i] = (0.5 * (wt(i) + wt(i + 1))).max(MIN_EDGE_WEIGHT);
+                gx[i] = edge_slope(g(i), g(i + 1), 0);
+            }
+            if r + 1 < h && mask[i + w] {
+                by[i] = (0.5 * (wt(i) + wt(i + w))).max(MIN_EDGE_WEIGHT);
+                gy[i] = edge_slope(g(i), g(i + w), 1);
+            }
+        }
+    }
+    let (mut wx, mut wy) = (bx.clone(), by.clone());
+    let mut round = 0;
+    loop {
+        let st = WeightStencil::new(h, w, wx.clone(), wy.clone());
+        let mut z = solve_masked(&st, p, q, &comps);
+        if round == IRLS_ROUNDS {
+            comps.remove_means(&mut z);
+            return z;
+        }
+        round += 1;
+        let rx: Vec<f32> = (0..n)
+            .map(|i| {
+                if bx[i] > 0.0 {
+                    z[i + 1] - z[i] - gx[i]
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let ry: Vec<f32> = (0..n)
+            .map(|i| {
+                if by[i] > 0.0 {
+                    z[i + w] - z[i] - gy[i]
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut abs: Vec<f32> = (0..n)
+            .filter(|&i| bx[i] > 0.0)
+            .map(|i| rx[i].abs())
+            .chain((0..n).filter(|&i| by[i] > 0.0).map(|i| ry[i].abs()))
+            .collect();
+        let tau = if abs.is_empty() {
+            MIN_BREAK
+        } else {
+            let k = abs.len() / 2;
+            let mad = *abs.select_nth_unstable_by(k, f32::total_cmp).1;
+            (3.0 * 1.4826 * mad).max(MIN_BREAK)
+        };
+        let cauchy = |b: f32, r: f32| {
+            if b > 0.0 {
+                (b / (1.0 + (r / tau) * (r / tau))).max(MIN_EDGE_WEIGHT)
+            } else {
+                0.0
+            }
+        };
+        for i in 0..n {
+            wx[i] = cauchy(bx[i], rx[i]);
+            wy[i] = cauchy(by[i], ry[i]);
+        }
     }
 }
 

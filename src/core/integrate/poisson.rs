@@ -33,7 +33,7 @@ pub(super) const MAX_ITER: usize = 200;
 /// Elements per rayon task in vector operations.
 const CHUNK: usize = 1 << 14;
 
-fn finite(v: f32) -> f32 {
+pub(super) fn finite(v: f32) -> f32 {
     if v.is_finite() { v } else { 0.0 }
 }
 
