@@ -240,6 +240,15 @@ impl Model {
         self.finish(g, true, out, scratch)
     }
 
+    /// Plain least squares over every observation (black level removed), flagged
+    /// unreliable: for pixels whose robust fit cannot be trusted.
+    fn fallback(&self, obs: &[f32], y: &[f32], out: &mut [bool], r: &mut Vec<f32>) -> Fit {
+        out.fill(false);
+        let g = self.solve(y, out).unwrap_or([0.0; 3]);
+        self.residuals(g, obs, r);
+        self.finish(g, false, out, r)
+    }
+
     /// Observed minus re-rendered, per light, into `r`.
     fn residuals(&self, g: [f32; 3], obs: &[f32], r: &mut Vec<f32>) {
         r.clear();
@@ -268,6 +277,20 @@ impl Model {
             sse_inliers,
         }
     }
+}
+
+/// A fit no surface seen by the camera can have: facing away from it, or, when exactly 3
+/// observations were kept (an exact solve with nothing left to check it), within the
+/// grazing band integration clamps anyway. With few, similar lights (the seed's dog) such
+/// fits come from dropping one observation and amplifying noise through the remaining
+/// ill-conditioned three, and made the height map's spikes.
+fn implausible(g: [f32; 3], inliers: usize) -> bool {
+    let rho = norm(g);
+    if !rho.is_finite() || rho <= 0.0 {
+        return false;
+    }
+    let nz = g[2] / rho;
+    nz <= 0.0 || (inliers <= 3 && nz < super::integrate::MIN_NZ)
 }
 
 /// Confidence in [0, 1]: support grows from 3 kept observations (0.25) to 6 or more (1),
@@ -422,7 +445,10 @@ pub fn solve(set: &ImageSet) -> RobustSurface {
                 let rows = plane_rows(set, r);
                 for c in 0..cols {
                     gather(&rows, c, &mut obs);
-                    let fit = model.fit(&obs, &mut y, &mut out, &mut next, &mut scratch);
+                    let mut fit = model.fit(&obs, &mut y, &mut out, &mut next, &mut scratch);
+                    if fit.reliable && implausible(fit.g, fit.inliers) {
+                        fit = model.fallback(&obs, &y, &mut out, &mut scratch);
+                    }
                     let rho = norm(fit.g);
                     a_row[c] = rho;
                     if rho > 0.0 && rho.is_finite() {
