@@ -10,8 +10,8 @@
 //!    observations the fit predicts lit and re-renders within 3σ + 2 % of the albedo,
 //!    until the set stops changing. Normal equations are updated by subtracting the few
 //!    dropped lights from the precomputed full LᵀL, so a fully lit pixel costs one pass.
-//! 3. Fewer than 3 inliers: the pixel keeps the fit of its non-dark observations (or
-//!    plain least squares) and is flagged unreliable.
+//! 3. Fewer than 3 inliers, or a fit facing away from the camera (or an exact 3-inlier fit
+//!    at grazing angle): the pixel gets plain least squares and is flagged unreliable.
 
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
@@ -45,7 +45,8 @@ pub struct RobustSurface {
     pub confidence: Array2<f32>,
     /// Observations kept per pixel.
     pub inliers: Array2<u16>,
-    /// Pixels left with fewer than 3 inliers.
+    /// Pixels left with fewer than 3 inliers, or whose fit was implausible (see
+    /// `implausible`); their normals are a least-squares fallback.
     pub unreliable: Array2<bool>,
     pub estimate: CaptureEstimate,
     /// Tolerance used for the inlier test (absolute part).
