@@ -42,6 +42,14 @@ pub enum Integration {
     /// Least-squares (Poisson) integration over the mask only.
     #[default]
     Poisson,
+    /// Poisson with each pixel's equations weighted by the solver's confidence: pixels
+    /// with few usable observations (fallback normals) follow their neighbours instead of
+    /// their own gradients, so they make no spikes.
+    WeightedPoisson,
+    /// `weighted-poisson`, then re-weighted a few times so that edges whose gradient
+    /// disagrees with the surface by far more than is typical (depth steps, the wrong
+    /// normals left) are let go: discontinuity-preserving.
+    RobustPoisson,
 }
 
 /// How the mesh's vertex normals are made.

@@ -184,7 +184,8 @@ pub fn reconstruct(
     let (heights, curl) = timings.time(Stage::Integrate, || {
         let (p, q) = integrate::gradients(&normals, &mask);
         let curl = integrate::curl(&p, &q, &mask);
-        (integrate::integrate(&p, &q, &mask, opts.integration), curl)
+        let z = integrate::integrate_with_confidence(&p, &q, &mask, opts.integration, &confidence);
+        (z, curl)
     });
 
     let object = mask.iter().filter(|m| **m).count();

@@ -10,8 +10,8 @@
 //!    observations the fit predicts lit and re-renders within 3σ + 2 % of the albedo,
 //!    until the set stops changing. Normal equations are updated by subtracting the few
 //!    dropped lights from the precomputed full LᵀL, so a fully lit pixel costs one pass.
-//! 3. Fewer than 3 inliers: the pixel keeps the fit of its non-dark observations (or
-//!    plain least squares) and is flagged unreliable.
+//! 3. Fewer than 3 inliers, or a fit facing away from the camera (or an exact 3-inlier fit
+//!    at grazing angle): the pixel gets plain least squares and is flagged unreliable.
 
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
@@ -45,7 +45,8 @@ pub struct RobustSurface {
     pub confidence: Array2<f32>,
     /// Observations kept per pixel.
     pub inliers: Array2<u16>,
-    /// Pixels left with fewer than 3 inliers.
+    /// Pixels left with fewer than 3 inliers, or whose fit was implausible (see
+    /// `implausible`); their normals are a least-squares fallback.
     pub unreliable: Array2<bool>,
     pub estimate: CaptureEstimate,
     /// Tolerance used for the inlier test (absolute part).
@@ -240,6 +241,15 @@ impl Model {
         self.finish(g, true, out, scratch)
     }
 
+    /// Plain least squares over every observation (black level removed), flagged
+    /// unreliable: for pixels whose robust fit cannot be trusted.
+    fn fallback(&self, obs: &[f32], y: &[f32], out: &mut [bool], r: &mut Vec<f32>) -> Fit {
+        out.fill(false);
+        let g = self.solve(y, out).unwrap_or([0.0; 3]);
+        self.residuals(g, obs, r);
+        self.finish(g, false, out, r)
+    }
+
     /// Observed minus re-rendered, per light, into `r`.
     fn residuals(&self, g: [f32; 3], obs: &[f32], r: &mut Vec<f32>) {
         r.clear();
@@ -268,6 +278,20 @@ impl Model {
             sse_inliers,
         }
     }
+}
+
+/// A fit no surface seen by the camera can have: facing away from it, or, when exactly 3
+/// observations were kept (an exact solve with nothing left to check it), within the
+/// grazing band integration clamps anyway. With few, similar lights (the seed's dog) such
+/// fits come from dropping one observation and amplifying noise through the remaining
+/// ill-conditioned three, and made the height map's spikes.
+fn implausible(g: [f32; 3], inliers: usize) -> bool {
+    let rho = norm(g);
+    if !rho.is_finite() || rho <= 0.0 {
+        return false;
+    }
+    let nz = g[2] / rho;
+    nz <= 0.0 || (inliers <= 3 && nz < super::integrate::MIN_NZ)
 }
 
 /// Confidence in [0, 1]: support grows from 3 kept observations (0.25) to 6 or more (1),
@@ -422,7 +446,10 @@ pub fn solve(set: &ImageSet) -> RobustSurface {
                 let rows = plane_rows(set, r);
                 for c in 0..cols {
                     gather(&rows, c, &mut obs);
-                    let fit = model.fit(&obs, &mut y, &mut out, &mut next, &mut scratch);
+                    let mut fit = model.fit(&obs, &mut y, &mut out, &mut next, &mut scratch);
+                    if fit.reliable && implausible(fit.g, fit.inliers) {
+                        fit = model.fallback(&obs, &y, &mut out, &mut scratch);
+                    }
                     let rho = norm(fit.g);
                     a_row[c] = rho;
                     if rho > 0.0 && rho.is_finite() {

@@ -4,10 +4,14 @@
 //! Frame: arrays are `[row, col]`; x = column (right), y = row (down), z towards the camera.
 //! `p = dz/dx` (along columns), `q = dz/dy` (along rows); heights are in pixel units.
 //!
-//! Discretisation shared by `poisson` and `frankot-chellappa` (and by [`curl`]): the height
-//! difference across the edge between two 4-adjacent pixels is the mean of their two
-//! gradient samples (`z[r][c+1] − z[r][c] = (p[r][c] + p[r][c+1]) / 2`), i.e. the
-//! trapezoidal rule — second-order accurate where the one-sided `path` rule is first-order.
+//! Discretisation of `poisson` (and of [`curl`]): the height difference across the edge
+//! between two 4-adjacent pixels is the slope of the mean of their two normals — the two
+//! gradient samples averaged with weights `n_z` (`poisson::edge_slope`). On gentle slopes
+//! that is the trapezoidal rule (`z[r][c+1] − z[r][c] = (p[r][c] + p[r][c+1]) / 2`, which
+//! `frankot-chellappa` uses in its spectral form); near a silhouette, where `p ~ 1/n_z`
+//! grows without bound, the plain mean overshoots by pixels per edge while the mean normal
+//! gives the chord of the local circle. Both are second-order accurate where the one-sided
+//! `path` rule is first-order.
 //!
 //! | method | domain | solver | cost |
 //! |---|---|---|---|
@@ -90,10 +94,10 @@ pub fn gradients(normals: &Array3<f32>, mask: &Array2<bool>) -> (Array2<f32>, Ar
     (p, q)
 }
 
-/// Integrability residual `dp/dy − dq/dx` of the gradient field, discretised exactly as the
-/// integrators see it: the circulation of the edge gradients around the unit square whose
+/// Integrability residual `dp/dy − dq/dx` of the gradient field, discretised exactly as
+/// `poisson` sees it: the circulation of the edge gradients around the unit square whose
 /// top-left pixel is `(r, c)`,
-/// `(gx[r+1][c] − gx[r][c]) − (gy[r][c+1] − gy[r][c])` with `gx`, `gy` the edge means.
+/// `(gx[r+1][c] − gx[r][c]) − (gy[r][c+1] − gy[r][c])` with `gx`, `gy` the edge slopes.
 /// It is zero for any discretely integrable field; 0 where any of the four pixels is off
 /// the mask (or outside the frame).
 pub fn curl(p: &Array2<f32>, q: &Array2<f32>, mask: &Array2<bool>) -> Array2<f32> {
@@ -114,11 +118,13 @@ pub fn curl(p: &Array2<f32>, q: &Array2<f32>, mask: &Array2<bool>) -> Array2<f32
         .enumerate()
         .for_each(|(r, o)| {
             let (i, j) = (r * w, (r + 1) * w);
+            let g = |k: usize| [p[k], q[k]];
             for c in 0..w - 1 {
                 if m[i + c] && m[i + c + 1] && m[j + c] && m[j + c + 1] {
-                    let dpy = (p[j + c] + p[j + c + 1]) - (p[i + c] + p[i + c + 1]);
-                    let dqx = (q[i + c + 1] + q[j + c + 1]) - (q[i + c] + q[j + c]);
-                    o[c] = 0.5 * (dpy - dqx);
+                    let (a, b, d, e) = (g(i + c), g(i + c + 1), g(j + c), g(j + c + 1));
+                    let dpy = poisson::edge_slope(d, e, 0) - poisson::edge_slope(a, b, 0);
+                    let dqx = poisson::edge_slope(b, e, 1) - poisson::edge_slope(a, d, 1);
+                    o[c] = dpy - dqx;
                 }
             }
         });
@@ -145,7 +151,12 @@ pub fn integrate(
         return Array2::zeros((h, w));
     }
     let z = match method {
-        Integration::Poisson => {
+        Integration::RobustPoisson => {
+            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+            robust_poisson(&ps, &qs, &m, h, w, None)
+        }
+        // Without a confidence map every pixel weighs the same: plain `poisson`.
+        Integration::Poisson | Integration::WeightedPoisson => {
             // Only gradients between mask pixels are read.
             let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
             poisson_heights(&ps, &qs, &m, h, w, None)
@@ -170,6 +181,137 @@ pub fn integrate(
         }
     };
     finish(z, &m, h, w)
+}
+
+/// Heights by `method`, where `weighted-poisson` takes its weights from `confidence` (the
+/// solver's per-pixel reliability) and every other method ignores them.
+pub fn integrate_with_confidence(
+    p: &Array2<f32>,
+    q: &Array2<f32>,
+    mask: &Array2<bool>,
+    method: Integration,
+    confidence: &Array2<f32>,
+) -> Array2<f32> {
+    match method {
+        Integration::WeightedPoisson => integrate_weighted(p, q, mask, confidence),
+        Integration::RobustPoisson => {
+            let (h, w) = mask.dim();
+            assert_eq!(confidence.dim(), (h, w));
+            let m = contiguous(mask.view());
+            if !m.iter().any(|&v| v) {
+                return Array2::zeros((h, w));
+            }
+            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+            let wt = contiguous(confidence.view());
+            let z = robust_poisson(&ps, &qs, &m, h, w, Some(&wt));
+            finish(z, &m, h, w)
+        }
+        _ => integrate(p, q, mask, method),
+    }
+}
+
+/// Re-weighting rounds of `robust-poisson` after its first (weighted) solve.
+const IRLS_ROUNDS: usize = 4;
+/// Smallest residual scale, in pixels per edge, below which `robust-poisson` lets nothing
+/// go: height errors that small are noise, not depth steps.
+const MIN_BREAK: f32 = 0.05;
+
+/// Iteratively reweighted least squares with Cauchy weights on the edge equations
+/// `z_j − z_i = g_ij`: each round, an edge's weight is its base weight (confidence, or 1)
+/// over `1 + (r/τ)²`, `r` its residual and `τ` three robust standard deviations of all
+/// residuals (floored at [`MIN_BREAK`]). Edges across a depth step, or next to a wrong
+/// normal, carry residuals far beyond τ and stop pulling their neighbours.
+fn robust_poisson(
+    p: &[f32],
+    q: &[f32],
+    mask: &[bool],
+    h: usize,
+    w: usize,
+    weights: Option<&[f32]>,
+) -> Vec<f32> {
+    use self::poisson::{edge_slope, finite};
+    let comps = Components::new(mask, h, w);
+    let wt = |i: usize| {
+        weights.map_or(1.0, |v| {
+            if v[i].is_finite() {
+                v[i].clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        })
+    };
+    let g = |i: usize| [finite(p[i]), finite(q[i])];
+    let n = h * w;
+    let (mut bx, mut by) = (vec![0f32; n], vec![0f32; n]);
+    let (mut gx, mut gy) = (vec![0f32; n], vec![0f32; n]);
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            if !mask[i] {
+                continue;
+            }
+            if c + 1 < w && mask[i + 1] {
+                bx[i] = (0.5 * (wt(i) + wt(i + 1))).max(MIN_EDGE_WEIGHT);
+                gx[i] = edge_slope(g(i), g(i + 1), 0);
+            }
+            if r + 1 < h && mask[i + w] {
+                by[i] = (0.5 * (wt(i) + wt(i + w))).max(MIN_EDGE_WEIGHT);
+                gy[i] = edge_slope(g(i), g(i + w), 1);
+            }
+        }
+    }
+    let (mut wx, mut wy) = (bx.clone(), by.clone());
+    let mut round = 0;
+    loop {
+        let st = WeightStencil::new(h, w, wx.clone(), wy.clone());
+        let mut z = solve_masked(&st, p, q, &comps);
+        if round == IRLS_ROUNDS {
+            comps.remove_means(&mut z);
+            return z;
+        }
+        round += 1;
+        let rx: Vec<f32> = (0..n)
+            .map(|i| {
+                if bx[i] > 0.0 {
+                    z[i + 1] - z[i] - gx[i]
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let ry: Vec<f32> = (0..n)
+            .map(|i| {
+                if by[i] > 0.0 {
+                    z[i + w] - z[i] - gy[i]
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut abs: Vec<f32> = (0..n)
+            .filter(|&i| bx[i] > 0.0)
+            .map(|i| rx[i].abs())
+            .chain((0..n).filter(|&i| by[i] > 0.0).map(|i| ry[i].abs()))
+            .collect();
+        let tau = if abs.is_empty() {
+            MIN_BREAK
+        } else {
+            let k = abs.len() / 2;
+            let mad = *abs.select_nth_unstable_by(k, f32::total_cmp).1;
+            (3.0 * 1.4826 * mad).max(MIN_BREAK)
+        };
+        let cauchy = |b: f32, r: f32| {
+            if b > 0.0 {
+                (b / (1.0 + (r / tau) * (r / tau))).max(MIN_EDGE_WEIGHT)
+            } else {
+                0.0
+            }
+        };
+        for i in 0..n {
+            wx[i] = cauchy(bx[i], rx[i]);
+            wy[i] = cauchy(by[i], ry[i]);
+        }
+    }
 }
 
 /// Weighted least-squares Poisson integration: as `poisson`, but the equation on the edge

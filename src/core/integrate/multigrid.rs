@@ -190,7 +190,7 @@ pub(super) struct WeightStencil {
 }
 
 impl WeightStencil {
-    fn new(h: usize, w: usize, wx: Vec<f32>, wy: Vec<f32>) -> Self {
+    pub(super) fn new(h: usize, w: usize, wx: Vec<f32>, wy: Vec<f32>) -> Self {
         let mut d = vec![0f32; h * w];
         let mut inv = vec![0f32; h * w];
         if w > 0 {

@@ -1,9 +1,9 @@
 //! Least-squares (Poisson) integration on the mask.
 //!
 //! Unknowns: one height per mask pixel. Equations: for every pair of 4-adjacent mask pixels
-//! `i → j` (j to the east or south of i), `z_j − z_i = g_ij`, with `g` the mean of the two
-//! gradient samples (`(p_i + p_j)/2` horizontally, `(q_i + q_j)/2` vertically): the
-//! trapezoidal rule, second-order accurate. Optionally each equation has a weight `w_ij`.
+//! `i → j` (j to the east or south of i), `z_j − z_i = g_ij`, with `g` the slope of the mean
+//! of the two pixels' normals ([`edge_slope`]): the trapezoidal rule on gentle slopes, exact
+//! chords on spherical ones. Optionally each equation has a weight `w_ij`.
 //!
 //! Normal equations: `A z = b` with `A` the (weighted) graph Laplacian of the mask — natural
 //! (Neumann) boundaries, no equation ever looks off the mask — and
@@ -33,7 +33,25 @@ pub(super) const MAX_ITER: usize = 200;
 /// Elements per rayon task in vector operations.
 const CHUNK: usize = 1 << 14;
 
-fn finite(v: f32) -> f32 {
+pub(super) fn finite(v: f32) -> f32 {
+    if v.is_finite() { v } else { 0.0 }
+}
+
+/// Height difference across the edge from pixel `a` to pixel `b` (gradients `[p, q]`),
+/// along component `k` (0 = p, x; 1 = q, y): the slope of the mean of the two unit normals,
+/// which is the two slopes averaged with weights `n_z = 1/√(1 + p² + q²)`.
+///
+/// For a circular arc this is the chord's slope exactly (the chord is perpendicular to the
+/// bisector of the two radii), so steep silhouettes — where `p` grows like `1/n_z` and the
+/// plain mean of the slopes (trapezoidal rule) overshoots by whole pixels per edge — are
+/// integrated without bias; on gentle slopes `n_z ≈ 1` and it is the trapezoidal rule
+/// (second order either way).
+#[inline(always)]
+pub(super) fn edge_slope(a: [f32; 2], b: [f32; 2], k: usize) -> f32 {
+    let nz = |g: [f32; 2]| 1.0 / (1.0 + g[0] * g[0] + g[1] * g[1]).sqrt();
+    let (wa, wb) = (nz(a), nz(b));
+    let s = wa + wb;
+    let v = (wa * a[k] + wb * b[k]) / s;
     if v.is_finite() { v } else { 0.0 }
 }
 
@@ -111,8 +129,13 @@ fn rhs_row_body<S: Stencil>(
             Some(a) => {
                 let (top, bottom) = if above { (a, r) } else { (r, a) };
                 st.edge_row(top, east, south);
+                let (t, b) = (top * w, bottom * w);
                 for c in 0..w {
-                    let v = 0.5 * (finite(q[top * w + c]) + finite(q[bottom * w + c]));
+                    let v = edge_slope(
+                        [finite(p[t + c]), finite(q[t + c])],
+                        [finite(p[b + c]), finite(q[b + c])],
+                        1,
+                    );
                     g[c] = south[c] * v;
                 }
             }
@@ -120,9 +143,14 @@ fn rhs_row_body<S: Stencil>(
         }
     }
     st.edge_row(r, east, south);
-    let pr = &p[r * w..(r + 1) * w];
+    let (pr, qr) = (&p[r * w..(r + 1) * w], &q[r * w..(r + 1) * w]);
     for c in 0..w.saturating_sub(1) {
-        gx[c + 1] = east[c] * (0.5 * (finite(pr[c]) + finite(pr[c + 1])));
+        let v = edge_slope(
+            [finite(pr[c]), finite(qr[c])],
+            [finite(pr[c + 1]), finite(qr[c + 1])],
+            0,
+        );
+        gx[c + 1] = east[c] * v;
     }
     for c in 0..w {
         let s = f64::from(gx[c]) - f64::from(gx[c + 1]) + (f64::from(up[c]) - f64::from(down[c]));
