@@ -154,6 +154,10 @@ pub fn load(
             }
             Ok((to_luma16(img), depth))
         })
+        .collect::<Vec<Result<_, InputError>>>()
+        // The first failure in table order, not the first in time: the error a set gets
+        // must not depend on thread scheduling.
+        .into_iter()
         .collect::<Result<_, InputError>>()?;
 
     let (first_plane, first_depth) = &decoded[0];
