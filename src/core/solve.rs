@@ -97,32 +97,44 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
             || RowScratch::new(cols, n),
             |s, (r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
                 let row = |k: usize| &planes[k][r * cols..(r + 1) * cols];
-                s.g.iter_mut().for_each(|g| *g = [0.0; 3]);
+                let RowScratch {
+                    gx,
+                    gy,
+                    gz,
+                    sq,
+                    obs,
+                } = s;
                 match solver {
                     Solver::L2 => {
+                        gx.fill(0.0);
+                        gy.fill(0.0);
+                        gz.fill(0.0);
+                        // Separate x, y, z lanes so the column loops vectorise.
                         for (k, p) in pinv.iter().enumerate() {
-                            for (g, &v) in s.g.iter_mut().zip(row(k)) {
+                            let lanes = gx.iter_mut().zip(gy.iter_mut()).zip(gz.iter_mut());
+                            for (((x, y), z), &v) in lanes.zip(row(k)) {
                                 let o = v as f32 * SCALE;
-                                g[0] += p[0] * o;
-                                g[1] += p[1] * o;
-                                g[2] += p[2] * o;
+                                *x += p[0] * o;
+                                *y += p[1] * o;
+                                *z += p[2] * o;
                             }
                         }
                     }
                     Solver::Weighted => {
-                        for (c, g) in s.g.iter_mut().enumerate() {
-                            for (k, o) in s.obs.iter_mut().enumerate() {
+                        for c in 0..cols {
+                            for (k, o) in obs.iter_mut().enumerate() {
                                 *o = row(k)[c] as f32 * SCALE;
                             }
-                            *g = weighted(&lights, &s.obs);
+                            [gx[c], gy[c], gz[c]] = weighted(&lights, obs);
                         }
                     }
                     Solver::Robust => unreachable!("handled by robust::solve"),
                 }
-                s.sq.iter_mut().for_each(|v| *v = 0.0);
+                sq.fill(0.0);
                 for (k, l) in lights.iter().enumerate() {
-                    for ((sq, g), &v) in s.sq.iter_mut().zip(&s.g).zip(row(k)) {
-                        let d = v as f32 * SCALE - render_observation(*g, *l, 0.0);
+                    let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
+                    for ((((x, y), z), sq), &v) in lanes.zip(sq.iter_mut()).zip(row(k)) {
+                        let d = v as f32 * SCALE - render_observation([*x, *y, *z], *l, 0.0);
                         *sq += d * d;
                     }
                 }
@@ -130,7 +142,7 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
                     .as_slice_mut()
                     .expect("a row of a fresh array is contiguous");
                 for c in 0..cols {
-                    let g = s.g[c];
+                    let g = [gx[c], gy[c], gz[c]];
                     let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
                     a_row[c] = rho;
                     if rho > 0.0 && rho.is_finite() {
@@ -138,7 +150,7 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
                             normals[c * 3 + k] = g[k] / rho;
                         }
                     }
-                    let res = (s.sq[c] / n as f32).sqrt();
+                    let res = (sq[c] / n as f32).sqrt();
                     res_row[c] = res;
                     conf_row[c] = robust::confidence_of(n, res, 3.0 * quantum + 0.02 * rho);
                 }
@@ -155,10 +167,12 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
     }
 }
 
-/// Per-thread buffers for one row: g per column, squared residual sums, one pixel's
-/// observations (weighted solver).
+/// Per-thread buffers for one row: g per column (one lane per component), squared
+/// residual sums, one pixel's observations (weighted solver).
 struct RowScratch {
-    g: Vec<[f32; 3]>,
+    gx: Vec<f32>,
+    gy: Vec<f32>,
+    gz: Vec<f32>,
     sq: Vec<f32>,
     obs: Vec<f32>,
 }
@@ -166,7 +180,9 @@ struct RowScratch {
 impl RowScratch {
     fn new(cols: usize, n: usize) -> Self {
         Self {
-            g: vec![[0.0; 3]; cols],
+            gx: vec![0.0; cols],
+            gy: vec![0.0; cols],
+            gz: vec![0.0; cols],
             sq: vec![0.0; cols],
             obs: vec![0.0; n],
         }
