@@ -117,14 +117,16 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
             }
         }
     }
+    // Visibility first (depth, and which triangle at which barycentrics), shading after:
+    // a sample hidden by later, nearer triangles is never shaded.
     let mut depth = vec![f64::NEG_INFINITY; w * h];
-    let mut colour = vec![BACKGROUND.map(|v| f32::from(v) / 255.0); w * h];
+    let mut hit = vec![Hit::NONE; w * h];
     depth
         .par_chunks_mut(band * w)
-        .zip(colour.par_chunks_mut(band * w))
+        .zip(hit.par_chunks_mut(band * w))
         .zip(bins.par_iter())
         .enumerate()
-        .for_each(|(bi, ((depth, colour), bin))| {
+        .for_each(|(bi, ((depth, hit), bin))| {
             let first = bi * band;
             for &k in bin {
                 let t = mesh.triangles[k as usize];
@@ -150,33 +152,67 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
                             continue;
                         }
                         depth[i] = z;
-                        let mix = |f: &dyn Fn(usize) -> [f32; 3]| {
-                            let [fa, fb, fc] = t.map(|v| f(v as usize));
-                            [0, 1, 2].map(|k| {
-                                (wa * f64::from(fa[k])
-                                    + wb * f64::from(fb[k])
-                                    + wc * f64::from(fc[k])) as f32
-                            })
+                        hit[i] = Hit {
+                            triangle: k,
+                            wa,
+                            wb,
                         };
-                        let n = unit(mix(&|v| mesh.normals[v]).map(f64::from));
-                        let lit = AMBIENT + (1.0 - AMBIENT) * dot(n, light).max(0.0) as f32;
-                        colour[i] = mix(&|v| albedo[v]).map(|a| a * lit);
                     }
                 }
             }
         });
-
-    // Box-filter the supersamples down to the output size.
-    RgbImage::from_fn(width, height, |x, y| {
-        let mut sum = [0.0f32; 3];
-        for dy in 0..ss {
-            for dx in 0..ss {
-                let c = colour[(y * ss + dy) as usize * w + (x * ss + dx) as usize];
-                (0..3).for_each(|k| sum[k] += c[k]);
-            }
+    drop(depth);
+    let shade = |i: usize| -> [f32; 3] {
+        let Hit { triangle, wa, wb } = hit[i];
+        if triangle == Hit::NONE.triangle {
+            return BACKGROUND.map(|v| f32::from(v) / 255.0);
         }
-        Rgb(sum.map(|v| to_u8(v / (ss * ss) as f32)))
-    })
+        let t = mesh.triangles[triangle as usize];
+        let wc = 1.0 - wa - wb;
+        let mix = |f: &dyn Fn(usize) -> [f32; 3]| {
+            let [fa, fb, fc] = t.map(|v| f(v as usize));
+            [0, 1, 2].map(|k| {
+                (wa * f64::from(fa[k]) + wb * f64::from(fb[k]) + wc * f64::from(fc[k])) as f32
+            })
+        };
+        let n = unit(mix(&|v| mesh.normals[v]).map(f64::from));
+        let lit = AMBIENT + (1.0 - AMBIENT) * dot(n, light).max(0.0) as f32;
+        mix(&|v| albedo[v]).map(|a| a * lit)
+    };
+
+    // Shade and box-filter the supersamples down to the output size, rows in parallel.
+    let mut out = vec![0u8; width as usize * height as usize * 3];
+    out.par_chunks_mut(width as usize * 3)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, px) in row.chunks_exact_mut(3).enumerate() {
+                let mut sum = [0.0f32; 3];
+                for dy in 0..ss as usize {
+                    for dx in 0..ss as usize {
+                        let c = shade((y * ss as usize + dy) * w + x * ss as usize + dx);
+                        (0..3).for_each(|k| sum[k] += c[k]);
+                    }
+                }
+                px.copy_from_slice(&sum.map(|v| to_u8(v / (ss * ss) as f32)));
+            }
+        });
+    RgbImage::from_raw(width, height, out).expect("3 bytes per pixel")
+}
+
+/// The nearest triangle at a supersample and the sample's barycentric weights in it.
+#[derive(Clone, Copy)]
+struct Hit {
+    triangle: u32,
+    wa: f64,
+    wb: f64,
+}
+
+impl Hit {
+    const NONE: Hit = Hit {
+        triangle: u32::MAX,
+        wa: 0.0,
+        wb: 0.0,
+    };
 }
 
 fn to_u8(v: f32) -> u8 {
