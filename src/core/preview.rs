@@ -154,8 +154,8 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
                         depth[i] = z;
                         hit[i] = Hit {
                             triangle: k,
-                            wa,
-                            wb,
+                            wa: wa as f32,
+                            wb: wb as f32,
                         };
                     }
                 }
@@ -167,6 +167,7 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
         if triangle == Hit::NONE.triangle {
             return BACKGROUND.map(|v| f32::from(v) / 255.0);
         }
+        let (wa, wb) = (f64::from(wa), f64::from(wb));
         let t = mesh.triangles[triangle as usize];
         let wc = 1.0 - wa - wb;
         let mix = |f: &dyn Fn(usize) -> [f32; 3]| {
@@ -199,12 +200,14 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
     RgbImage::from_raw(width, height, out).expect("3 bytes per pixel")
 }
 
-/// The nearest triangle at a supersample and the sample's barycentric weights in it.
+/// The nearest triangle at a supersample and the sample's barycentric weights in it
+/// (f32: 12 bytes a sample, as little as the colour buffer it replaces; the weights only
+/// blend colours that end up as 8 bits).
 #[derive(Clone, Copy)]
 struct Hit {
     triangle: u32,
-    wa: f64,
-    wb: f64,
+    wa: f32,
+    wb: f32,
 }
 
 impl Hit {
