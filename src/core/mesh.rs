@@ -71,9 +71,43 @@ pub struct TriMesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
+/// A glTF document and its binary buffer, built once and encoded as `.glb`, `.gltf` or
+/// both (the triangulation and the texture are the expensive part).
+#[derive(Debug, Clone)]
+pub struct Document {
+    root: json::Root,
+    bin: Vec<u8>,
+}
+
+impl Document {
+    /// Triangulate the height map and encode the albedo texture (in parallel).
+    pub fn new(rec: &Reconstruction, opts: &MeshOptions) -> Result<Self, MeshError> {
+        let (root, bin) = document(rec, opts)?;
+        Ok(Self { root, bin })
+    }
+
+    /// The binary glTF (`.glb`) file.
+    pub fn glb(&self) -> Result<Vec<u8>, MeshError> {
+        glb_of(&self.root, &self.bin)
+    }
+
+    /// The self-contained `.gltf` JSON file (buffer embedded as a base64 data URI).
+    pub fn gltf(&self) -> Result<String, MeshError> {
+        let mut root = self.root.clone();
+        root.buffers[0].uri = Some(format!(
+            "data:application/octet-stream;base64,{}",
+            base64(&self.bin)
+        ));
+        root.to_string().map_err(|e| MeshError::Json(e.to_string()))
+    }
+}
+
 /// The mesh as a binary glTF (`.glb`) file.
 pub fn glb(rec: &Reconstruction, opts: &MeshOptions) -> Result<Vec<u8>, MeshError> {
-    let (root, bin) = document(rec, opts)?;
+    Document::new(rec, opts)?.glb()
+}
+
+fn glb_of(root: &json::Root, bin: &[u8]) -> Result<Vec<u8>, MeshError> {
     let mut json = root.to_vec().map_err(|e| MeshError::Json(e.to_string()))?;
     json.resize(json.len().next_multiple_of(4), b' ');
     let bytes = 12 + 8 + json.len() + 8 + bin.len();
@@ -82,7 +116,7 @@ pub fn glb(rec: &Reconstruction, opts: &MeshOptions) -> Result<Vec<u8>, MeshErro
     out.extend_from_slice(b"glTF");
     out.extend_from_slice(&2u32.to_le_bytes());
     out.extend_from_slice(&total.to_le_bytes());
-    for (kind, data) in [(b"JSON", &json), (b"BIN\0", &bin)] {
+    for (kind, data) in [(b"JSON", json.as_slice()), (b"BIN\0", bin)] {
         out.extend_from_slice(&(data.len() as u32).to_le_bytes());
         out.extend_from_slice(kind);
         out.extend_from_slice(data);
@@ -92,12 +126,7 @@ pub fn glb(rec: &Reconstruction, opts: &MeshOptions) -> Result<Vec<u8>, MeshErro
 
 /// The mesh as a self-contained `.gltf` JSON file (buffer embedded as a base64 data URI).
 pub fn gltf(rec: &Reconstruction, opts: &MeshOptions) -> Result<String, MeshError> {
-    let (mut root, bin) = document(rec, opts)?;
-    root.buffers[0].uri = Some(format!(
-        "data:application/octet-stream;base64,{}",
-        base64(&bin)
-    ));
-    root.to_string().map_err(|e| MeshError::Json(e.to_string()))
+    Document::new(rec, opts)?.gltf()
 }
 
 /// The grid step: the smallest step ≥ `min_step` (and ≥ 1) at which at most
@@ -284,8 +313,8 @@ fn check_shapes(rec: &Reconstruction) -> Result<(), MeshError> {
 
 /// The glTF document and its binary buffer (views 4-byte aligned, length padded to 4).
 fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec<u8>), MeshError> {
-    let mesh = triangulate(rec, opts)?;
-    let texture = albedo_png(rec)?;
+    let (mesh, texture) = rayon::join(|| triangulate(rec, opts), || albedo_png(rec));
+    let (mesh, texture) = (mesh?, texture?);
     let mut root = json::Root {
         asset: json::Asset {
             generator: Some(format!("photostereo {}", env!("CARGO_PKG_VERSION"))),
@@ -314,7 +343,12 @@ fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec
             extras: Default::default(),
         })
     };
-    let floats = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let floats = |v: &[f32]| {
+        let mut out = Vec::with_capacity(v.len() * 4);
+        v.iter()
+            .for_each(|x| out.extend_from_slice(&x.to_le_bytes()));
+        out
+    };
 
     let (lo, hi) = bounds(&mesh.positions);
     let n = mesh.positions.len();
@@ -510,7 +544,8 @@ fn png<P: Pixel<Subpixel = u8> + 'static>(
         ExtendedColorType::Rgb8
     };
     let mut out = Vec::new();
-    PngEncoder::new_with_quality(&mut out, CompressionType::Default, FilterType::Adaptive)
+    // Fast settings, as for every PNG the service writes (see `outputs::png_to`).
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Up)
         .write_image(img.as_raw(), img.width(), img.height(), color)
         .map_err(|e| MeshError::Texture(e.to_string()))?;
     Ok(out)
@@ -518,48 +553,70 @@ fn png<P: Pixel<Subpixel = u8> + 'static>(
 
 /// Give background texels near the mask the mean of their already-filled 4-neighbours,
 /// ring by ring, and the rest the mask's mean colour: filtering and mipmaps then blend
-/// the object's edge with its own colours, not black.
+/// the object's edge with its own colours, not black. Each ring is found from the last
+/// one's neighbours, so the cost follows the mask's outline, not the frame.
 fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
     let (h, w) = mask.dim();
-    let mut known = mask.clone();
-    for _ in 0..FILL_RINGS {
-        let before = known.clone();
-        for r in 0..h {
-            for c in 0..w {
-                if before[[r, c]] {
-                    continue;
+    let mut known: Vec<bool> = mask.iter().copied().collect();
+    let mut values: Vec<Vec<f32>> = planes.iter().map(|p| p.iter().copied().collect()).collect();
+    let neighbours = |i: usize| {
+        let (r, c) = (i / w, i % w);
+        [
+            (r > 0).then(|| i - w),
+            (r + 1 < h).then(|| i + w),
+            (c > 0).then(|| i - 1),
+            (c + 1 < w).then(|| i + 1),
+        ]
+        .into_iter()
+        .flatten()
+    };
+    // Ring 1 candidates: background pixels with an object neighbour.
+    let mut ring: Vec<usize> = (0..h * w)
+        .filter(|&i| !known[i] && neighbours(i).any(|j| known[j]))
+        .collect();
+    let mut fills: Vec<f32> = Vec::new();
+    for depth in 0..FILL_RINGS {
+        if ring.is_empty() {
+            break;
+        }
+        // Values first (from pixels known before this ring), then mark the ring known.
+        fills.clear();
+        for &i in &ring {
+            for v in &values {
+                let (mut sum, mut n) = (0.0f32, 0u32);
+                for j in neighbours(i).filter(|&j| known[j]) {
+                    sum += v[j];
+                    n += 1;
                 }
-                let near = [
-                    (r.wrapping_sub(1), c),
-                    (r + 1, c),
-                    (r, c.wrapping_sub(1)),
-                    (r, c + 1),
-                ];
-                let near: Vec<_> = (near.into_iter())
-                    .filter(|&(y, x)| y < h && x < w && before[[y, x]])
-                    .collect();
-                if near.is_empty() {
-                    continue;
-                }
-                for p in planes.iter_mut() {
-                    p[[r, c]] = near.iter().map(|&i| p[i]).sum::<f32>() / near.len() as f32;
-                }
-                known[[r, c]] = true;
+                fills.push(sum / n as f32);
             }
+        }
+        for (k, &i) in ring.iter().enumerate() {
+            for (p, v) in values.iter_mut().enumerate() {
+                v[i] = fills[k * planes.len() + p];
+            }
+            known[i] = true;
+        }
+        if depth + 1 < FILL_RINGS {
+            let mut next: Vec<usize> = (ring.iter())
+                .flat_map(|&i| neighbours(i))
+                .filter(|&j| !known[j])
+                .collect();
+            next.sort_unstable();
+            next.dedup();
+            ring = next;
         }
     }
     let count = mask.iter().filter(|&&m| m).count().max(1) as f32;
-    for p in planes.iter_mut() {
+    for (p, v) in planes.iter_mut().zip(values) {
         let mean = (p.iter().zip(mask))
             .filter(|(_, m)| **m)
             .map(|(v, _)| v)
             .sum::<f32>()
             / count;
-        p.zip_mut_with(&known, |v, &k| {
-            if !k {
-                *v = mean;
-            }
-        });
+        for ((out, v), &k) in p.iter_mut().zip(v).zip(&known) {
+            *out = if k { v } else { mean };
+        }
     }
 }
 

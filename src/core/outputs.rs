@@ -1,11 +1,12 @@
 //! Encoders: the PNG/EXR pictures of a reconstruction and `result.json`, written in
 //! parallel, each under a temporary name and renamed once complete.
 
-use std::io::Cursor;
+use std::fs::File;
+use std::io::Write;
 use std::path::Path;
 
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb, Rgba, Rgba32FImage};
+use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
@@ -56,6 +57,10 @@ pub fn check_selection(names: &[String]) -> Result<(), InputError> {
     }
 }
 
+/// Row filter for every PNG written: `Up` is one subtraction per byte and on smooth
+/// 16-bit maps compresses close to adaptive filtering, which tries all five per row.
+const PNG_FILTER: FilterType = FilterType::Up;
+
 /// Encode a picture as PNG with fast compression (outputs are written on every job; the
 /// few percent that maximum compression saves is not worth several times the time).
 pub fn png_bytes<P, C>(img: &ImageBuffer<P, C>) -> Vec<u8>
@@ -64,41 +69,149 @@ where
     [P::Subpixel]: image::EncodableLayout,
     C: std::ops::Deref<Target = [P::Subpixel]>,
 {
+    png_bytes_filtered(img, PNG_FILTER)
+}
+
+/// [`png_bytes`] with a chosen row filter (the rendered test sets keep the adaptive
+/// filtering their committed bytes were made with).
+pub fn png_bytes_filtered<P, C>(img: &ImageBuffer<P, C>, filter: FilterType) -> Vec<u8>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+    C: std::ops::Deref<Target = [P::Subpixel]>,
+{
     let mut out = Vec::new();
-    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Adaptive)
+    png_with(&mut out, img, filter).expect("encoding a PNG into memory cannot fail");
+    out
+}
+
+/// [`png_bytes`] streamed into `out`.
+pub fn png_to<P, C>(out: &mut dyn Write, img: &ImageBuffer<P, C>) -> std::io::Result<()>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+    C: std::ops::Deref<Target = [P::Subpixel]>,
+{
+    png_with(out, img, PNG_FILTER)
+}
+
+fn png_with<P, C>(
+    out: &mut dyn Write,
+    img: &ImageBuffer<P, C>,
+    filter: FilterType,
+) -> std::io::Result<()>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+    C: std::ops::Deref<Target = [P::Subpixel]>,
+{
+    PngEncoder::new_with_quality(out, CompressionType::Fast, filter)
         .write_image(
             image::EncodableLayout::as_bytes(&**img),
             img.width(),
             img.height(),
             P::COLOR_TYPE,
         )
+        .map_err(std::io::Error::other)
+}
+
+/// Write a 32-bit float RGBA OpenEXR file (single part, scan lines, no compression),
+/// one row at a time from `pixel`: no whole-image buffer, no copy. Uncompressed because
+/// float normals and heights barely compress losslessly and the compressors cost more
+/// than the bytes they save.
+fn write_exr(
+    out: &mut dyn Write,
+    width: usize,
+    height: usize,
+    pixel: impl Fn(usize, usize) -> [f32; 4],
+) -> std::io::Result<()> {
+    fn attribute(h: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
+        h.extend_from_slice(name.as_bytes());
+        h.push(0);
+        h.extend_from_slice(kind.as_bytes());
+        h.push(0);
+        h.extend_from_slice(&(value.len() as i32).to_le_bytes());
+        h.extend_from_slice(value);
+    }
+    let i32s = |v: &[i32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let mut h = Vec::with_capacity(512);
+    h.extend_from_slice(&[0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0]);
+    let mut channels = Vec::new();
+    // Channels in the file are sorted by name: A, B, G, R.
+    for name in ["A", "B", "G", "R"] {
+        channels.extend_from_slice(name.as_bytes());
+        channels.push(0);
+        channels.extend_from_slice(&2i32.to_le_bytes()); // FLOAT
+        channels.extend_from_slice(&[0, 0, 0, 0]); // pLinear, reserved
+        channels.extend_from_slice(&i32s(&[1, 1])); // x, y sampling
+    }
+    channels.push(0);
+    attribute(&mut h, "channels", "chlist", &channels);
+    attribute(&mut h, "compression", "compression", &[0]);
+    let window = i32s(&[0, 0, width as i32 - 1, height as i32 - 1]);
+    attribute(&mut h, "dataWindow", "box2i", &window);
+    attribute(&mut h, "displayWindow", "box2i", &window);
+    attribute(&mut h, "lineOrder", "lineOrder", &[0]);
+    attribute(&mut h, "pixelAspectRatio", "float", &1f32.to_le_bytes());
+    attribute(&mut h, "screenWindowCenter", "v2f", &[0; 8]);
+    attribute(&mut h, "screenWindowWidth", "float", &1f32.to_le_bytes());
+    h.push(0);
+    let line = width * 4 * 4;
+    let first = (h.len() + height * 8) as u64;
+    for y in 0..height as u64 {
+        h.extend_from_slice(&(first + y * (8 + line as u64)).to_le_bytes());
+    }
+    out.write_all(&h)?;
+    let mut row = vec![0u8; 8 + line];
+    let plane = width * 4;
+    for y in 0..height {
+        row[..4].copy_from_slice(&(y as i32).to_le_bytes());
+        row[4..8].copy_from_slice(&(line as i32).to_le_bytes());
+        let (a, rest) = row[8..].split_at_mut(plane);
+        let (b, rest) = rest.split_at_mut(plane);
+        let (g, r) = rest.split_at_mut(plane);
+        for x in 0..width {
+            let p = pixel(y, x);
+            let at = x * 4..x * 4 + 4;
+            r[at.clone()].copy_from_slice(&p[0].to_le_bytes());
+            g[at.clone()].copy_from_slice(&p[1].to_le_bytes());
+            b[at.clone()].copy_from_slice(&p[2].to_le_bytes());
+            a[at].copy_from_slice(&p[3].to_le_bytes());
+        }
+        out.write_all(&row)?;
+    }
+    Ok(())
+}
+
+/// 16-bit gray PNG of values in [0, 1] (clamped; NaN → 0), in row-major order.
+fn gray16_to(
+    out: &mut dyn Write,
+    (rows, cols): (usize, usize),
+    values: impl Iterator<Item = f32>,
+) -> std::io::Result<()> {
+    let data: Vec<u16> = values.map(unit16).collect();
+    let img = ImageBuffer::<Luma<u16>, _>::from_raw(cols as u32, rows as u32, data)
+        .expect("one value per pixel");
+    png_to(out, &img)
+}
+
+fn unit16(v: f32) -> u16 {
+    (v.clamp(0.0, 1.0) * 65535.0).round() as u16
+}
+
+fn gray16(values: &Array2<f32>, map: impl Fn(f32) -> f32) -> Vec<u8> {
+    let mut out = Vec::new();
+    gray16_to(&mut out, values.dim(), values.iter().map(|&v| map(v)))
         .expect("encoding a PNG into memory cannot fail");
     out
 }
 
-fn exr_bytes(img: &Rgba32FImage) -> Vec<u8> {
-    let mut out = Cursor::new(Vec::new());
-    DynamicImage::ImageRgba32F(img.clone())
-        .write_to(&mut out, ImageFormat::OpenExr)
-        .expect("encoding EXR into memory cannot fail");
-    out.into_inner()
-}
-
-fn gray16(values: &Array2<f32>, map: impl Fn(f32) -> f32 + Sync) -> Vec<u8> {
-    let (rows, cols) = values.dim();
-    let img = ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(cols as u32, rows as u32, |x, y| {
-        let v = map(values[[y as usize, x as usize]]).clamp(0.0, 1.0);
-        Luma([(v * 65535.0).round() as u16])
-    });
-    png_bytes(&img)
-}
-
-fn binary(m: &Array2<bool>) -> Vec<u8> {
+fn binary_to(out: &mut dyn Write, m: &Array2<bool>) -> std::io::Result<()> {
     let (rows, cols) = m.dim();
-    let img = ImageBuffer::<Luma<u8>, Vec<u8>>::from_fn(cols as u32, rows as u32, |x, y| {
-        Luma([if m[[y as usize, x as usize]] { 255 } else { 0 }])
-    });
-    png_bytes(&img)
+    let data: Vec<u8> = m.iter().map(|&b| if b { 255 } else { 0 }).collect();
+    let img = ImageBuffer::<Luma<u8>, _>::from_raw(cols as u32, rows as u32, data)
+        .expect("one value per pixel");
+    png_to(out, &img)
 }
 
 /// Normal in the OpenGL normal-map frame (x right, y up, z to viewer) from the seed frame.
@@ -106,35 +219,57 @@ fn gl_normal(n: &Array3<f32>, r: usize, c: usize) -> [f32; 3] {
     [n[[r, c, 0]], -n[[r, c, 1]], n[[r, c, 2]]]
 }
 
+/// Whether artifact `name` applies to this reconstruction (`albedo_rgb.png` needs colour).
+pub fn applies(rec: &Reconstruction, name: &str) -> bool {
+    name != "albedo_rgb.png" || rec.albedo_rgb.is_some()
+}
+
 /// Encode one named artifact (mesh files excepted), or None if it does not apply.
 pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Option<Vec<u8>> {
+    if !applies(rec, name) {
+        return None;
+    }
+    let mut out = Vec::new();
+    match encode_to(&mut out, rec, name, shading_light) {
+        Ok(true) => Some(out),
+        Ok(false) => None,
+        Err(e) => panic!("encoding {name} into memory cannot fail: {e}"),
+    }
+}
+
+/// Stream one named artifact (mesh files excepted) into `out`; false when `name` is not
+/// a picture this module knows or does not apply.
+pub fn encode_to(
+    out: &mut dyn Write,
+    rec: &Reconstruction,
+    name: &str,
+    shading_light: [f64; 3],
+) -> std::io::Result<bool> {
     let (rows, cols) = (rec.height, rec.width);
     let (w, h) = (cols as u32, rows as u32);
     let mask = &rec.mask;
-    let bytes = match name {
-        "albedo.png" => gray16(&rec.albedo, |a| a),
+    let normals = || rec.normals.rows().into_iter().zip(mask.iter());
+    match name {
+        "albedo.png" => gray16_to(out, (rows, cols), rec.albedo.iter().copied())?,
         "albedo_rgb.png" => {
-            let rgb = rec.albedo_rgb.as_ref()?;
-            let img = ImageBuffer::<Rgb<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
-                Rgb([0, 1, 2].map(|k| {
-                    (rgb[[y as usize, x as usize, k]].clamp(0.0, 1.0) * 65535.0).round() as u16
-                }))
-            });
-            png_bytes(&img)
+            let Some(rgb) = rec.albedo_rgb.as_ref() else {
+                return Ok(false);
+            };
+            let data: Vec<u16> = rgb.iter().map(|&v| unit16(v)).collect();
+            let img = ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel");
+            png_to(out, &img)?
         }
-        "mask.png" => binary(mask),
-        "unreliable.png" => binary(&rec.unreliable),
-        "confidence.png" => gray16(&rec.confidence, |v| v),
+        "mask.png" => binary_to(out, mask)?,
+        "unreliable.png" => binary_to(out, &rec.unreliable)?,
+        "confidence.png" => gray16_to(out, (rows, cols), rec.confidence.iter().copied())?,
         "normal.png" => {
-            let img = ImageBuffer::<Rgb<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
-                let (r, c) = (y as usize, x as usize);
-                if !mask[[r, c]] {
-                    return Rgb([0, 0, 0]);
-                }
-                Rgb(gl_normal(&rec.normals, r, c)
-                    .map(|v| ((v + 1.0) * 0.5 * 65535.0).round().clamp(0.0, 65535.0) as u16))
-            });
-            png_bytes(&img)
+            let mut data = Vec::with_capacity(rows * cols * 3);
+            for (n, &m) in normals() {
+                let gl = [n[0], -n[1], n[2]];
+                data.extend(gl.map(|v| if m { unit16((v + 1.0) * 0.5) } else { 0 }));
+            }
+            let img = ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel");
+            png_to(out, &img)?
         }
         "normal_x.png" | "normal_y.png" | "normal_z.png" => {
             let k = match name {
@@ -142,57 +277,48 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
                 "normal_y.png" => 1,
                 _ => 2,
             };
-            let comp = Array2::from_shape_fn((rows, cols), |(r, c)| {
-                if mask[[r, c]] {
-                    (rec.normals[[r, c, k]] + 1.0) * 0.5
-                } else {
-                    0.0
-                }
-            });
-            gray16(&comp, |v| v)
+            let comp = normals().map(|(n, &m)| if m { (n[k] + 1.0) * 0.5 } else { 0.0 });
+            gray16_to(out, (rows, cols), comp)?
         }
         "height.png" => {
             let (lo, hi) = (rec.report.height_min, rec.report.height_max);
             let span = if hi > lo { hi - lo } else { 1.0 };
-            let z = Array2::from_shape_fn((rows, cols), |(r, c)| {
-                if mask[[r, c]] {
-                    (rec.heights[[r, c]] - lo) / span
-                } else {
-                    0.0
-                }
-            });
-            gray16(&z, |v| v)
+            let z = (rec.heights.iter().zip(mask.iter()))
+                .map(|(&z, &m)| if m { (z - lo) / span } else { 0.0 });
+            gray16_to(out, (rows, cols), z)?
         }
-        "normal.exr" => {
-            let img = Rgba32FImage::from_fn(w, h, |x, y| {
-                let (r, c) = (y as usize, x as usize);
-                let [nx, ny, nz] = gl_normal(&rec.normals, r, c);
-                Rgba([nx, ny, nz, if mask[[r, c]] { 1.0 } else { 0.0 }])
-            });
-            exr_bytes(&img)
+        "normal.exr" => write_exr(out, cols, rows, |r, c| {
+            let [nx, ny, nz] = gl_normal(&rec.normals, r, c);
+            [nx, ny, nz, if mask[[r, c]] { 1.0 } else { 0.0 }]
+        })?,
+        "height.exr" => write_exr(out, cols, rows, |r, c| {
+            let z = rec.heights[[r, c]];
+            [z, z, z, if mask[[r, c]] { 1.0 } else { 0.0 }]
+        })?,
+        "needle.png" => png_to(out, &render::needle_map(&rec.albedo, &rec.normals, mask))?,
+        "curl.png" => png_to(out, &render::diverging(&rec.curl, mask))?,
+        "shaded.png" => {
+            let shaded = render::shade(&rec.albedo, &rec.normals, shading_light);
+            gray16_to(out, (rows, cols), shaded.iter().copied())?
         }
-        "height.exr" => {
-            let img = Rgba32FImage::from_fn(w, h, |x, y| {
-                let (r, c) = (y as usize, x as usize);
-                let z = rec.heights[[r, c]];
-                Rgba([z, z, z, if mask[[r, c]] { 1.0 } else { 0.0 }])
-            });
-            exr_bytes(&img)
-        }
-        "needle.png" => png_bytes(&render::needle_map(&rec.albedo, &rec.normals, mask)),
-        "curl.png" => png_bytes(&render::diverging(&rec.curl, mask)),
-        "shaded.png" => gray16(
-            &render::shade(&rec.albedo, &rec.normals, shading_light),
-            |v| v,
-        ),
-        _ => return None,
-    };
-    Some(bytes)
+        _ => return Ok(false),
+    }
+    Ok(true)
 }
 
 /// Write `bytes` to `dir/name` through a temporary file, so a reader never sees a
 /// partial artifact.
 pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError> {
+    write_atomic_with(dir, name, &mut |f| f.write_all(bytes))
+}
+
+/// Stream an artifact into `dir/name` through a temporary file (buffered, synced, then
+/// renamed), so large outputs never exist as a whole in memory.
+pub fn write_atomic_with(
+    dir: &Path,
+    name: &str,
+    write: &mut dyn FnMut(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<(), RunError> {
     let tmp = dir.join(format!(".{name}.tmp"));
     let path = dir.join(name);
     let fail = |e: std::io::Error| RunError::Output {
@@ -200,9 +326,9 @@ pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError
         reason: e.to_string(),
     };
     {
-        use std::io::Write;
-        let mut f = std::fs::File::create(&tmp).map_err(fail)?;
-        f.write_all(bytes).map_err(fail)?;
+        let mut f = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp).map_err(fail)?);
+        write(&mut f).map_err(fail)?;
+        let f = f.into_inner().map_err(|e| fail(e.into_error()))?;
         f.sync_all().map_err(fail)?;
     }
     std::fs::rename(&tmp, &path).map_err(fail)
@@ -218,11 +344,17 @@ pub fn write_pictures(
 ) -> Result<Vec<String>, RunError> {
     let written: Vec<Option<String>> = names
         .par_iter()
-        .map(|name| match encode(rec, name, shading_light) {
-            Some(bytes) => write_atomic(dir, name, &bytes).map(|_| Some(name.to_string())),
-            None => Ok(None),
+        .map(|name| {
+            if !applies(rec, name) {
+                return Ok(None);
+            }
+            write_atomic_with(dir, name, &mut |f| {
+                encode_to(f, rec, name, shading_light).map(|_| ())
+            })?;
+
+            Ok(Some(name.to_string()))
         })
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<_, RunError>>()?;
     Ok(written.into_iter().flatten().collect())
 }
 
@@ -257,4 +389,26 @@ pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, Input
 /// Decode an encoded artifact's pixels, for tests and tools.
 pub fn decode_png16(bytes: &[u8]) -> image::ImageResult<DynamicImage> {
     image::load_from_memory_with_format(bytes, ImageFormat::Png)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exr_writer_round_trips_through_the_image_crate() {
+        let (w, h) = (5, 3);
+        let px = |r: usize, c: usize| [r as f32, c as f32 * 0.5, -1.25, (r + c) as f32 % 2.0];
+        let mut bytes = Vec::new();
+        write_exr(&mut bytes, w, h, px).unwrap();
+        let img = image::load_from_memory_with_format(&bytes, ImageFormat::OpenExr)
+            .unwrap()
+            .to_rgba32f();
+        assert_eq!(img.dimensions(), (w as u32, h as u32));
+        for r in 0..h {
+            for c in 0..w {
+                assert_eq!(img.get_pixel(c as u32, r as u32).0, px(r, c), "({r}, {c})");
+            }
+        }
+    }
 }

@@ -1,11 +1,11 @@
 //! `reconstruct`: the one path from an [`ImageSet`] to a [`Reconstruction`], shared by the
 //! CLI and the job worker.
 
+use std::borrow::Cow;
 use std::path::Path;
 use std::time::Instant;
 
 use ndarray::{Array2, Array3, Zip};
-use rayon::prelude::*;
 use serde::Serialize;
 
 use super::InputError;
@@ -128,6 +128,24 @@ pub fn reconstruct(
     opts: &Options,
     progress: Progress,
 ) -> Result<Reconstruction, RunError> {
+    reconstruct_from(Cow::Borrowed(set), opts, progress)
+}
+
+/// [`reconstruct`] taking the set by value: the 16-bit image stack (the job's largest
+/// buffer) is freed as soon as the solve is done, before integration and outputs.
+pub fn reconstruct_owned(
+    set: ImageSet,
+    opts: &Options,
+    progress: Progress,
+) -> Result<Reconstruction, RunError> {
+    reconstruct_from(Cow::Owned(set), opts, progress)
+}
+
+fn reconstruct_from(
+    mut set: Cow<'_, ImageSet>,
+    opts: &Options,
+    progress: Progress,
+) -> Result<Reconstruction, RunError> {
     let mut timings = Timings::default();
     let condition = lights::check_solvable(&set.lights, opts.max_condition)?;
     if let Some(names) = &opts.outputs {
@@ -135,7 +153,10 @@ pub fn reconstruct(
     }
 
     step(progress, Stage::Solve)?;
-    let surface = timings.time(Stage::Solve, || solve::solve(set, opts.solver));
+    let surface = timings.time(Stage::Solve, || solve::solve(&set, opts.solver));
+    if let Cow::Owned(owned) = &mut set {
+        owned.planes = Vec::new();
+    }
     let Surface {
         mut albedo,
         mut normals,
@@ -179,6 +200,9 @@ pub fn reconstruct(
         .colour_moments
         .as_ref()
         .map(|m| colour_albedo(m, &normals, &mask, &set.lights));
+    if let Cow::Owned(owned) = &mut set {
+        owned.colour_moments = None;
+    }
 
     step(progress, Stage::Integrate)?;
     let (heights, curl) = timings.time(Stage::Integrate, || {
@@ -282,12 +306,33 @@ pub fn run(
     dir: &Path,
     progress: Progress,
 ) -> Result<Report, RunError> {
-    let mut rec = reconstruct(set, opts, progress)?;
+    let rec = reconstruct(set, opts, progress)?;
+    write_all(rec, opts, dir, progress)
+}
+
+/// [`run`] taking the set by value, so its image stack is freed right after the solve
+/// (see [`reconstruct_owned`]): what the CLI, the job worker and the bench use.
+pub fn run_owned(
+    set: ImageSet,
+    opts: &Options,
+    dir: &Path,
+    progress: Progress,
+) -> Result<Report, RunError> {
+    let rec = reconstruct_owned(set, opts, progress)?;
+    write_all(rec, opts, dir, progress)
+}
+
+fn write_all(
+    mut rec: Reconstruction,
+    opts: &Options,
+    dir: &Path,
+    progress: Progress,
+) -> Result<Report, RunError> {
     std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
         path: dir.display().to_string(),
         reason: e.to_string(),
     })?;
-    let wanted = |name: &str| {
+    let wanted = |name: &str| -> bool {
         opts.outputs
             .as_ref()
             .is_none_or(|o| o.iter().any(|n| n == name))
@@ -319,53 +364,51 @@ pub fn run(
 }
 
 /// The glTF files and the preview picture. A mask too small to triangulate gives no mesh
-/// (and says so in the log of the caller) rather than failing the whole job.
+/// (and says so in the log of the caller) rather than failing the whole job. One glTF
+/// document serves both mesh files; it and the preview are built in parallel.
 fn write_meshes(
     rec: &Reconstruction,
     opts: &Options,
     dir: &Path,
-    wanted: &dyn Fn(&str) -> bool,
+    wanted: &(dyn Fn(&str) -> bool + Sync),
 ) -> Result<Vec<String>, RunError> {
-    use super::mesh::{self, MeshError};
-    type Encode<'a> = Box<dyn Fn() -> Result<Vec<u8>, MeshError> + Sync + 'a>;
-    let mut jobs: Vec<(&str, Encode)> = Vec::new();
-    if wanted("mesh.glb") {
-        jobs.push(("mesh.glb", Box::new(|| mesh::glb(rec, &opts.mesh))));
-    }
-    if wanted("mesh.gltf") {
-        jobs.push((
-            "mesh.gltf",
-            Box::new(|| mesh::gltf(rec, &opts.mesh).map(String::into_bytes)),
-        ));
-    }
-    if wanted("preview.png") {
-        jobs.push((
-            "preview.png",
-            Box::new(|| {
-                Ok(outputs::png_bytes(&super::preview::preview(
-                    rec,
-                    PREVIEW_SIZE.0,
-                    PREVIEW_SIZE.1,
-                )))
-            }),
-        ));
-    }
-    let results: Vec<Result<Option<String>, RunError>> = jobs
-        .par_iter()
-        .map(|(name, make)| match make() {
-            Ok(bytes) => outputs::write_atomic(dir, name, &bytes).map(|_| Some(name.to_string())),
-            Err(MeshError::EmptyMask | MeshError::NoTriangles { .. }) => Ok(None),
-            Err(e @ (MeshError::Options(_) | MeshError::TooLarge { .. })) => {
-                Err(InputError::Options(e.to_string()).into())
+    use super::mesh::{Document, MeshError};
+    let save = |name: &str, made: Result<Vec<u8>, MeshError>| match made {
+        Ok(bytes) => outputs::write_atomic(dir, name, &bytes).map(|_| Some(name.to_string())),
+        Err(MeshError::EmptyMask | MeshError::NoTriangles { .. }) => Ok(None),
+        Err(e @ (MeshError::Options(_) | MeshError::TooLarge { .. })) => {
+            Err(InputError::Options(e.to_string()).into())
+        }
+        Err(e) => Err(RunError::Output {
+            path: dir.join(name).display().to_string(),
+            reason: e.to_string(),
+        }),
+    };
+    let (glb, gltf) = (wanted("mesh.glb"), wanted("mesh.gltf"));
+    let (meshes, preview) = rayon::join(
+        || -> Vec<Result<Option<String>, RunError>> {
+            if !(glb || gltf) {
+                return Vec::new();
             }
-            Err(e) => Err(RunError::Output {
-                path: dir.join(name).display().to_string(),
-                reason: e.to_string(),
-            }),
-        })
-        .collect();
+            let doc = match Document::new(rec, &opts.mesh) {
+                Ok(doc) => doc,
+                Err(e) => return vec![save(if glb { "mesh.glb" } else { "mesh.gltf" }, Err(e))],
+            };
+            let (a, b) = rayon::join(
+                || glb.then(|| save("mesh.glb", doc.glb())),
+                || gltf.then(|| save("mesh.gltf", doc.gltf().map(String::into_bytes))),
+            );
+            a.into_iter().chain(b).collect()
+        },
+        || {
+            wanted("preview.png").then(|| {
+                let img = super::preview::preview(rec, PREVIEW_SIZE.0, PREVIEW_SIZE.1);
+                save("preview.png", Ok(outputs::png_bytes(&img)))
+            })
+        },
+    );
     let mut written = Vec::new();
-    for r in results {
+    for r in meshes.into_iter().chain(preview) {
         written.extend(r?);
     }
     Ok(written)

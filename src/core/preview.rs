@@ -7,6 +7,7 @@
 //! z-buffered rasteriser draws a decimated mesh with 2×2 supersampling.
 
 use image::{Rgb, RgbImage};
+use rayon::prelude::*;
 
 use super::mesh;
 use super::options::{MeshNormals, MeshOptions};
@@ -23,6 +24,8 @@ pub const BACKGROUND: [u8; 3] = [217, 222, 230];
 const AMBIENT: f32 = 0.15;
 /// Free border around the object, as a fraction of each side.
 const MARGIN: f64 = 0.05;
+/// Rows of supersampled pixels per parallel band.
+const BAND_ROWS: usize = 32;
 /// Supersampled pixels above this are not worth the memory; render 1×1 instead.
 const MAX_SUPERSAMPLED: u64 = 16_000_000;
 
@@ -96,58 +99,123 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
         })
         .collect();
 
-    let mut depth = vec![f64::NEG_INFINITY; w * h];
-    let mut colour = vec![BACKGROUND.map(|v| f32::from(v) / 255.0); w * h];
-    for t in &mesh.triangles {
+    // Bands of rows are drawn in parallel, each from the triangles whose bounding box
+    // reaches it, in mesh order (so ties in depth resolve as in a serial pass).
+    let band = BAND_ROWS.min(h.max(1));
+    let mut bins: Vec<Vec<u32>> = vec![Vec::new(); h.div_ceil(band)];
+    let mut boxes = Vec::with_capacity(mesh.triangles.len());
+    for (k, t) in mesh.triangles.iter().enumerate() {
         let [a, b, c] = t.map(|i| screen[i as usize]);
-        let area = edge(a, b, c);
-        if area.abs() < 1e-12 {
-            continue;
-        }
         let x0 = a[0].min(b[0]).min(c[0]).floor().max(0.0) as usize;
         let y0 = a[1].min(b[1]).min(c[1]).floor().max(0.0) as usize;
         let x1 = (a[0].max(b[0]).max(c[0]).ceil() as usize).min(w);
         let y1 = (a[1].max(b[1]).max(c[1]).ceil() as usize).min(h);
-        for y in y0..y1 {
-            for x in x0..x1 {
-                let p = [x as f64 + 0.5, y as f64 + 0.5, 0.0];
-                let (wa, wb) = (edge(b, c, p) / area, edge(c, a, p) / area);
-                let wc = 1.0 - wa - wb;
-                // Inclusive edges: shared edges never leave cracks (overdraw is harmless).
-                if wa < -1e-9 || wb < -1e-9 || wc < -1e-9 {
-                    continue;
-                }
-                let z = wa * a[2] + wb * b[2] + wc * c[2];
-                let i = y * w + x;
-                if z <= depth[i] {
-                    continue;
-                }
-                depth[i] = z;
-                let mix = |f: &dyn Fn(usize) -> [f32; 3]| {
-                    let [fa, fb, fc] = t.map(|v| f(v as usize));
-                    [0, 1, 2].map(|k| {
-                        (wa * f64::from(fa[k]) + wb * f64::from(fb[k]) + wc * f64::from(fc[k]))
-                            as f32
-                    })
-                };
-                let n = unit(mix(&|v| mesh.normals[v]).map(f64::from));
-                let lit = AMBIENT + (1.0 - AMBIENT) * dot(n, light).max(0.0) as f32;
-                colour[i] = mix(&|v| albedo[v]).map(|a| a * lit);
+        boxes.push([x0, y0, x1, y1]);
+        if y0 < y1 && x0 < x1 {
+            for bin in &mut bins[y0 / band..y1.div_ceil(band)] {
+                bin.push(k as u32);
             }
         }
     }
-
-    // Box-filter the supersamples down to the output size.
-    RgbImage::from_fn(width, height, |x, y| {
-        let mut sum = [0.0f32; 3];
-        for dy in 0..ss {
-            for dx in 0..ss {
-                let c = colour[(y * ss + dy) as usize * w + (x * ss + dx) as usize];
-                (0..3).for_each(|k| sum[k] += c[k]);
+    // Visibility first (depth, and which triangle at which barycentrics), shading after:
+    // a sample hidden by later, nearer triangles is never shaded.
+    let mut depth = vec![f64::NEG_INFINITY; w * h];
+    let mut hit = vec![Hit::NONE; w * h];
+    depth
+        .par_chunks_mut(band * w)
+        .zip(hit.par_chunks_mut(band * w))
+        .zip(bins.par_iter())
+        .enumerate()
+        .for_each(|(bi, ((depth, hit), bin))| {
+            let first = bi * band;
+            for &k in bin {
+                let t = mesh.triangles[k as usize];
+                let [a, b, c] = t.map(|i| screen[i as usize]);
+                let area = edge(a, b, c);
+                if area.abs() < 1e-12 {
+                    continue;
+                }
+                let [x0, y0, x1, y1] = boxes[k as usize];
+                for y in y0.max(first)..y1.min(first + band) {
+                    for x in x0..x1 {
+                        let p = [x as f64 + 0.5, y as f64 + 0.5, 0.0];
+                        let (wa, wb) = (edge(b, c, p) / area, edge(c, a, p) / area);
+                        let wc = 1.0 - wa - wb;
+                        // Inclusive edges: shared edges never leave cracks (overdraw is
+                        // harmless).
+                        if wa < -1e-9 || wb < -1e-9 || wc < -1e-9 {
+                            continue;
+                        }
+                        let z = wa * a[2] + wb * b[2] + wc * c[2];
+                        let i = (y - first) * w + x;
+                        if z <= depth[i] {
+                            continue;
+                        }
+                        depth[i] = z;
+                        hit[i] = Hit {
+                            triangle: k,
+                            wa: wa as f32,
+                            wb: wb as f32,
+                        };
+                    }
+                }
             }
+        });
+    drop(depth);
+    let shade = |i: usize| -> [f32; 3] {
+        let Hit { triangle, wa, wb } = hit[i];
+        if triangle == Hit::NONE.triangle {
+            return BACKGROUND.map(|v| f32::from(v) / 255.0);
         }
-        Rgb(sum.map(|v| to_u8(v / (ss * ss) as f32)))
-    })
+        let (wa, wb) = (f64::from(wa), f64::from(wb));
+        let t = mesh.triangles[triangle as usize];
+        let wc = 1.0 - wa - wb;
+        let mix = |f: &dyn Fn(usize) -> [f32; 3]| {
+            let [fa, fb, fc] = t.map(|v| f(v as usize));
+            [0, 1, 2].map(|k| {
+                (wa * f64::from(fa[k]) + wb * f64::from(fb[k]) + wc * f64::from(fc[k])) as f32
+            })
+        };
+        let n = unit(mix(&|v| mesh.normals[v]).map(f64::from));
+        let lit = AMBIENT + (1.0 - AMBIENT) * dot(n, light).max(0.0) as f32;
+        mix(&|v| albedo[v]).map(|a| a * lit)
+    };
+
+    // Shade and box-filter the supersamples down to the output size, rows in parallel.
+    let mut out = vec![0u8; width as usize * height as usize * 3];
+    out.par_chunks_mut(width as usize * 3)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (x, px) in row.chunks_exact_mut(3).enumerate() {
+                let mut sum = [0.0f32; 3];
+                for dy in 0..ss as usize {
+                    for dx in 0..ss as usize {
+                        let c = shade((y * ss as usize + dy) * w + x * ss as usize + dx);
+                        (0..3).for_each(|k| sum[k] += c[k]);
+                    }
+                }
+                px.copy_from_slice(&sum.map(|v| to_u8(v / (ss * ss) as f32)));
+            }
+        });
+    RgbImage::from_raw(width, height, out).expect("3 bytes per pixel")
+}
+
+/// The nearest triangle at a supersample and the sample's barycentric weights in it
+/// (f32: 12 bytes a sample, as little as the colour buffer it replaces; the weights only
+/// blend colours that end up as 8 bits).
+#[derive(Clone, Copy)]
+struct Hit {
+    triangle: u32,
+    wa: f32,
+    wb: f32,
+}
+
+impl Hit {
+    const NONE: Hit = Hit {
+        triangle: u32::MAX,
+        wa: 0.0,
+        wb: 0.0,
+    };
 }
 
 fn to_u8(v: f32) -> u8 {

@@ -2,26 +2,26 @@
 //! and a diverging colour map. Pure functions over arrays; encoding lives in `outputs`.
 
 use image::{Rgb, RgbImage};
-use ndarray::{Array2, Array3};
+use ndarray::{Array2, Array3, Axis, Zip};
 
 /// albedo · max(0, n·l̂): the surface re-lit by a distant light (any length, not zero).
 pub fn shade(albedo: &Array2<f32>, normals: &Array3<f32>, light: [f64; 3]) -> Array2<f32> {
     let len = light.iter().map(|v| v * v).sum::<f64>().sqrt();
     let l = light.map(|v| (v / len) as f32);
-    Array2::from_shape_fn(albedo.dim(), |(r, c)| {
-        let d = normals[[r, c, 0]] * l[0] + normals[[r, c, 1]] * l[1] + normals[[r, c, 2]] * l[2];
-        albedo[[r, c]] * d.max(0.0)
-    })
+    Zip::from(albedo)
+        .and(normals.lanes(Axis(2)))
+        .par_map_collect(|&a, n| a * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).max(0.0))
 }
 
 /// The seed's quiver plot as a picture: the albedo in gray, with a needle every few
 /// pixels from each sample along the normal's image-plane direction (x right, y down).
 pub fn needle_map(albedo: &Array2<f32>, normals: &Array3<f32>, mask: &Array2<bool>) -> RgbImage {
     let (rows, cols) = albedo.dim();
-    let mut img = RgbImage::from_fn(cols as u32, rows as u32, |x, y| {
-        let v = (albedo[[y as usize, x as usize]].clamp(0.0, 1.0) * 160.0) as u8;
-        Rgb([v, v, v])
-    });
+    let gray = albedo
+        .iter()
+        .flat_map(|a| [(a.clamp(0.0, 1.0) * 160.0) as u8; 3]);
+    let mut img =
+        RgbImage::from_raw(cols as u32, rows as u32, gray.collect()).expect("3 bytes per pixel");
     let spacing = (rows.max(cols) / 40).max(4);
     let length = spacing as f32 * 1.6;
     for r in (spacing / 2..rows).step_by(spacing) {
@@ -76,19 +76,17 @@ pub fn diverging(values: &Array2<f32>, mask: &Array2<bool>) -> RgbImage {
         if *p > 0.0 { *p } else { 1.0 }
     };
     let (rows, cols) = values.dim();
-    RgbImage::from_fn(cols as u32, rows as u32, |x, y| {
-        let (r, c) = (y as usize, x as usize);
-        if !mask[[r, c]] {
-            return Rgb([0, 0, 0]);
-        }
-        let t = (values[[r, c]] / scale).clamp(-1.0, 1.0);
+    let mut raw = Vec::with_capacity(rows * cols * 3);
+    for (&v, &m) in values.iter().zip(mask.iter()) {
+        let t = (v / scale).clamp(-1.0, 1.0);
         let fade = |k: f32| (255.0 * (1.0 - k)) as u8;
-        if t >= 0.0 {
-            Rgb([255, fade(t), fade(t)])
-        } else {
-            Rgb([fade(-t), fade(-t), 255])
-        }
-    })
+        raw.extend_from_slice(&match (m, t >= 0.0) {
+            (false, _) => [0, 0, 0],
+            (true, true) => [255, fade(t), fade(t)],
+            (true, false) => [fade(-t), fade(-t), 255],
+        });
+    }
+    RgbImage::from_raw(cols as u32, rows as u32, raw).expect("3 bytes per pixel")
 }
 
 #[cfg(test)]

@@ -49,6 +49,11 @@ pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
 }
 
 /// Every observation counts: plain or intensity-weighted least squares.
+///
+/// Works row by row (rows in parallel): each image's row is a contiguous run of u16, so
+/// the L2 solve is a streaming accumulation g += pinv_k · I_k over the images, and the
+/// residual a second pass over the same rows while they are still in cache. The inner
+/// loops run over columns and vectorise.
 fn linear(set: &ImageSet, solver: Solver) -> Surface {
     let (rows, cols) = (set.height, set.width);
     let lights: Vec<[f32; 3]> = set
@@ -67,6 +72,18 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
     } else {
         SCALE
     };
+    // Planes from intake are contiguous; anything else is copied once, not per pixel.
+    let owned: Vec<Option<Array2<u16>>> = (set.planes.iter())
+        .map(|p| (!p.is_standard_layout()).then(|| p.as_standard_layout().into_owned()))
+        .collect();
+    let planes: Vec<&[u16]> = (set.planes.iter().zip(&owned))
+        .map(|(p, o)| {
+            o.as_ref()
+                .unwrap_or(p)
+                .as_slice()
+                .expect("standard layout is contiguous")
+        })
+        .collect();
 
     albedo
         .axis_iter_mut(Axis(0))
@@ -75,27 +92,67 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
         .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
         .enumerate()
-        .for_each(
-            |(r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
-                let mut obs = vec![0f32; n];
-                for c in 0..cols {
-                    for (i, o) in obs.iter_mut().enumerate() {
-                        *o = set.planes[i][[r, c]] as f32 * SCALE;
+        .with_min_len(4)
+        .for_each_init(
+            || RowScratch::new(cols, n),
+            |s, (r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
+                let row = |k: usize| &planes[k][r * cols..(r + 1) * cols];
+                let RowScratch {
+                    gx,
+                    gy,
+                    gz,
+                    sq,
+                    obs,
+                } = s;
+                match solver {
+                    Solver::L2 => {
+                        gx.fill(0.0);
+                        gy.fill(0.0);
+                        gz.fill(0.0);
+                        // Separate x, y, z lanes so the column loops vectorise.
+                        for (k, p) in pinv.iter().enumerate() {
+                            let lanes = gx.iter_mut().zip(gy.iter_mut()).zip(gz.iter_mut());
+                            for (((x, y), z), &v) in lanes.zip(row(k)) {
+                                let o = v as f32 * SCALE;
+                                *x += p[0] * o;
+                                *y += p[1] * o;
+                                *z += p[2] * o;
+                            }
+                        }
                     }
-                    let g = match solver {
-                        Solver::L2 => apply(&pinv, &obs),
-                        Solver::Weighted => weighted(&lights, &obs),
-                        Solver::Robust => unreachable!("handled by robust::solve"),
-                    };
+                    Solver::Weighted => {
+                        for c in 0..cols {
+                            for (k, o) in obs.iter_mut().enumerate() {
+                                *o = row(k)[c] as f32 * SCALE;
+                            }
+                            [gx[c], gy[c], gz[c]] = weighted(&lights, obs);
+                        }
+                    }
+                    Solver::Robust => unreachable!("handled by robust::solve"),
+                }
+                sq.fill(0.0);
+                for (k, l) in lights.iter().enumerate() {
+                    let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
+                    for ((((x, y), z), sq), &v) in lanes.zip(sq.iter_mut()).zip(row(k)) {
+                        let d = v as f32 * SCALE - render_observation([*x, *y, *z], *l, 0.0);
+                        *sq += d * d;
+                    }
+                }
+                let normals = n_row
+                    .as_slice_mut()
+                    .expect("a row of a fresh array is contiguous");
+                for c in 0..cols {
+                    let g = [gx[c], gy[c], gz[c]];
                     let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
                     a_row[c] = rho;
                     if rho > 0.0 && rho.is_finite() {
                         for k in 0..3 {
-                            n_row[[c, k]] = g[k] / rho;
+                            normals[c * 3 + k] = g[k] / rho;
                         }
                     }
-                    res_row[c] = reprojection_rms(&lights, &obs, g);
-                    conf_row[c] = robust::confidence_of(n, res_row[c], 3.0 * quantum + 0.02 * rho);
+                    let res = (sq[c] / n as f32).sqrt();
+                    res_row[c] = res;
+                    conf_row[c] = robust::confidence_of(n, res, 3.0 * quantum + 0.02 * rho);
                 }
             },
         );
@@ -107,6 +164,28 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
         inliers: Array2::from_elem((rows, cols), n as u16),
         unreliable: Array2::from_elem((rows, cols), false),
         estimate: None,
+    }
+}
+
+/// Per-thread buffers for one row: g per column (one lane per component), squared
+/// residual sums, one pixel's observations (weighted solver).
+struct RowScratch {
+    gx: Vec<f32>,
+    gy: Vec<f32>,
+    gz: Vec<f32>,
+    sq: Vec<f32>,
+    obs: Vec<f32>,
+}
+
+impl RowScratch {
+    fn new(cols: usize, n: usize) -> Self {
+        Self {
+            gx: vec![0.0; cols],
+            gy: vec![0.0; cols],
+            gz: vec![0.0; cols],
+            sq: vec![0.0; cols],
+            obs: vec![0.0; n],
+        }
     }
 }
 
@@ -147,16 +226,6 @@ pub fn pseudo_inverse(lights: &[[f32; 3]]) -> Vec<[f32; 3]> {
             col
         })
         .collect()
-}
-
-fn apply(pinv: &[[f32; 3]], obs: &[f32]) -> [f32; 3] {
-    let mut g = [0f32; 3];
-    for (p, &o) in pinv.iter().zip(obs) {
-        g[0] += p[0] * o;
-        g[1] += p[1] * o;
-        g[2] += p[2] * o;
-    }
-    g
 }
 
 /// The seed's "solution 1": least squares weighted by T = diag(i), i.e. weights i².

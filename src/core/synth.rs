@@ -9,8 +9,9 @@ use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
 use super::intake::LIGHTS_FILE;
-use super::outputs::{png_bytes, write_atomic};
+use super::outputs::{png_bytes_filtered, write_atomic};
 use super::pipeline::RunError;
+use image::codecs::png::FilterType;
 
 /// A surface with ground truth, sampled at pixel centres (x = column, y = row down).
 #[derive(Debug, Clone)]
@@ -274,15 +275,19 @@ pub fn write_set(
         let name = format!("im{}.png", i + 1);
         let (w, h) = (scene.width as u32, scene.height as u32);
         let bytes = if capture.bit_depth == 8 {
-            png_bytes(&ImageBuffer::<Luma<u8>, Vec<u8>>::from_fn(w, h, |x, y| {
-                Luma([img[[y as usize, x as usize]] as u8])
-            }))
+            png_bytes_filtered(
+                &ImageBuffer::<Luma<u8>, Vec<u8>>::from_fn(w, h, |x, y| {
+                    Luma([img[[y as usize, x as usize]] as u8])
+                }),
+                FilterType::Adaptive,
+            )
         } else {
-            png_bytes(&ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(
-                w,
-                h,
-                |x, y| Luma([img[[y as usize, x as usize]]]),
-            ))
+            png_bytes_filtered(
+                &ImageBuffer::<Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
+                    Luma([img[[y as usize, x as usize]]])
+                }),
+                FilterType::Adaptive,
+            )
         };
         write_atomic(dir, &name, &bytes)?;
         csv.push_str(&format!("{name}, {}, {}, {}\n", l[0], l[1], l[2]));
