@@ -547,10 +547,11 @@ async fn require_api_key(State(state): State<AppState>, req: Request, next: Next
                 .then(|| key.trim().to_string())
         });
     let Some(presented) = presented else {
-        return ApiError::unauthorized(
+        return refuse_unauthorized(
+            &state,
+            req,
             "this server needs an API key: send Authorization: Bearer <key>",
-        )
-        .into_response();
+        );
     };
     // Compare SHA-256 digests, not the keys: equal-length inputs keep the comparison's
     // time independent of the configured keys' lengths as well as their bytes.
@@ -564,8 +565,16 @@ async fn require_api_key(State(state): State<AppState>, req: Request, next: Next
     if bool::from(ok) {
         next.run(req).await
     } else {
-        ApiError::unauthorized("the API key is not valid").into_response()
+        refuse_unauthorized(&state, req, "the API key is not valid")
     }
+}
+
+/// 401, reading what the client is still uploading in the background (bounded by the body
+/// limit and [`upload::LINGER`]) so that it sees the answer rather than a broken pipe.
+fn refuse_unauthorized(state: &AppState, req: Request, detail: &str) -> Response {
+    let tap = upload::BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
+    tokio::spawn(async move { tap.drain(upload::LINGER).await });
+    ApiError::unauthorized(detail).into_response()
 }
 
 /// Count requests by method, route template and status.

@@ -283,13 +283,10 @@ pub async fn create_job(
     if answer.is_err() {
         // Answer now, and read what the client is still sending in the background (a
         // lingering close), so that it gets to read the refusal.
-        tokio::spawn(async move { tap.drain(LINGER).await });
+        tokio::spawn(async move { tap.drain(upload::LINGER).await });
     }
     answer
 }
-
-/// How long a refused upload's remaining body is read and discarded.
-const LINGER: std::time::Duration = std::time::Duration::from_secs(5);
 
 async fn accept_job(
     state: &AppState,

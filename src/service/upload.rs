@@ -50,6 +50,10 @@ struct TapState {
     exceeded: AtomicBool,
 }
 
+/// How long a refused upload's remaining body is read and discarded (a lingering close,
+/// so that the client gets to read the refusal instead of a broken pipe).
+pub const LINGER: std::time::Duration = std::time::Duration::from_secs(5);
+
 impl BodyTap {
     pub fn new(body: Body, limit: u64) -> Self {
         Self {
