@@ -194,18 +194,7 @@ pub fn integrate_with_confidence(
 ) -> Array2<f32> {
     match method {
         Integration::WeightedPoisson => integrate_weighted(p, q, mask, confidence),
-        Integration::RobustPoisson => {
-            let (h, w) = mask.dim();
-            assert_eq!(confidence.dim(), (h, w));
-            let m = contiguous(mask.view());
-            if !m.iter().any(|&v| v) {
-                return Array2::zeros((h, w));
-            }
-            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
-            let wt = contiguous(confidence.view());
-            let z = robust_poisson(&ps, &qs, &m, h, w, Some(&wt));
-            finish(z, &m, h, w)
-        }
+        Integration::RobustPoisson => weighted_on_mask(p, q, mask, confidence, robust_poisson),
         _ => integrate(p, q, mask, method),
     }
 }
@@ -324,6 +313,19 @@ pub fn integrate_weighted(
     mask: &Array2<bool>,
     weights: &Array2<f32>,
 ) -> Array2<f32> {
+    weighted_on_mask(p, q, mask, weights, poisson_heights)
+}
+
+/// A weighted mask-aware solver over row-major slices, behind the arrays' checks.
+type WeightedSolver = fn(&[f32], &[f32], &[bool], usize, usize, Option<&[f32]>) -> Vec<f32>;
+
+fn weighted_on_mask(
+    p: &Array2<f32>,
+    q: &Array2<f32>,
+    mask: &Array2<bool>,
+    weights: &Array2<f32>,
+    solve: WeightedSolver,
+) -> Array2<f32> {
     let (h, w) = mask.dim();
     assert_eq!(p.dim(), (h, w));
     assert_eq!(q.dim(), (h, w));
@@ -334,7 +336,7 @@ pub fn integrate_weighted(
     }
     let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
     let wt = contiguous(weights.view());
-    let z = poisson_heights(&ps, &qs, &m, h, w, Some(&wt));
+    let z = solve(&ps, &qs, &m, h, w, Some(&wt));
     finish(z, &m, h, w)
 }
 
