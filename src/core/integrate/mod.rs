@@ -220,33 +220,17 @@ fn robust_poisson(
 ) -> Vec<f32> {
     use self::poisson::{edge_slope, finite};
     let comps = Components::new(mask, h, w);
-    let wt = |i: usize| {
-        weights.map_or(1.0, |v| {
-            if v[i].is_finite() {
-                v[i].clamp(0.0, 1.0)
-            } else {
-                0.0
-            }
-        })
-    };
+    let (bx, by) = multigrid::edge_weights(mask, weights, h, w, MIN_EDGE_WEIGHT);
     let g = |i: usize| [finite(p[i]), finite(q[i])];
     let n = h * w;
-    let (mut bx, mut by) = (vec![0f32; n], vec![0f32; n]);
     let (mut gx, mut gy) = (vec![0f32; n], vec![0f32; n]);
-    for r in 0..h {
-        for c in 0..w {
-            let i = r * w + c;
-            if !mask[i] {
-                continue;
-            }
-            if c + 1 < w && mask[i + 1] {
-                bx[i] = (0.5 * (wt(i) + wt(i + 1))).max(MIN_EDGE_WEIGHT);
-                gx[i] = edge_slope(g(i), g(i + 1), 0);
-            }
-            if r + 1 < h && mask[i + w] {
-                by[i] = (0.5 * (wt(i) + wt(i + w))).max(MIN_EDGE_WEIGHT);
-                gy[i] = edge_slope(g(i), g(i + w), 1);
-            }
+    for i in 0..n {
+        // An edge's weight is positive exactly when it joins two mask pixels.
+        if bx[i] > 0.0 {
+            gx[i] = edge_slope(g(i), g(i + 1), 0);
+        }
+        if by[i] > 0.0 {
+            gy[i] = edge_slope(g(i), g(i + w), 1);
         }
     }
     let (mut wx, mut wy) = (bx.clone(), by.clone());

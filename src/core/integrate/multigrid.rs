@@ -223,9 +223,7 @@ impl WeightStencil {
         }
     }
 
-    /// Weighted least squares on a mask: each edge between two mask pixels gets the mean of
-    /// their weights (clamped to [0, 1], non-finite → 0), floored at `floor > 0` so that the
-    /// mask's connectivity (and hence the null space) does not depend on the weights.
+    /// Weighted least squares on a mask: edge weights from [`edge_weights`].
     pub(super) fn from_pixel_weights(
         mask: &[bool],
         weight: &[f32],
@@ -233,36 +231,52 @@ impl WeightStencil {
         w: usize,
         floor: f32,
     ) -> Self {
-        let wt = |i: usize| {
-            let v = weight[i];
-            if v.is_finite() {
-                v.clamp(0.0, 1.0)
-            } else {
-                0.0
-            }
-        };
-        let mut wx = vec![0f32; h * w];
-        let mut wy = vec![0f32; h * w];
-        for r in 0..h {
-            for c in 0..w {
-                let i = r * w + c;
-                if !mask[i] {
-                    continue;
-                }
-                if c + 1 < w && mask[i + 1] {
-                    wx[i] = (0.5 * (wt(i) + wt(i + 1))).max(floor);
-                }
-                if r + 1 < h && mask[i + w] {
-                    wy[i] = (0.5 * (wt(i) + wt(i + w))).max(floor);
-                }
-            }
-        }
+        let (wx, wy) = edge_weights(mask, Some(weight), h, w, floor);
         Self::new(h, w, wx, wy)
     }
 
     fn row<'a>(&self, v: &'a [f32], r: usize) -> &'a [f32] {
         &v[r * self.w..(r + 1) * self.w]
     }
+}
+
+/// Weights of the edges to the right (`wx`) and below (`wy`) of each mask pixel: the mean
+/// of the two pixels' weights (clamped to [0, 1], non-finite → 0; all 1 without weights),
+/// floored at `floor > 0` so that the mask's connectivity (and hence the null space) does
+/// not depend on the weights. Edges leaving the mask get 0.
+pub(super) fn edge_weights(
+    mask: &[bool],
+    weight: Option<&[f32]>,
+    h: usize,
+    w: usize,
+    floor: f32,
+) -> (Vec<f32>, Vec<f32>) {
+    let wt = |i: usize| {
+        weight.map_or(1.0, |v| {
+            if v[i].is_finite() {
+                v[i].clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        })
+    };
+    let mut wx = vec![0f32; h * w];
+    let mut wy = vec![0f32; h * w];
+    for r in 0..h {
+        for c in 0..w {
+            let i = r * w + c;
+            if !mask[i] {
+                continue;
+            }
+            if c + 1 < w && mask[i + 1] {
+                wx[i] = (0.5 * (wt(i) + wt(i + 1))).max(floor);
+            }
+            if r + 1 < h && mask[i + w] {
+                wy[i] = (0.5 * (wt(i) + wt(i + w))).max(floor);
+            }
+        }
+    }
+    (wx, wy)
 }
 
 impl Stencil for WeightStencil {
