@@ -229,7 +229,7 @@ struct SizeResult {
     decode_only_ms: Vec<f64>,
     /// `load_dir` inside the full job.
     job_decode_ms: Vec<f64>,
-    /// `load_dir` + `pipeline::run_owned`.
+    /// `load_dir` + `pipeline::run`.
     full_ms: Vec<f64>,
     /// Per stage of [`STAGES`], one entry per run.
     stage_ms: Vec<Vec<f64>>,
@@ -313,7 +313,7 @@ fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow
     let decoded = intake::load_dir(&set.dir, None, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let job_decode = ms(start.elapsed());
-    let report = pipeline::run_owned(decoded, &opts, &out, &mut |_| true)
+    let report = pipeline::run(decoded, &opts, &out, &mut |_| true)
         .with_context(|| format!("reconstructing the {}² set", set.size))?;
     let full = ms(start.elapsed());
     let peak = status_bytes("VmHWM");
@@ -1055,7 +1055,7 @@ fn tables(
     );
     let _ = writeln!(
         o,
-        "- full job = `intake::load_dir` + `pipeline::run_owned`; decode = `load_dir` alone; peak \
+        "- full job = `intake::load_dir` + `pipeline::run`; decode = `load_dir` alone; peak \
          RSS = the process's VmHWM over the full job (reset through /proc/self/clear_refs), \
          baseline = VmRSS before it"
     );

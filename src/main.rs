@@ -151,7 +151,7 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let start = std::time::Instant::now();
     let set = intake::load_dir(&args.dir, args.mask_file.as_deref(), &Limits::default())?;
     let decoded = start.elapsed();
-    let report = pipeline::run_owned(set, &opts, &args.out, &mut |stage| {
+    let report = pipeline::run(set, &opts, &args.out, &mut |stage| {
         eprintln!("  {}", stage.as_str());
         true
     })?;

@@ -299,20 +299,10 @@ fn reconstruct_from(
 }
 
 /// Reconstruct and write every requested artifact into `dir` (each written under a
-/// temporary name and renamed, `result.json` last). Returns the report.
+/// temporary name and renamed, `result.json` last). Returns the report. Takes the set by
+/// value so that its image stack is freed right after the solve (see
+/// [`reconstruct_owned`]).
 pub fn run(
-    set: &ImageSet,
-    opts: &Options,
-    dir: &Path,
-    progress: Progress,
-) -> Result<Report, RunError> {
-    let rec = reconstruct(set, opts, progress)?;
-    write_all(rec, opts, dir, progress)
-}
-
-/// [`run`] taking the set by value, so its image stack is freed right after the solve
-/// (see [`reconstruct_owned`]): what the CLI, the job worker and the bench use.
-pub fn run_owned(
     set: ImageSet,
     opts: &Options,
     dir: &Path,

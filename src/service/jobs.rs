@@ -487,7 +487,7 @@ fn execute(
         .map_err(ApiError::from)?;
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
-    let report = pipeline::run_owned(set, &options, &out, &mut |stage| clock.enter(stage));
+    let report = pipeline::run(set, &options, &out, &mut |stage| clock.enter(stage));
     clock.close();
     let report = match report {
         Ok(r) => r,
