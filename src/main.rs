@@ -66,16 +66,16 @@ struct ReconstructArgs {
     /// Options as a JSON file (the HTTP API's `options` part); flags below override it.
     #[arg(long)]
     options: Option<PathBuf>,
-    /// l2 | weighted
+    /// l2 (default) | robust | weighted
     #[arg(long, value_parser = kebab::<Solver>)]
     solver: Option<Solver>,
-    /// auto | none | given
+    /// auto (default) | none | given
     #[arg(long, value_parser = kebab::<MaskMode>)]
     mask: Option<MaskMode>,
     /// A mask image (non-zero = object); used unless --mask none.
     #[arg(long)]
     mask_file: Option<PathBuf>,
-    /// path | frankot-chellappa | poisson
+    /// poisson (default) | weighted-poisson | robust-poisson | frankot-chellappa | path
     #[arg(long, value_parser = kebab::<Integration>)]
     integration: Option<Integration>,
     /// Light for shaded.png, as x,y,z (default 1,2,3).

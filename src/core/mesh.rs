@@ -7,6 +7,10 @@
 //! `pixel_size` when given. The albedo travels as an embedded PNG base-colour texture.
 //! The bytes depend only on the input (no hash-map order, no timestamps).
 
+use std::io::Write;
+
+use base64::Engine as _;
+use base64::engine::general_purpose::STANDARD as BASE64;
 use gltf_json as json;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{ExtendedColorType, ImageBuffer, ImageEncoder, Pixel};
@@ -53,6 +57,8 @@ pub enum MeshError {
     Texture(String),
     #[error("encoding the glTF JSON: {0}")]
     Json(String),
+    #[error("writing the mesh: {0}")]
+    Write(#[from] std::io::Error),
 }
 
 /// A triangulated, decimated height map in glTF's frame.
@@ -88,40 +94,75 @@ impl Document {
 
     /// The binary glTF (`.glb`) file.
     pub fn glb(&self) -> Result<Vec<u8>, MeshError> {
-        glb_of(&self.root, &self.bin)
+        let mut out = Vec::new();
+        self.write_glb(&mut out)?;
+        Ok(out)
+    }
+
+    /// Stream the `.glb` file into `out` (no whole-file copy of the buffer).
+    pub fn write_glb(&self, out: &mut dyn Write) -> Result<(), MeshError> {
+        let mut json = self
+            .root
+            .to_vec()
+            .map_err(|e| MeshError::Json(e.to_string()))?;
+        json.resize(json.len().next_multiple_of(4), b' ');
+        let bytes = 12 + 8 + json.len() + 8 + self.bin.len();
+        let total = u32::try_from(bytes).map_err(|_| MeshError::TooLarge { bytes })?;
+        out.write_all(b"glTF")?;
+        out.write_all(&2u32.to_le_bytes())?;
+        out.write_all(&total.to_le_bytes())?;
+        for (kind, data) in [(b"JSON", json.as_slice()), (b"BIN\0", &self.bin)] {
+            out.write_all(&(data.len() as u32).to_le_bytes())?;
+            out.write_all(kind)?;
+            out.write_all(data)?;
+        }
+        Ok(())
     }
 
     /// The self-contained `.gltf` JSON file (buffer embedded as a base64 data URI).
     pub fn gltf(&self) -> Result<String, MeshError> {
+        let mut out = Vec::new();
+        self.write_gltf(&mut out)?;
+        String::from_utf8(out).map_err(|e| MeshError::Json(e.to_string()))
+    }
+
+    /// Stream the `.gltf` file into `out`. The JSON is serialised with an empty data URI
+    /// and the base64 text is written into it chunk by chunk: the buffer never exists as
+    /// one big string, and the serialiser does not scan it for characters to escape.
+    pub fn write_gltf(&self, out: &mut dyn Write) -> Result<(), MeshError> {
         let mut root = self.root.clone();
-        root.buffers[0].uri = Some(format!(
-            "data:application/octet-stream;base64,{}",
-            base64(&self.bin)
-        ));
-        root.to_string().map_err(|e| MeshError::Json(e.to_string()))
+        root.buffers[0].uri = Some(DATA_URI.into());
+        let json = root.to_vec().map_err(|e| MeshError::Json(e.to_string()))?;
+        let quoted = format!("\"{DATA_URI}\"");
+        let at = json
+            .windows(quoted.len())
+            .position(|w| w == quoted.as_bytes())
+            .ok_or_else(|| MeshError::Json("the buffer URI is missing".into()))?
+            + quoted.len()
+            - 1;
+        out.write_all(&json[..at])?;
+        // 3 bytes make 4 characters: chunks that are multiples of 3 need no padding
+        // except at the end.
+        let mut text = vec![0u8; BASE64_CHUNK / 3 * 4];
+        for chunk in self.bin.chunks(BASE64_CHUNK) {
+            let n = BASE64
+                .encode_slice(chunk, &mut text)
+                .map_err(|e| MeshError::Json(e.to_string()))?;
+            out.write_all(&text[..n])?;
+        }
+        out.write_all(&json[at..])?;
+        Ok(())
     }
 }
+
+/// Prefix of the `.gltf` file's embedded buffer.
+const DATA_URI: &str = "data:application/octet-stream;base64,";
+/// Bytes encoded per base64 step (a multiple of 3).
+const BASE64_CHUNK: usize = 3 << 14;
 
 /// The mesh as a binary glTF (`.glb`) file.
 pub fn glb(rec: &Reconstruction, opts: &MeshOptions) -> Result<Vec<u8>, MeshError> {
     Document::new(rec, opts)?.glb()
-}
-
-fn glb_of(root: &json::Root, bin: &[u8]) -> Result<Vec<u8>, MeshError> {
-    let mut json = root.to_vec().map_err(|e| MeshError::Json(e.to_string()))?;
-    json.resize(json.len().next_multiple_of(4), b' ');
-    let bytes = 12 + 8 + json.len() + 8 + bin.len();
-    let total = u32::try_from(bytes).map_err(|_| MeshError::TooLarge { bytes })?;
-    let mut out = Vec::with_capacity(bytes);
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&total.to_le_bytes());
-    for (kind, data) in [(b"JSON", json.as_slice()), (b"BIN\0", bin)] {
-        out.extend_from_slice(&(data.len() as u32).to_le_bytes());
-        out.extend_from_slice(kind);
-        out.extend_from_slice(data);
-    }
-    Ok(out)
 }
 
 /// The mesh as a self-contained `.gltf` JSON file (buffer embedded as a base64 data URI).
@@ -620,42 +661,30 @@ fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
     }
 }
 
-/// Standard base64 with padding (RFC 4648), for the data URI.
-fn base64(bytes: &[u8]) -> String {
-    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let b = |i: usize| u32::from(chunk.get(i).copied().unwrap_or(0));
-        let n = b(0) << 16 | b(1) << 8 | b(2);
-        for i in 0..4 {
-            out.push(if i <= chunk.len() {
-                ABC[(n >> (18 - 6 * i) & 63) as usize] as char
-            } else {
-                '='
-            });
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn mesh_base64_matches_rfc4648_vectors() {
-        let cases = [
-            ("", ""),
-            ("f", "Zg=="),
-            ("fo", "Zm8="),
-            ("foo", "Zm9v"),
-            ("foob", "Zm9vYg=="),
-            ("fooba", "Zm9vYmE="),
-            ("foobar", "Zm9vYmFy"),
-        ];
-        for (plain, coded) in cases {
-            assert_eq!(base64(plain.as_bytes()), coded);
-        }
+    fn mesh_gltf_data_uri_spans_several_base64_chunks() {
+        // Not a multiple of 3, and long enough for three chunks and padding at the end.
+        let bin: Vec<u8> = (0..2 * BASE64_CHUNK + 7)
+            .map(|i| (i * 31 % 251) as u8)
+            .collect();
+        let mut root = json::Root::default();
+        root.push(json::Buffer {
+            byte_length: USize64(bin.len() as u64),
+            uri: None,
+            extensions: None,
+            extras: Default::default(),
+        });
+        let doc = Document { root, bin };
+        let text = doc.gltf().unwrap();
+        let parsed: Value = serde_json::from_str(&text).unwrap();
+        let uri = parsed["buffers"][0]["uri"].as_str().unwrap();
+        let data = uri.strip_prefix(DATA_URI).unwrap();
+        assert!(data.ends_with('='), "padding only at the end");
+        assert_eq!(BASE64.decode(data).unwrap(), doc.bin);
     }
 
     #[test]
