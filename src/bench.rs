@@ -15,7 +15,8 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use anyhow::{Context, anyhow, bail, ensure};
 use clap::Args;
 use photostereo::core::intake::{self, LIGHTS_FILE, Limits};
-use photostereo::core::{Options, pipeline, synth};
+use photostereo::core::options::Integration;
+use photostereo::core::{Options, integrate, pipeline, synth};
 use photostereo::service::{AppState, Config, serve_with};
 use serde_json::Value;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
@@ -67,6 +68,7 @@ const TARGET_PEAK_MB: f64 = 480.0;
 const TARGET_HTTP_OVER_CORE: f64 = 1.15;
 const TARGET_LINEARITY: f64 = 0.25;
 const TARGET_STATUS_P99_MS: f64 = 50.0;
+const TARGET_POISSON_OVER_FC: f64 = 3.0;
 const TARGET_SIZE: usize = 2048;
 
 /// Stages the pipeline reports, in order (decode is timed here).
@@ -144,6 +146,12 @@ fn measure(
     tmp: &Path,
 ) -> anyhow::Result<Option<LoadResult>> {
     for set in sets.iter_mut() {
+        // Before the jobs, and dropped before them, so it stays out of their peak memory.
+        let gradients = Gradients::of_sphere(set.size);
+        for _ in 0..args.runs {
+            integration_run(set, &gradients);
+        }
+        drop(gradients);
         for run in 0..args.runs {
             core_run(set, run, args.runs, tmp)?;
             if let (true, Some(server)) = (args.http, server) {
@@ -247,6 +255,9 @@ struct SizeResult {
     upload_ms: Vec<f64>,
     /// Process VmHWM over each HTTP job (server and client together).
     http_peak_bytes: Vec<f64>,
+    /// `integrate` alone with `poisson`, then with `frankot-chellappa`, per run.
+    poisson_ms: Vec<f64>,
+    fc_ms: Vec<f64>,
 }
 
 impl SizeResult {
@@ -266,6 +277,8 @@ impl SizeResult {
             http_ms: Vec::new(),
             upload_ms: Vec::new(),
             http_peak_bytes: Vec::new(),
+            poisson_ms: Vec::new(),
+            fc_ms: Vec::new(),
         }
     }
 
@@ -288,6 +301,39 @@ impl SizeResult {
 }
 
 /// One core run: `load_dir` alone, then the full job with its peak memory.
+/// The sphere's exact gradients and mask, the input of the integration-only timings.
+struct Gradients {
+    p: ndarray::Array2<f32>,
+    q: ndarray::Array2<f32>,
+    mask: ndarray::Array2<bool>,
+}
+
+impl Gradients {
+    fn of_sphere(size: usize) -> Self {
+        let scene = synth::Scene::sphere(size);
+        let normals = scene.normals.mapv(|v| v as f32);
+        let (p, q) = integrate::gradients(&normals, &scene.mask);
+        Self {
+            p,
+            q,
+            mask: scene.mask,
+        }
+    }
+}
+
+/// Time mask-aware Poisson against Frankot–Chellappa (issue 7: at most 3 × at 2048²).
+fn integration_run(set: &mut SizeResult, g: &Gradients) {
+    for (method, times) in [
+        (Integration::Poisson, &mut set.poisson_ms),
+        (Integration::FrankotChellappa, &mut set.fc_ms),
+    ] {
+        let start = Instant::now();
+        let z = integrate::integrate(&g.p, &g.q, &g.mask, method);
+        times.push(ms(start.elapsed()));
+        std::hint::black_box(z);
+    }
+}
+
 fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow::Result<()> {
     let limits = Limits::default();
     let opts = Options::default();
@@ -1181,6 +1227,29 @@ fn tables(
          check, masking the arrays, the report, result.json)"
     );
 
+    let _ = writeln!(
+        o,
+        "\n### Integration alone (ms, medians; the sphere's exact gradients)\n"
+    );
+    let _ = writeln!(
+        o,
+        "| size | poisson (mask-aware) | frankot-chellappa (full frame) | poisson / FC (≤ {TARGET_POISSON_OVER_FC} at 2048²) |"
+    );
+    let _ = writeln!(o, "|---|---:|---:|---:|");
+    for s in sets {
+        let (p, f) = (median(&s.poisson_ms), median(&s.fc_ms));
+        let _ = writeln!(
+            o,
+            "| {}² | {} | {} | {} |",
+            s.size,
+            num(p, 0),
+            num(f, 0),
+            with_mark(zip2(p, f, |p, f| p / f), 2, s.size == TARGET_SIZE, |r| {
+                r <= TARGET_POISSON_OVER_FC
+            })
+        );
+    }
+
     // Load.
     if let Some(l) = load {
         let _ = writeln!(
@@ -1254,6 +1323,14 @@ fn tables(
             r.is_some_and(|r| r <= TARGET_HTTP_OVER_CORE),
         );
     }
+    let t_fc = target.and_then(|s| zip2(median(&s.poisson_ms), median(&s.fc_ms), |p, f| p / f));
+    line(
+        &format!("poisson ≤ {TARGET_POISSON_OVER_FC} × frankot-chellappa at 2048²"),
+        t_fc,
+        2,
+        " ×",
+        t_fc.is_some_and(|r| r <= TARGET_POISSON_OVER_FC),
+    );
     let t_lin = target.and_then(|s| zip2(s.ns_per_pixel_image(), ref_ns, |a, b| a / b));
     line(
         &format!(
