@@ -212,6 +212,14 @@ fn table_and_files(
     (lights, files)
 }
 
+/// `intake::predecode` of a file, as a service would do it with the bytes it received.
+fn predecode(
+    file: &intake::NamedFile,
+    limits: &Limits,
+) -> Option<Result<intake::Decoded, photostereo::core::InputError>> {
+    intake::predecode(&file.name, &std::fs::read(&file.path).unwrap(), limits)
+}
+
 #[test]
 fn predecoded_images_give_the_same_set() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("res/bump");
@@ -221,7 +229,7 @@ fn predecoded_images_give_the_same_set() {
     // Every image ready-made, and only some of them.
     for every in [1, 2] {
         let set = intake::load_with(lights.clone(), &files, None, &limits, |i| {
-            (i % every == 0).then(|| intake::predecode(&files[i], &limits).unwrap())
+            (i % every == 0).then(|| predecode(&files[i], &limits).unwrap())
         })
         .unwrap();
         assert_eq!(set.planes, plain.planes);
@@ -249,7 +257,7 @@ fn predecoded_errors_are_the_load_errors_in_table_order() {
         let e = intake::load_with(lights.clone(), &files, None, &limits, |i| {
             ahead
                 .contains(&i)
-                .then(|| intake::predecode(&files[i], &limits).unwrap())
+                .then(|| predecode(&files[i], &limits).unwrap())
         })
         .unwrap_err()
         .to_string();
@@ -258,23 +266,22 @@ fn predecoded_errors_are_the_load_errors_in_table_order() {
 }
 
 #[test]
-fn colour_and_unreadable_images_are_left_to_the_load() {
+fn colour_images_are_left_to_the_load() {
     let d = tempfile::tempdir().unwrap();
     let path = d.path().join("a.png");
     RgbImage::from_pixel(4, 4, Rgb([200, 100, 50]))
         .save(&path)
         .unwrap();
     let limits = Limits::default();
-    let file = |path: &Path| intake::NamedFile {
+    let file = intake::NamedFile {
         name: "a.png".into(),
-        path: path.to_path_buf(),
+        path: path.clone(),
     };
-    assert!(intake::predecode(&file(&path), &limits).is_none());
-    assert!(intake::predecode(&file(&d.path().join("gone.png")), &limits).is_none());
+    assert!(predecode(&file, &limits).is_none());
     // A gray picture stored as RGB is gray: decoded ahead like any other.
     RgbImage::from_pixel(4, 4, Rgb([90, 90, 90]))
         .save(&path)
         .unwrap();
-    let ready = intake::predecode(&file(&path), &limits).unwrap().unwrap();
+    let ready = predecode(&file, &limits).unwrap().unwrap();
     assert_eq!((ready.depth, ready.plane[[0, 0]]), (8, 90 * 257));
 }

@@ -138,22 +138,20 @@ pub struct Decoded {
     pub depth: u8,
 }
 
-/// Decode one image ahead of [`load_with`] (e.g. while the rest of a set is still being
-/// received). `None` when it must be left to the load: colour images, whose colour
-/// moments need the image's light, and files that cannot be read (the load reads them
-/// again and reports the error under the path it uses).
-pub fn predecode(file: &NamedFile, limits: &Limits) -> Option<Result<Decoded, InputError>> {
-    match decode_file(file, limits) {
+/// Decode one image's bytes ahead of [`load_with`] (e.g. while the rest of a set is still
+/// being received); `name` is the light table's name for it. `None` for colour images,
+/// which must be left to the load: their colour moments need the image's light.
+pub fn predecode(name: &str, bytes: &[u8], limits: &Limits) -> Option<Result<Decoded, InputError>> {
+    match decode_bytes(name, bytes, limits) {
         Ok((decoded, None)) => Some(Ok(decoded)),
         Ok((_, Some(_colour))) => None,
-        Err(InputError::Io { .. }) => None,
         Err(e) => Some(Err(e)),
     }
 }
 
 /// [`load`], taking image `i` of `files` from `predecoded(i)` when that has it: the results
-/// of [`predecode`] on the same file with the same limits, so the set (and the first
-/// error, in table order) is the same as without them.
+/// of [`predecode`] on the same file's bytes and name with the same limits, so the set
+/// (and the first error, in table order) is the same as without them.
 pub fn load_with(
     lights: Vec<Light>,
     files: &[NamedFile],
@@ -268,15 +266,23 @@ fn match_files(lights: &[Light], files: &[NamedFile]) -> Result<Vec<usize>, Inpu
     Ok(ordered)
 }
 
-/// Read and decode one image file: its plane, and its RGB values when it really carries
-/// colour. The one decode path of [`load_with`] and [`predecode`].
+/// Read and decode one image file.
 fn decode_file(
     file: &NamedFile,
     limits: &Limits,
 ) -> Result<(Decoded, Option<image::Rgb32FImage>), InputError> {
     let bytes = std::fs::read(&file.path).map_err(|e| InputError::io(&file.path, e))?;
-    let img = decode(&file.name, &bytes, limits)?;
-    drop(bytes);
+    decode_bytes(&file.name, &bytes, limits)
+}
+
+/// Decode one image: its plane, and its RGB values when it really carries colour. The one
+/// decode path of [`load_with`] and [`predecode`].
+fn decode_bytes(
+    name: &str,
+    bytes: &[u8],
+    limits: &Limits,
+) -> Result<(Decoded, Option<image::Rgb32FImage>), InputError> {
+    let img = decode(name, bytes, limits)?;
     let depth = bit_depth(&img);
     let colour = colour_content(&img);
     Ok((

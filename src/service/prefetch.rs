@@ -8,14 +8,15 @@
 //! `decode_ahead` sets exist at once.
 
 use std::collections::HashMap;
-use std::path::PathBuf;
+use std::fs::File;
+use std::io::{Read, Seek};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use uuid::Uuid;
 
 use crate::core::InputError;
-use crate::core::intake::{self, Decoded, Limits, NamedFile};
+use crate::core::intake::{self, Decoded, Limits};
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
@@ -101,8 +102,9 @@ struct State {
 
 impl Prefetch {
     /// Start decoding a completely written image on the rayon pool. `file` is its stored
-    /// name, `name` the light table's name for it (decode errors name it).
-    pub fn start(&self, file: String, name: String, path: PathBuf) {
+    /// name, `name` the light table's name for it (decode errors name it), `source` the
+    /// written file (read from its start).
+    pub fn start(&self, file: String, name: String, source: File) {
         lock(&self.shared.state).pending += 1;
         let shared = self.shared.clone();
         let limits = self.limits;
@@ -110,7 +112,8 @@ impl Prefetch {
             let result = if lock(&shared.state).dropped {
                 None
             } else {
-                intake::predecode(&NamedFile { name, path }, &limits)
+                // Unreadable: left to the job, which reports it under the path it reads.
+                read_all(source).and_then(|bytes| intake::predecode(&name, &bytes, &limits))
             };
             let mut state = lock(&shared.state);
             state.pending -= 1;
@@ -145,6 +148,13 @@ impl Prefetch {
     }
 }
 
+fn read_all(mut file: File) -> Option<Vec<u8>> {
+    file.rewind().ok()?;
+    let mut bytes = Vec::new();
+    file.read_to_end(&mut bytes).ok()?;
+    Some(bytes)
+}
+
 impl Drop for Prefetch {
     fn drop(&mut self) {
         let mut state = lock(&self.shared.state);
@@ -173,8 +183,9 @@ mod tests {
         assert_eq!(p.held(), 1);
         gray_png(&dir.path().join("000.img"), 7);
         std::fs::write(dir.path().join("001.img"), b"not an image").unwrap();
-        a.start("000.img".into(), "a.png".into(), dir.path().join("000.img"));
-        a.start("001.img".into(), "b.png".into(), dir.path().join("001.img"));
+        let open = |f: &str| File::open(dir.path().join(f)).unwrap();
+        a.start("000.img".into(), "a.png".into(), open("000.img"));
+        a.start("001.img".into(), "b.png".into(), open("001.img"));
         let id = Uuid::new_v4();
         p.park(id, a);
         let results = p.take(id).unwrap().finish();
@@ -183,7 +194,7 @@ mod tests {
         assert!(results["001.img"].is_err());
 
         let b = p.begin().expect("the slot is free again");
-        b.start("000.img".into(), "a.png".into(), dir.path().join("000.img"));
+        b.start("000.img".into(), "a.png".into(), open("000.img"));
         p.park(id, b);
         p.discard(id);
         assert_eq!(p.held(), 0);

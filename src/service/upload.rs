@@ -207,11 +207,12 @@ pub async fn receive(
                 }
                 let name = file_name(&field, "images")?;
                 let file = image_file(parts.images.len());
-                let head = stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
+                let (head, written) =
+                    stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
                 if let Some(p) = prefetch {
-                    p.start(file.clone(), name.clone(), dir.join(&file));
+                    p.start(file.clone(), name.clone(), written);
                 }
                 parts.images.push(StoredImage {
                     name,
@@ -236,7 +237,8 @@ pub async fn receive(
                     .filter(|n| !n.is_empty())
                     .unwrap_or("mask")
                     .to_string();
-                let head = stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
+                let (head, _) =
+                    stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
                 let (width, height, depth) = probe(dir.join(MASK_FILE), name.clone(), head, config)
                     .await
                     .map_err(|e| {
@@ -266,7 +268,7 @@ pub async fn receive(
                     return Err(both_forms());
                 }
                 let path = dir.join(ARCHIVE_FILE);
-                let head = stream_to_file(&mut field, &path, tap, config).await?;
+                let (head, _) = stream_to_file(&mut field, &path, tap, config).await?;
                 if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
                     return Err(ApiError::unsupported_media(
                         "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv)",
@@ -451,17 +453,26 @@ const WRITE_QUEUE: usize = 64;
 /// The writer's buffer: large writes, few system calls.
 const WRITE_BUFFER: usize = 1 << 20;
 
-/// Write a part to `path`; returns its first bytes. The chunks go through a bounded
-/// channel to one blocking task that owns a std file, so a part costs one blocking-pool
-/// hand-off rather than one per chunk, and the async side copies nothing.
+/// Write a part to `path`; returns its first bytes and the file, open for reading too (a
+/// handle stays valid when the staging directory is renamed). The chunks go through a
+/// bounded channel to one blocking task that owns a std file, so a part costs one
+/// blocking-pool hand-off rather than one per chunk, and the async side copies nothing.
 async fn stream_to_file(
     field: &mut Field<'_>,
     path: &Path,
     tap: &BodyTap,
     config: &Config,
-) -> Result<Vec<u8>, ApiError> {
+) -> Result<(Vec<u8>, File), ApiError> {
     let target = path.to_path_buf();
-    let file = tokio::task::spawn_blocking(move || File::create(target)).await??;
+    let file = tokio::task::spawn_blocking(move || {
+        File::options()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(target)
+    })
+    .await??;
     let (tx, rx) = tokio::sync::mpsc::channel::<Bytes>(WRITE_QUEUE);
     let writer = tokio::task::spawn_blocking(move || write_chunks(file, rx));
     let mut head = Vec::with_capacity(HEAD_BYTES);
@@ -485,18 +496,37 @@ async fn stream_to_file(
     drop(tx);
     let written = writer.await?;
     read?;
-    written?;
-    Ok(head)
+    Ok((head, written?))
 }
 
 /// The writer side of [`stream_to_file`]: until the channel closes.
-fn write_chunks(file: File, mut chunks: tokio::sync::mpsc::Receiver<Bytes>) -> std::io::Result<()> {
+fn write_chunks(
+    file: File,
+    mut chunks: tokio::sync::mpsc::Receiver<Bytes>,
+) -> std::io::Result<File> {
     let mut out = std::io::BufWriter::with_capacity(WRITE_BUFFER, file);
     while let Some(chunk) = chunks.blocking_recv() {
         out.write_all(&chunk)?;
     }
-    out.flush()
+    let file = out.into_inner().map_err(|e| e.into_error())?;
+    start_writeback(&file);
+    Ok(file)
 }
+
+/// Start writing a finished part to disk now, so that the fsync before the 202 has little
+/// left to wait for (durability still rests on that fsync).
+#[cfg(target_os = "linux")]
+fn start_writeback(file: &File) {
+    use std::os::fd::AsRawFd;
+    // SAFETY: an open descriptor; the call only schedules writeback of its pages, and a
+    // failure just leaves the work to the fsync.
+    unsafe {
+        libc::sync_file_range(file.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE);
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn start_writeback(_file: &File) {}
 
 /// Read a small text part into memory, refusing more than `limit` bytes.
 async fn read_small(
