@@ -366,8 +366,9 @@ async fn accept_job(
     }
     match state.jobs().try_push(id) {
         Ok(()) => {}
-        // Stopping: the job stays queued in the repo and runs at the next start.
-        Err(PushError::Closed) => {}
+        // Stopping: the job stays queued in the repo and runs at the next start (which
+        // decodes from disk).
+        Err(PushError::Closed) => state.remove_prefetch(id),
         Err(PushError::Full) => {
             state.remove_prefetch(id);
             state.repo(move |r| r.delete(id)).await?;
