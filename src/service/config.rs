@@ -103,8 +103,8 @@ pub struct ServeArgs {
 
     /// Uploads whose images are decoded while they arrive, held ready for their job
     /// (0: off) [default: the number of workers].
-    #[arg(long, env = "PHOTOSTEREO_DECODE_AHEAD")]
-    pub decode_ahead: Option<usize>,
+    #[arg(long, env = "PHOTOSTEREO_DECODE_AHEAD", value_parser = clap::value_parser!(u32).range(0..=1024))]
+    pub decode_ahead: Option<u32>,
 
     /// Log format (the level is set with RUST_LOG, default `info`).
     #[arg(long, env = "PHOTOSTEREO_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
@@ -211,7 +211,7 @@ impl From<&ServeArgs> for Config {
             .filter(|k| !k.is_empty())
             .collect();
         c.shutdown_grace = a.shutdown_grace;
-        c.decode_ahead = a.decode_ahead.unwrap_or(c.workers);
+        c.decode_ahead = a.decode_ahead.map(|n| n as usize).unwrap_or(c.workers);
         c.sweep_interval =
             (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
         c
@@ -273,6 +273,9 @@ mod tests {
         assert_eq!(c.api_keys, ["a", "b", "c"]);
         assert_eq!(c.workers, 3);
         assert!(Cli::try_parse_from(["x", "--workers", "0"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--decode-ahead", "100000"]).is_err());
+        let off = Cli::try_parse_from(["x", "--decode-ahead", "0"]).unwrap();
+        assert_eq!(Config::from(&off.serve).decode_ahead, 0);
         assert!(Cli::try_parse_from(["x", "--retention", "soon"]).is_err());
     }
 }

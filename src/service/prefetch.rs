@@ -32,6 +32,7 @@ pub struct Prefetcher {
 
 impl Prefetcher {
     pub fn new(sets: usize, limits: Limits) -> Self {
+        let sets = sets.min(Semaphore::MAX_PERMITS);
         Self {
             slots: Arc::new(Semaphore::new(sets)),
             size: sets,
