@@ -1291,3 +1291,121 @@ async fn a_data_directory_serves_one_server_at_a_time() {
     let again = AppState::open(config(dir.path())).await.unwrap();
     again.shutdown().await;
 }
+
+/// A metric's value in the `/metrics` text.
+async fn metric(s: &TestServer, name: &str) -> f64 {
+    let text = s
+        .client
+        .get(s.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
+        .unwrap_or_else(|| panic!("{name} missing from\n{text}"))
+}
+
+/// Every artifact of a succeeded job, with `result.json`'s timings left out.
+async fn artifacts_without_timings(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8>> {
+    let mut out = check_artifacts(s, job).await;
+    let mut report: Value = serde_json::from_slice(&out["result.json"]).unwrap();
+    report.as_object_mut().unwrap().remove("timings_ms");
+    out.insert("result.json".into(), serde_json::to_vec(&report).unwrap());
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn images_decoded_during_the_upload_give_the_same_results() {
+    let (dir_ahead, dir_plain) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let ahead = TestServer::start(config(dir_ahead.path())).await;
+    let mut plain_config = config(dir_plain.path());
+    plain_config.decode_ahead = 0;
+    let plain = TestServer::start(plain_config).await;
+    let set = repo_root().join("res/bump");
+
+    let mut results = Vec::new();
+    for s in [&ahead, &plain] {
+        let job = s.submit(folder_form(&set)).await;
+        let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+        results.push(artifacts_without_timings(s, &job).await);
+    }
+    assert_eq!(
+        metric(&ahead, "photostereo_prefetched_images_total").await,
+        4.0
+    );
+    assert_eq!(
+        metric(&plain, "photostereo_prefetched_images_total").await,
+        0.0
+    );
+    assert_eq!(
+        results[0].keys().collect::<Vec<_>>(),
+        results[1].keys().collect::<Vec<_>>()
+    );
+    for (name, bytes) in &results[0] {
+        assert!(
+            bytes == &results[1][name],
+            "{name} differs with images decoded ahead"
+        );
+    }
+
+    // A set that cannot be decoded fails with the same error either way: the first bad
+    // image in table order (the headers are fine, the data cut short: the upload's probe
+    // lets them through).
+    let mut cut = png(16, 16, 90);
+    cut.truncate(cut.len() - 20);
+    let table = "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\nd.png, 1, 1, 1";
+    let mut errors = Vec::new();
+    for s in [&ahead, &plain] {
+        let form = Form::new()
+            .text("lights", table)
+            .part(
+                "images",
+                Part::bytes(cut[..cut.len() - 10].to_vec()).file_name("d.png"),
+            )
+            .part("images", Part::bytes(png(16, 16, 30)).file_name("a.png"))
+            .part("images", Part::bytes(cut.clone()).file_name("c.png"))
+            .part("images", Part::bytes(png(16, 16, 60)).file_name("b.png"));
+        let job = s.submit(form).await;
+        let job = s.wait_finished(job["id"].as_str().unwrap()).await;
+        assert_eq!(job["status"], "failed", "{job}");
+        let mut error = job["error"].clone();
+        error.as_object_mut().unwrap().remove("instance");
+        errors.push(error.to_string());
+    }
+    assert_eq!(errors[0], errors[1]);
+    assert!(errors[0].contains("c.png"), "{}", errors[0]);
+
+    // Every set was taken by its job or dropped with it.
+    assert_eq!(metric(&ahead, "photostereo_prefetch_sets").await, 0.0);
+    ahead.stop().await;
+    plain.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_upload_drops_its_decoded_images() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.decode_ahead = 1;
+    let s = TestServer::start(c).await;
+    let set = seed("synth-images");
+    // Every image arrives (and is decoded ahead), then a part the API does not know.
+    let form = folder_form(&set).text("bogus", "x");
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 400, &["bogus"]).await;
+    assert_eq!(metric(&s, "photostereo_prefetch_sets").await, 0.0);
+    // The one slot is free again: the next upload is decoded ahead.
+    let job = s.submit(folder_form(&set)).await;
+    s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    assert_eq!(metric(&s, "photostereo_prefetched_images_total").await, 4.0);
+    assert_eq!(metric(&s, "photostereo_prefetch_sets").await, 0.0);
+    s.stop().await;
+}

@@ -192,3 +192,96 @@ fn colour_inputs_keep_per_channel_albedo() {
         );
     }
 }
+
+/// The light table and the images of a folder, as `intake::load` takes them.
+fn table_and_files(
+    dir: &Path,
+) -> (
+    Vec<photostereo::core::lights::Light>,
+    Vec<intake::NamedFile>,
+) {
+    let table = std::fs::read(dir.join("light_directions.csv")).unwrap();
+    let lights = photostereo::core::lights::parse_bytes(&table).unwrap();
+    let files = lights
+        .iter()
+        .map(|l| intake::NamedFile {
+            name: l.name.clone(),
+            path: dir.join(&l.name),
+        })
+        .collect();
+    (lights, files)
+}
+
+/// `intake::predecode` of a file, as a service would do it with the bytes it received.
+fn predecode(
+    file: &intake::NamedFile,
+    limits: &Limits,
+) -> Option<Result<intake::Decoded, photostereo::core::InputError>> {
+    intake::predecode(&file.name, &std::fs::read(&file.path).unwrap(), limits)
+}
+
+#[test]
+fn predecoded_images_give_the_same_set() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("res/bump");
+    let limits = Limits::default();
+    let (lights, files) = table_and_files(&dir);
+    let plain = intake::load(lights.clone(), &files, None, &limits).unwrap();
+    // Every image ready-made, and only some of them.
+    for every in [1, 2] {
+        let set = intake::load_with(lights.clone(), &files, None, &limits, |i| {
+            (i % every == 0).then(|| predecode(&files[i], &limits).unwrap())
+        })
+        .unwrap();
+        assert_eq!(set.planes, plain.planes);
+        assert_eq!(
+            (set.width, set.height, set.bit_depth),
+            (plain.width, plain.height, plain.bit_depth)
+        );
+        assert!(set.colour_moments.is_none() && plain.colour_moments.is_none());
+    }
+}
+
+#[test]
+fn predecoded_errors_are_the_load_errors_in_table_order() {
+    let d = folder(&["a.png"], TABLE);
+    std::fs::write(d.path().join("b.png"), b"\x89PNG\r\n\x1a\n truncated").unwrap();
+    std::fs::write(d.path().join("c.png"), b"just some text, not an image").unwrap();
+    let limits = Limits::default();
+    let (lights, files) = table_and_files(d.path());
+    let plain = intake::load(lights.clone(), &files, None, &limits)
+        .unwrap_err()
+        .to_string();
+    assert!(plain.contains("\"b.png\" cannot be decoded"), "{plain}");
+    // c.png's error decoded ahead, b.png's found by the load: still b.png's.
+    for ahead in [vec![2], vec![1, 2], vec![0, 1, 2]] {
+        let e = intake::load_with(lights.clone(), &files, None, &limits, |i| {
+            ahead
+                .contains(&i)
+                .then(|| predecode(&files[i], &limits).unwrap())
+        })
+        .unwrap_err()
+        .to_string();
+        assert_eq!(e, plain, "ahead: {ahead:?}");
+    }
+}
+
+#[test]
+fn colour_images_are_left_to_the_load() {
+    let d = tempfile::tempdir().unwrap();
+    let path = d.path().join("a.png");
+    RgbImage::from_pixel(4, 4, Rgb([200, 100, 50]))
+        .save(&path)
+        .unwrap();
+    let limits = Limits::default();
+    let file = intake::NamedFile {
+        name: "a.png".into(),
+        path: path.clone(),
+    };
+    assert!(predecode(&file, &limits).is_none());
+    // A gray picture stored as RGB is gray: decoded ahead like any other.
+    RgbImage::from_pixel(4, 4, Rgb([90, 90, 90]))
+        .save(&path)
+        .unwrap();
+    let ready = predecode(&file, &limits).unwrap().unwrap();
+    assert_eq!((ready.depth, ready.plane[[0, 0]]), (8, 90 * 257));
+}

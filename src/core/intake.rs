@@ -126,6 +126,39 @@ pub fn load(
     mask: Option<&NamedFile>,
     limits: &Limits,
 ) -> Result<ImageSet, InputError> {
+    load_with(lights, files, mask, limits, |_| None)
+}
+
+/// One image as a set keeps it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decoded {
+    /// Luminance, 0..=65535 standing for [0, 1].
+    pub plane: Array2<u16>,
+    /// Bits per sample of the source image.
+    pub depth: u8,
+}
+
+/// Decode one image's bytes ahead of [`load_with`] (e.g. while the rest of a set is still
+/// being received); `name` is the light table's name for it. `None` for colour images,
+/// which must be left to the load: their colour moments need the image's light.
+pub fn predecode(name: &str, bytes: &[u8], limits: &Limits) -> Option<Result<Decoded, InputError>> {
+    match decode_bytes(name, bytes, limits) {
+        Ok((decoded, None)) => Some(Ok(decoded)),
+        Ok((_, Some(_colour))) => None,
+        Err(e) => Some(Err(e)),
+    }
+}
+
+/// [`load`], taking image `i` of `files` from `predecoded(i)` when that has it: the results
+/// of [`predecode`] on the same file's bytes and name with the same limits, so the set
+/// (and the first error, in table order) is the same as without them.
+pub fn load_with(
+    lights: Vec<Light>,
+    files: &[NamedFile],
+    mask: Option<&NamedFile>,
+    limits: &Limits,
+    predecoded: impl Fn(usize) -> Option<Result<Decoded, InputError>> + Sync,
+) -> Result<ImageSet, InputError> {
     if lights.len() > limits.max_images || files.len() > limits.max_images {
         return Err(InputError::TooManyImages {
             count: lights.len().max(files.len()),
@@ -141,18 +174,19 @@ pub fn load(
 
     let moments: Mutex<Option<Array3<f32>>> = Mutex::new(None);
     let colour_count = AtomicUsize::new(0);
-    let decoded: Vec<(Array2<u16>, u8)> = ordered
+    let decoded: Vec<Decoded> = ordered
         .par_iter()
         .zip(lights.par_iter())
-        .map(|(file, light)| {
-            let bytes = std::fs::read(&file.path).map_err(|e| InputError::io(&file.path, e))?;
-            let img = decode(&file.name, &bytes, limits)?;
-            let depth = bit_depth(&img);
-            if let Some(rgb) = colour_content(&img) {
+        .map(|(&i, light)| {
+            if let Some(ready) = predecoded(i) {
+                return ready; // gray by construction: no colour moments to add
+            }
+            let (decoded, colour) = decode_file(&files[i], limits)?;
+            if let Some(rgb) = colour {
                 accumulate_moments(&moments, &rgb, light);
                 colour_count.fetch_add(1, Ordering::Relaxed);
             }
-            Ok((to_luma16(img), depth))
+            Ok(decoded)
         })
         .collect::<Vec<Result<_, InputError>>>()
         // The first failure in table order, not the first in time: the error a set gets
@@ -160,9 +194,9 @@ pub fn load(
         .into_iter()
         .collect::<Result<_, InputError>>()?;
 
-    let (first_plane, first_depth) = &decoded[0];
-    let (rows, cols) = first_plane.dim();
-    for (i, (plane, depth)) in decoded.iter().enumerate() {
+    let (rows, cols) = decoded[0].plane.dim();
+    let first_depth = decoded[0].depth;
+    for (i, Decoded { plane, depth }) in decoded.iter().enumerate() {
         let (r, c) = plane.dim();
         if (r, c) != (rows, cols) {
             return Err(InputError::SizeMismatch {
@@ -174,16 +208,16 @@ pub fn load(
                 expected_height: rows as u32,
             });
         }
-        if depth != first_depth {
+        if *depth != first_depth {
             return Err(InputError::BitDepthMismatch {
                 name: lights[i].name.clone(),
                 depth: *depth,
                 first: lights[0].name.clone(),
-                expected: *first_depth,
+                expected: first_depth,
             });
         }
     }
-    let bit_depth = *first_depth;
+    let bit_depth = first_depth;
     let mask = mask.map(|m| load_mask(m, rows, cols, limits)).transpose()?;
     let colour_moments = moments.into_inner().unwrap_or_else(|p| p.into_inner());
     // A set where only some images carry colour is treated as gray: moments from a
@@ -194,20 +228,18 @@ pub fn load(
         height: rows,
         bit_depth,
         lights,
-        planes: decoded.into_iter().map(|(p, _)| p).collect(),
+        planes: decoded.into_iter().map(|d| d.plane).collect(),
         colour_moments: if colour_images { colour_moments } else { None },
         mask,
     })
 }
 
-/// Pair each table row with its file; every row needs a file and every file a row.
-fn match_files<'a>(
-    lights: &[Light],
-    files: &'a [NamedFile],
-) -> Result<Vec<&'a NamedFile>, InputError> {
+/// Pair each table row with its file (an index into `files`); every row needs a file and
+/// every file a row.
+fn match_files(lights: &[Light], files: &[NamedFile]) -> Result<Vec<usize>, InputError> {
     let mut by_name = std::collections::HashMap::new();
-    for f in files {
-        if by_name.insert(f.name.as_str(), f).is_some() {
+    for (i, f) in files.iter().enumerate() {
+        if by_name.insert(f.name.as_str(), i).is_some() {
             return Err(InputError::DuplicateName {
                 name: f.name.clone(),
                 first: 0,
@@ -218,7 +250,7 @@ fn match_files<'a>(
     let mut ordered = Vec::with_capacity(lights.len());
     for l in lights {
         match by_name.remove(l.name.as_str()) {
-            Some(f) => ordered.push(f),
+            Some(i) => ordered.push(i),
             None => {
                 return Err(InputError::MissingImage {
                     name: l.name.clone(),
@@ -232,6 +264,34 @@ fn match_files<'a>(
         });
     }
     Ok(ordered)
+}
+
+/// Read and decode one image file.
+fn decode_file(
+    file: &NamedFile,
+    limits: &Limits,
+) -> Result<(Decoded, Option<image::Rgb32FImage>), InputError> {
+    let bytes = std::fs::read(&file.path).map_err(|e| InputError::io(&file.path, e))?;
+    decode_bytes(&file.name, &bytes, limits)
+}
+
+/// Decode one image: its plane, and its RGB values when it really carries colour. The one
+/// decode path of [`load_with`] and [`predecode`].
+fn decode_bytes(
+    name: &str,
+    bytes: &[u8],
+    limits: &Limits,
+) -> Result<(Decoded, Option<image::Rgb32FImage>), InputError> {
+    let img = decode(name, bytes, limits)?;
+    let depth = bit_depth(&img);
+    let colour = colour_content(&img);
+    Ok((
+        Decoded {
+            plane: to_luma16(img),
+            depth,
+        },
+        colour,
+    ))
 }
 
 /// Decode one image, refusing unknown formats and oversized headers before allocating.

@@ -101,6 +101,11 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_SHUTDOWN_GRACE", default_value = "30s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
 
+    /// Uploads whose images are decoded while they arrive, held ready for their job
+    /// (0: off) [default: the number of workers].
+    #[arg(long, env = "PHOTOSTEREO_DECODE_AHEAD", value_parser = clap::value_parser!(u32).range(0..=1024))]
+    pub decode_ahead: Option<u32>,
+
     /// Log format (the level is set with RUST_LOG, default `info`).
     #[arg(long, env = "PHOTOSTEREO_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
@@ -125,6 +130,8 @@ pub struct Config {
     pub min_free_disk: u64,
     pub api_keys: Vec<String>,
     pub shutdown_grace: Duration,
+    /// Uploads decoded ahead of their job at once.
+    pub decode_ahead: usize,
     /// How often expired jobs are looked for.
     pub sweep_interval: Duration,
     /// Test hook: a pause at the start of every stage (cancellable), to make jobs last.
@@ -141,9 +148,10 @@ pub const RETRY_AFTER_SECS: u64 = 5;
 impl Config {
     /// The defaults of [`ServeArgs`], with the given data directory.
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
+        let workers = default_workers();
         Self {
             data_dir: data_dir.into(),
-            workers: default_workers(),
+            workers,
             queue_length: 64,
             max_body_bytes: 1 << 30,
             max_images: 64,
@@ -157,6 +165,7 @@ impl Config {
             min_free_disk: 1 << 30,
             api_keys: Vec::new(),
             shutdown_grace: Duration::from_secs(30),
+            decode_ahead: workers,
             sweep_interval: Duration::from_secs(60),
             stage_delay: Duration::ZERO,
         }
@@ -202,6 +211,7 @@ impl From<&ServeArgs> for Config {
             .filter(|k| !k.is_empty())
             .collect();
         c.shutdown_grace = a.shutdown_grace;
+        c.decode_ahead = a.decode_ahead.map(|n| n as usize).unwrap_or(c.workers);
         c.sweep_interval =
             (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
         c
@@ -238,6 +248,7 @@ mod tests {
         assert_eq!(c.max_parts, d.max_parts);
         assert_eq!(c.max_images, d.max_images);
         assert!(c.workers >= 1);
+        assert_eq!(c.decode_ahead, c.workers);
     }
 
     #[test]
@@ -262,6 +273,9 @@ mod tests {
         assert_eq!(c.api_keys, ["a", "b", "c"]);
         assert_eq!(c.workers, 3);
         assert!(Cli::try_parse_from(["x", "--workers", "0"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--decode-ahead", "100000"]).is_err());
+        let off = Cli::try_parse_from(["x", "--decode-ahead", "0"]).unwrap();
+        assert_eq!(Config::from(&off.serve).decode_ahead, 0);
         assert!(Cli::try_parse_from(["x", "--retention", "soon"]).is_err());
     }
 }

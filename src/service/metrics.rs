@@ -25,6 +25,8 @@ pub struct Metrics {
     finished: Mutex<BTreeMap<&'static str, SumCount>>,
     pub submitted: AtomicU64,
     pub rejected_queue_full: AtomicU64,
+    /// Images jobs took decoded ahead (during their upload).
+    pub prefetched_images: AtomicU64,
 }
 
 /// Gauges read at scrape time.
@@ -36,6 +38,7 @@ pub struct Snapshot {
     pub running_max: usize,
     pub workers: usize,
     pub free_disk_bytes: Option<u64>,
+    pub prefetch_sets: usize,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -80,7 +83,7 @@ impl Metrics {
                 status.as_str()
             );
         }
-        let gauges: [(&str, &str, u64); 5] = [
+        let gauges: [(&str, &str, u64); 6] = [
             (
                 "photostereo_queue_depth",
                 "Accepted jobs waiting for a worker.",
@@ -106,6 +109,11 @@ impl Metrics {
                 "Most workers ever reconstructing at once since start.",
                 snap.running_max as u64,
             ),
+            (
+                "photostereo_prefetch_sets",
+                "Uploads whose images are held decoded ahead of their job.",
+                snap.prefetch_sets as u64,
+            ),
         ];
         for (name, help, v) in gauges {
             let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
@@ -126,6 +134,11 @@ impl Metrics {
                 "photostereo_jobs_rejected_queue_full_total",
                 "Submissions refused because the queue was full (503).",
                 self.rejected_queue_full.load(Ordering::Relaxed),
+            ),
+            (
+                "photostereo_prefetched_images_total",
+                "Images jobs took decoded ahead, during their upload.",
+                self.prefetched_images.load(Ordering::Relaxed),
             ),
         ] {
             let _ = writeln!(

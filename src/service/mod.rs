@@ -17,6 +17,7 @@ mod health;
 pub mod jobs;
 mod metrics;
 mod openapi;
+mod prefetch;
 pub mod repo;
 pub mod routes;
 mod upload;
@@ -56,6 +57,7 @@ pub use upload::{parse_options, unpack_archive};
 use blobs::{BlobStore, LocalStore, MANIFEST_FILE};
 use jobs::JobQueue;
 use metrics::{Metrics, Snapshot};
+use prefetch::{Prefetch, Prefetcher};
 use repo::{JobRepo, JobStatus, RepoResult, SqliteRepo};
 use util::now_ms;
 
@@ -73,6 +75,8 @@ pub(crate) struct Inner {
     repo: Arc<dyn JobRepo>,
     store: Arc<dyn BlobStore>,
     jobs: JobQueue,
+    /// Uploads' images decoded ahead of their jobs.
+    prefetch: Prefetcher,
     metrics: Metrics,
     shutting_down: AtomicBool,
     stop: watch::Sender<bool>,
@@ -110,6 +114,7 @@ impl AppState {
         let config_uploads = config.max_uploads.max(1);
         let inner = Arc::new(Inner {
             jobs: JobQueue::new(config.queue_length),
+            prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
             config,
             repo: Arc::new(repo),
             store: Arc::new(store),
@@ -281,8 +286,24 @@ impl AppState {
         })
     }
 
-    /// Remove a job's files (errors are logged).
+    /// A set to decode a new upload's images into ahead of its job, if a slot is free.
+    pub(crate) fn begin_prefetch(&self) -> Option<Prefetch> {
+        self.inner.prefetch.begin()
+    }
+
+    /// Keep an accepted job's decoded images for its worker.
+    pub(crate) fn park_prefetch(&self, id: Uuid, set: Prefetch) {
+        self.inner.prefetch.park(id, set);
+    }
+
+    /// Drop the images decoded ahead for a job, if any.
+    pub(crate) fn remove_prefetch(&self, id: Uuid) {
+        self.inner.prefetch.discard(id);
+    }
+
+    /// Remove a job's files and any images decoded ahead for it (errors are logged).
     pub(crate) async fn remove_files(&self, id: Uuid) {
+        self.inner.prefetch.discard(id);
         let store = self.inner.store.clone();
         match tokio::task::spawn_blocking(move || store.remove_job(id)).await {
             Ok(Ok(())) => {}
@@ -321,6 +342,7 @@ impl AppState {
             running_max: jobs.running_max(),
             workers: self.inner.config.workers,
             free_disk_bytes: free,
+            prefetch_sets: self.inner.prefetch.held(),
         }))
     }
 }

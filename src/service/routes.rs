@@ -21,7 +21,7 @@ use super::error::{ApiError, PROBLEM_JSON, Problem};
 use super::jobs::PushError;
 use super::repo::{JobRecord, JobStatus};
 use super::upload;
-use super::util::{fnv1a, format_duration, now_ms, rfc3339};
+use super::util::{format_duration, now_ms, rfc3339, strong_etag};
 
 /// Cache lifetime of stored artifacts (they never change once a job has succeeded).
 const IMMUTABLE: &str = "private, max-age=31536000, immutable";
@@ -336,9 +336,17 @@ async fn accept_job(
 
     let id = Uuid::new_v4();
     let mut staging = state.stage_upload(id).await?;
+    // Dropped with its decoded images on any refusal below.
+    let prefetch = state.begin_prefetch();
     let received = tokio::time::timeout(
         config.upload_timeout,
-        upload::receive(config, staging.path(), &mut multipart, tap),
+        upload::receive(
+            config,
+            staging.path(),
+            &mut multipart,
+            tap,
+            prefetch.as_ref(),
+        ),
     )
     .await
     .map_err(|_| {
@@ -352,11 +360,17 @@ async fn accept_job(
     let record = JobRecord::new_queued(id, now_ms(), received.image_count as u32, received.options);
     let stored = record.clone();
     state.repo(move |r| r.insert(&stored)).await?;
+    // Parked before the job is queued, so that its worker finds it.
+    if let Some(set) = prefetch {
+        state.park_prefetch(id, set);
+    }
     match state.jobs().try_push(id) {
         Ok(()) => {}
-        // Stopping: the job stays queued in the repo and runs at the next start.
-        Err(PushError::Closed) => {}
+        // Stopping: the job stays queued in the repo and runs at the next start (which
+        // decodes from disk).
+        Err(PushError::Closed) => state.remove_prefetch(id),
         Err(PushError::Full) => {
+            state.remove_prefetch(id);
             state.repo(move |r| r.delete(id)).await?;
             state.count_queue_full();
             return Err(queue_full(state));
@@ -593,11 +607,7 @@ pub async fn get_artifact(
         let dir = state.store().outputs(id);
         let png = tokio::task::spawn_blocking(move || outputs::shaded_png_from_dir(&dir, light))
             .await??;
-        let etag = format!(
-            "\"{:016x}-{:x}\"",
-            fnv1a(png.as_slice()).unwrap_or(0),
-            png.len()
-        );
+        let etag = strong_etag(crc32fast::hash(&png), png.len() as u64);
         if not_modified(&headers, &etag) {
             return Ok(not_modified_response(&etag, RESHADED));
         }

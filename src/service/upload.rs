@@ -23,7 +23,6 @@ use axum::extract::Multipart;
 use axum::extract::multipart::{Field, MultipartError};
 use image::ImageReader;
 use serde::Deserialize;
-use tokio::io::AsyncWriteExt;
 
 use crate::core::intake::{LIGHTS_FILE as TABLE_CSV, LIGHTS_JSON_FILE as TABLE_JSON};
 use crate::core::lights::{self, Light};
@@ -34,6 +33,7 @@ use crate::core::{InputError, Options};
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, image_file};
 use super::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use super::error::ApiError;
+use super::prefetch::Prefetch;
 
 /// The request body, shared between the multipart parser and the handler: it enforces the
 /// body size limit, and lets the handler drain what is left after refusing an upload, so
@@ -171,11 +171,13 @@ struct Parts {
 }
 
 /// Read the multipart body into `dir` and check it. The caller removes `dir` on error.
+/// Each image is handed to `prefetch` to decode once it is written and probed.
 pub async fn receive(
     config: &Config,
     dir: &Path,
     multipart: &mut Multipart,
     tap: &BodyTap,
+    prefetch: Option<&Prefetch>,
 ) -> Result<Received, ApiError> {
     let mut parts = Parts::default();
     while let Some(mut field) = multipart
@@ -205,9 +207,13 @@ pub async fn receive(
                 }
                 let name = file_name(&field, "images")?;
                 let file = image_file(parts.images.len());
-                let head = stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
+                let (head, written) =
+                    stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
+                if let Some(p) = prefetch {
+                    p.start(file.clone(), name.clone(), written);
+                }
                 parts.images.push(StoredImage {
                     name,
                     file,
@@ -231,7 +237,8 @@ pub async fn receive(
                     .filter(|n| !n.is_empty())
                     .unwrap_or("mask")
                     .to_string();
-                let head = stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
+                let (head, _) =
+                    stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
                 let (width, height, depth) = probe(dir.join(MASK_FILE), name.clone(), head, config)
                     .await
                     .map_err(|e| {
@@ -261,7 +268,7 @@ pub async fn receive(
                     return Err(both_forms());
                 }
                 let path = dir.join(ARCHIVE_FILE);
-                let head = stream_to_file(&mut field, &path, tap, config).await?;
+                let (head, _) = stream_to_file(&mut field, &path, tap, config).await?;
                 if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
                     return Err(ApiError::unsupported_media(
                         "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv)",
@@ -441,29 +448,85 @@ fn explain_options_error(value: &serde_json::Value, err: serde_json::Error) -> S
     message
 }
 
-/// Write a part to `path` chunk by chunk; returns its first bytes.
+/// Chunks queued between the multipart reader and a part's file writer.
+const WRITE_QUEUE: usize = 64;
+/// The writer's buffer: large writes, few system calls.
+const WRITE_BUFFER: usize = 1 << 20;
+
+/// Write a part to `path`; returns its first bytes and the file, open for reading too (a
+/// handle stays valid when the staging directory is renamed). The chunks go through a
+/// bounded channel to one blocking task that owns a std file, so a part costs one
+/// blocking-pool hand-off rather than one per chunk, and the async side copies nothing.
 async fn stream_to_file(
     field: &mut Field<'_>,
     path: &Path,
     tap: &BodyTap,
     config: &Config,
-) -> Result<Vec<u8>, ApiError> {
-    let mut file = tokio::fs::File::create(path).await?;
+) -> Result<(Vec<u8>, File), ApiError> {
+    let target = path.to_path_buf();
+    let file = tokio::task::spawn_blocking(move || {
+        File::options()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .open(target)
+    })
+    .await??;
+    let (tx, rx) = tokio::sync::mpsc::channel::<Bytes>(WRITE_QUEUE);
+    let writer = tokio::task::spawn_blocking(move || write_chunks(file, rx));
     let mut head = Vec::with_capacity(HEAD_BYTES);
-    while let Some(chunk) = field
-        .chunk()
-        .await
-        .map_err(|e| multipart_error(e, tap, config))?
-    {
-        if head.len() < HEAD_BYTES {
-            let take = (HEAD_BYTES - head.len()).min(chunk.len());
-            head.extend_from_slice(&chunk[..take]);
+    let read = async {
+        while let Some(chunk) = field
+            .chunk()
+            .await
+            .map_err(|e| multipart_error(e, tap, config))?
+        {
+            if head.len() < HEAD_BYTES {
+                let take = (HEAD_BYTES - head.len()).min(chunk.len());
+                head.extend_from_slice(&chunk[..take]);
+            }
+            if tx.send(chunk).await.is_err() {
+                break; // the writer failed: its error is reported below
+            }
         }
-        file.write_all(&chunk).await?;
+        Ok::<_, ApiError>(())
     }
-    file.flush().await?;
-    Ok(head)
+    .await;
+    drop(tx);
+    let written = writer.await?;
+    read?;
+    Ok((head, written?))
 }
+
+/// The writer side of [`stream_to_file`]: until the channel closes.
+fn write_chunks(
+    file: File,
+    mut chunks: tokio::sync::mpsc::Receiver<Bytes>,
+) -> std::io::Result<File> {
+    let mut out = std::io::BufWriter::with_capacity(WRITE_BUFFER, file);
+    while let Some(chunk) = chunks.blocking_recv() {
+        out.write_all(&chunk)?;
+    }
+    let file = out.into_inner().map_err(|e| e.into_error())?;
+    start_writeback(&file);
+    Ok(file)
+}
+
+/// Start writing a finished part to disk now, so that the fsync before the 202 has little
+/// left to wait for (durability still rests on that fsync).
+#[cfg(target_os = "linux")]
+fn start_writeback(file: &File) {
+    use std::os::fd::AsRawFd;
+    // SAFETY: an open descriptor; the call only schedules writeback of its pages, and a
+    // failure just leaves the work to the fsync.
+    unsafe {
+        libc::sync_file_range(file.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE);
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn start_writeback(_file: &File) {}
 
 /// Read a small text part into memory, refusing more than `limit` bytes.
 async fn read_small(
