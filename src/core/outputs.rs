@@ -2,9 +2,11 @@
 //! parallel, each under a temporary name and renamed once complete.
 
 use std::fs::File;
-use std::io::Write;
+use std::io::{Cursor, Seek, Write};
 use std::path::Path;
 
+use exr::image::write::channels::WritableChannels;
+use exr::prelude::{Encoding, Image, Layer, SpecificChannels, Vec2, WritableImage};
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb};
 use ndarray::{Array2, Array3};
@@ -115,72 +117,33 @@ where
         .map_err(std::io::Error::other)
 }
 
-/// Write a 32-bit float RGBA OpenEXR file (single part, scan lines, no compression),
-/// one row at a time from `pixel`: no whole-image buffer, no copy. Uncompressed because
-/// float normals and heights barely compress losslessly and the compressors cost more
-/// than the bytes they save.
-fn write_exr(
-    out: &mut dyn Write,
-    width: usize,
-    height: usize,
-    pixel: impl Fn(usize, usize) -> [f32; 4],
+/// A seekable writer: the EXR writer goes back to fill in its offset table.
+pub trait WriteSeek: Write + Seek {}
+
+impl<T: Write + Seek> WriteSeek for T {}
+
+/// A single-part scan-line float EXR of `channels`, uncompressed: float normals and
+/// heights barely compress losslessly and the compressors cost more than they save.
+fn exr_image<'c, C: 'c + WritableChannels<'c>>(
+    (rows, cols): (usize, usize),
+    channels: C,
+) -> Image<Layer<C>> {
+    Image::from_encoded_channels((cols, rows), Encoding::UNCOMPRESSED, channels)
+}
+
+/// Stream an EXR into `out`; pixels come from the image's closure a line at a time.
+fn exr_to<'i, C: WritableChannels<'i>>(
+    out: &mut dyn WriteSeek,
+    image: &'i Image<Layer<C>>,
 ) -> std::io::Result<()> {
-    fn attribute(h: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
-        h.extend_from_slice(name.as_bytes());
-        h.push(0);
-        h.extend_from_slice(kind.as_bytes());
-        h.push(0);
-        h.extend_from_slice(&(value.len() as i32).to_le_bytes());
-        h.extend_from_slice(value);
-    }
-    let i32s = |v: &[i32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    let mut h = Vec::with_capacity(512);
-    h.extend_from_slice(&[0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0]);
-    let mut channels = Vec::new();
-    // Channels in the file are sorted by name: A, B, G, R.
-    for name in ["A", "B", "G", "R"] {
-        channels.extend_from_slice(name.as_bytes());
-        channels.push(0);
-        channels.extend_from_slice(&2i32.to_le_bytes()); // FLOAT
-        channels.extend_from_slice(&[0, 0, 0, 0]); // pLinear, reserved
-        channels.extend_from_slice(&i32s(&[1, 1])); // x, y sampling
-    }
-    channels.push(0);
-    attribute(&mut h, "channels", "chlist", &channels);
-    attribute(&mut h, "compression", "compression", &[0]);
-    let window = i32s(&[0, 0, width as i32 - 1, height as i32 - 1]);
-    attribute(&mut h, "dataWindow", "box2i", &window);
-    attribute(&mut h, "displayWindow", "box2i", &window);
-    attribute(&mut h, "lineOrder", "lineOrder", &[0]);
-    attribute(&mut h, "pixelAspectRatio", "float", &1f32.to_le_bytes());
-    attribute(&mut h, "screenWindowCenter", "v2f", &[0; 8]);
-    attribute(&mut h, "screenWindowWidth", "float", &1f32.to_le_bytes());
-    h.push(0);
-    let line = width * 4 * 4;
-    let first = (h.len() + height * 8) as u64;
-    for y in 0..height as u64 {
-        h.extend_from_slice(&(first + y * (8 + line as u64)).to_le_bytes());
-    }
-    out.write_all(&h)?;
-    let mut row = vec![0u8; 8 + line];
-    let plane = width * 4;
-    for y in 0..height {
-        row[..4].copy_from_slice(&(y as i32).to_le_bytes());
-        row[4..8].copy_from_slice(&(line as i32).to_le_bytes());
-        let (a, rest) = row[8..].split_at_mut(plane);
-        let (b, rest) = rest.split_at_mut(plane);
-        let (g, r) = rest.split_at_mut(plane);
-        for x in 0..width {
-            let p = pixel(y, x);
-            let at = x * 4..x * 4 + 4;
-            r[at.clone()].copy_from_slice(&p[0].to_le_bytes());
-            g[at.clone()].copy_from_slice(&p[1].to_le_bytes());
-            b[at.clone()].copy_from_slice(&p[2].to_le_bytes());
-            a[at].copy_from_slice(&p[3].to_le_bytes());
-        }
-        out.write_all(&row)?;
-    }
-    Ok(())
+    image
+        .write()
+        .non_parallel()
+        .to_buffered(out)
+        .map_err(|e| match e {
+            exr::error::Error::Io(e) => e,
+            e => std::io::Error::other(e),
+        })
 }
 
 /// 16-bit gray PNG of values in [0, 1] (clamped; NaN → 0), in row-major order.
@@ -229,9 +192,9 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
     if !applies(rec, name) {
         return None;
     }
-    let mut out = Vec::new();
+    let mut out = Cursor::new(Vec::new());
     match encode_to(&mut out, rec, name, shading_light) {
-        Ok(true) => Some(out),
+        Ok(true) => Some(out.into_inner()),
         Ok(false) => None,
         Err(e) => panic!("encoding {name} into memory cannot fail: {e}"),
     }
@@ -240,7 +203,7 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
 /// Stream one named artifact (mesh files excepted) into `out`; false when `name` is not
 /// a picture this module knows or does not apply.
 pub fn encode_to(
-    out: &mut dyn Write,
+    out: &mut dyn WriteSeek,
     rec: &Reconstruction,
     name: &str,
     shading_light: [f64; 3],
@@ -287,14 +250,19 @@ pub fn encode_to(
                 .map(|(&z, &m)| if m { (z - lo) / span } else { 0.0 });
             gray16_to(out, (rows, cols), z)?
         }
-        "normal.exr" => write_exr(out, cols, rows, |r, c| {
-            let [nx, ny, nz] = gl_normal(&rec.normals, r, c);
-            [nx, ny, nz, if mask[[r, c]] { 1.0 } else { 0.0 }]
-        })?,
-        "height.exr" => write_exr(out, cols, rows, |r, c| {
-            let z = rec.heights[[r, c]];
-            [z, z, z, if mask[[r, c]] { 1.0 } else { 0.0 }]
-        })?,
+        "normal.exr" => {
+            let n = SpecificChannels::rgb(|p: Vec2<usize>| {
+                let [x, y, z] = gl_normal(&rec.normals, p.y(), p.x());
+                (x, y, z)
+            });
+            exr_to(out, &exr_image((rows, cols), n))?
+        }
+        "height.exr" => {
+            let z = SpecificChannels::build()
+                .with_channel("Y")
+                .with_pixel_fn(|p: Vec2<usize>| (rec.heights[[p.y(), p.x()]],));
+            exr_to(out, &exr_image((rows, cols), z))?
+        }
         "needle.png" => png_to(out, &render::needle_map(&rec.albedo, &rec.normals, mask))?,
         "curl.png" => png_to(out, &render::diverging(&rec.curl, mask))?,
         "shaded.png" => {
@@ -317,7 +285,7 @@ pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError
 pub fn write_atomic_with(
     dir: &Path,
     name: &str,
-    write: &mut dyn FnMut(&mut dyn Write) -> std::io::Result<()>,
+    write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>,
 ) -> Result<(), RunError> {
     let tmp = dir.join(format!(".{name}.tmp"));
     let path = dir.join(name);
@@ -391,24 +359,51 @@ pub fn decode_png16(bytes: &[u8]) -> image::ImageResult<DynamicImage> {
     image::load_from_memory_with_format(bytes, ImageFormat::Png)
 }
 
+/// Decode `height.exr` (one float channel `Y`), for tests and tools: the image crate
+/// reads only RGB(A) EXRs.
+pub fn decode_height_exr(bytes: &[u8]) -> exr::error::Result<Array2<f32>> {
+    use exr::prelude::{ReadChannels, ReadLayers, ReadSpecificChannel};
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .specific_channels()
+        .required("Y")
+        .collect_pixels(
+            |size, _| Array2::<f32>::zeros((size.height(), size.width())),
+            |z, p, (v,): (f32,)| z[[p.y(), p.x()]] = v,
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))?;
+    Ok(image.layer_data.channel_data.pixels)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn exr_writer_round_trips_through_the_image_crate() {
-        let (w, h) = (5, 3);
-        let px = |r: usize, c: usize| [r as f32, c as f32 * 0.5, -1.25, (r + c) as f32 % 2.0];
-        let mut bytes = Vec::new();
-        write_exr(&mut bytes, w, h, px).unwrap();
-        let img = image::load_from_memory_with_format(&bytes, ImageFormat::OpenExr)
+    fn exr_files_round_trip() {
+        let (rows, cols) = (3, 5);
+        let rgb = |r: usize, c: usize| [r as f32, c as f32 * 0.5, -1.25];
+        let mut out = Cursor::new(Vec::new());
+        let n = SpecificChannels::rgb(|p: Vec2<usize>| rgb(p.y(), p.x()).into());
+        exr_to(&mut out, &exr_image((rows, cols), n)).unwrap();
+        // Read the RGB file as `shaded_png_from_dir` does, through the image crate.
+        let img = image::load_from_memory_with_format(out.get_ref(), ImageFormat::OpenExr)
             .unwrap()
-            .to_rgba32f();
-        assert_eq!(img.dimensions(), (w as u32, h as u32));
-        for r in 0..h {
-            for c in 0..w {
-                assert_eq!(img.get_pixel(c as u32, r as u32).0, px(r, c), "({r}, {c})");
-            }
+            .to_rgb32f();
+        assert_eq!(img.dimensions(), (cols as u32, rows as u32));
+        for (c, r, px) in img.enumerate_pixels() {
+            assert_eq!(px.0, rgb(r as usize, c as usize), "({r}, {c})");
         }
+
+        let z = Array2::from_shape_fn((rows, cols), |(r, c)| r as f32 - c as f32 * 0.25);
+        let mut out = Cursor::new(Vec::new());
+        let y = SpecificChannels::build()
+            .with_channel("Y")
+            .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
+        exr_to(&mut out, &exr_image((rows, cols), y)).unwrap();
+        assert_eq!(decode_height_exr(out.get_ref()).unwrap(), z);
     }
 }
