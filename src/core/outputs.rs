@@ -182,18 +182,64 @@ fn gl_normal(n: &Array3<f32>, r: usize, c: usize) -> [f32; 3] {
     [n[[r, c, 0]], -n[[r, c, 1]], n[[r, c, 2]]]
 }
 
-/// Whether artifact `name` applies to this reconstruction (`albedo_rgb.png` needs colour).
-pub fn applies(rec: &Reconstruction, name: &str) -> bool {
-    name != "albedo_rgb.png" || rec.albedo_rgb.is_some()
+/// The arrays the pictures are drawn from, borrowed from a [`Reconstruction`] or, while
+/// the integration still runs, from the surface it starts from (then without heights).
+pub struct Maps<'a> {
+    pub albedo: &'a Array2<f32>,
+    pub albedo_rgb: Option<&'a Array3<f32>>,
+    pub normals: &'a Array3<f32>,
+    pub mask: &'a Array2<bool>,
+    pub curl: &'a Array2<f32>,
+    pub confidence: &'a Array2<f32>,
+    pub unreliable: &'a Array2<bool>,
+    pub heights: Option<Heights<'a>>,
+}
+
+/// Integrated heights and their range over the mask.
+pub struct Heights<'a> {
+    pub z: &'a Array2<f32>,
+    pub min: f32,
+    pub max: f32,
+}
+
+impl<'a> Maps<'a> {
+    pub fn of(rec: &'a Reconstruction) -> Self {
+        Self {
+            albedo: &rec.albedo,
+            albedo_rgb: rec.albedo_rgb.as_ref(),
+            normals: &rec.normals,
+            mask: &rec.mask,
+            curl: &rec.curl,
+            confidence: &rec.confidence,
+            unreliable: &rec.unreliable,
+            heights: Some(Heights {
+                z: &rec.heights,
+                min: rec.report.height_min,
+                max: rec.report.height_max,
+            }),
+        }
+    }
+
+    fn heights(&self) -> &Heights<'a> {
+        (self.heights.as_ref()).expect("height pictures are encoded after the integration")
+    }
+}
+
+/// Whether picture `name` is drawn from the heights (the others can be written while the
+/// integration runs).
+pub fn needs_heights(name: &str) -> bool {
+    matches!(name, "height.png" | "height.exr")
+}
+
+/// Whether artifact `name` applies to these maps (`albedo_rgb.png` needs colour).
+pub fn applies(maps: &Maps, name: &str) -> bool {
+    name != "albedo_rgb.png" || maps.albedo_rgb.is_some()
 }
 
 /// Encode one named artifact (mesh files excepted), or None if it does not apply.
 pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Option<Vec<u8>> {
-    if !applies(rec, name) {
-        return None;
-    }
     let mut out = Cursor::new(Vec::new());
-    match encode_to(&mut out, rec, name, shading_light) {
+    match encode_to(&mut out, &Maps::of(rec), name, shading_light) {
         Ok(true) => Some(out.into_inner()),
         Ok(false) => None,
         Err(e) => panic!("encoding {name} into memory cannot fail: {e}"),
@@ -204,18 +250,18 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
 /// a picture this module knows or does not apply.
 pub fn encode_to(
     out: &mut dyn WriteSeek,
-    rec: &Reconstruction,
+    maps: &Maps,
     name: &str,
     shading_light: [f64; 3],
 ) -> std::io::Result<bool> {
-    let (rows, cols) = (rec.height, rec.width);
+    let (rows, cols) = maps.mask.dim();
     let (w, h) = (cols as u32, rows as u32);
-    let mask = &rec.mask;
-    let normals = || rec.normals.rows().into_iter().zip(mask.iter());
+    let mask = maps.mask;
+    let normals = || maps.normals.rows().into_iter().zip(mask.iter());
     match name {
-        "albedo.png" => gray16_to(out, (rows, cols), rec.albedo.iter().copied())?,
+        "albedo.png" => gray16_to(out, (rows, cols), maps.albedo.iter().copied())?,
         "albedo_rgb.png" => {
-            let Some(rgb) = rec.albedo_rgb.as_ref() else {
+            let Some(rgb) = maps.albedo_rgb else {
                 return Ok(false);
             };
             let data: Vec<u16> = rgb.iter().map(|&v| unit16(v)).collect();
@@ -223,8 +269,8 @@ pub fn encode_to(
             png_to(out, &img)?
         }
         "mask.png" => binary_to(out, mask)?,
-        "unreliable.png" => binary_to(out, &rec.unreliable)?,
-        "confidence.png" => gray16_to(out, (rows, cols), rec.confidence.iter().copied())?,
+        "unreliable.png" => binary_to(out, &maps.unreliable)?,
+        "confidence.png" => gray16_to(out, (rows, cols), maps.confidence.iter().copied())?,
         "normal.png" => {
             let mut data = Vec::with_capacity(rows * cols * 3);
             for (n, &m) in normals() {
@@ -244,29 +290,34 @@ pub fn encode_to(
             gray16_to(out, (rows, cols), comp)?
         }
         "height.png" => {
-            let (lo, hi) = (rec.report.height_min, rec.report.height_max);
+            let Heights {
+                z,
+                min: lo,
+                max: hi,
+            } = maps.heights();
             let span = if hi > lo { hi - lo } else { 1.0 };
-            let z = (rec.heights.iter().zip(mask.iter()))
-                .map(|(&z, &m)| if m { (z - lo) / span } else { 0.0 });
+            let z =
+                (z.iter().zip(mask.iter())).map(|(&z, &m)| if m { (z - lo) / span } else { 0.0 });
             gray16_to(out, (rows, cols), z)?
         }
         "normal.exr" => {
             let n = SpecificChannels::rgb(|p: Vec2<usize>| {
-                let [x, y, z] = gl_normal(&rec.normals, p.y(), p.x());
+                let [x, y, z] = gl_normal(&maps.normals, p.y(), p.x());
                 (x, y, z)
             });
             exr_to(out, &exr_image((rows, cols), n))?
         }
         "height.exr" => {
+            let z = maps.heights().z;
             let z = SpecificChannels::build()
                 .with_channel("Y")
-                .with_pixel_fn(|p: Vec2<usize>| (rec.heights[[p.y(), p.x()]],));
+                .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
             exr_to(out, &exr_image((rows, cols), z))?
         }
-        "needle.png" => png_to(out, &render::needle_map(&rec.albedo, &rec.normals, mask))?,
-        "curl.png" => png_to(out, &render::diverging(&rec.curl, mask))?,
+        "needle.png" => png_to(out, &render::needle_map(&maps.albedo, &maps.normals, mask))?,
+        "curl.png" => png_to(out, &render::diverging(&maps.curl, mask))?,
         "shaded.png" => {
-            let shaded = render::shade(&rec.albedo, &rec.normals, shading_light);
+            let shaded = render::shade(&maps.albedo, &maps.normals, shading_light);
             gray16_to(out, (rows, cols), shaded.iter().copied())?
         }
         _ => return Ok(false),
@@ -305,7 +356,7 @@ pub fn write_atomic_with(
 /// Write the picture artifacts `names` in parallel; returns the names written (an
 /// artifact that does not apply, such as `albedo_rgb.png` for gray inputs, is skipped).
 pub fn write_pictures(
-    rec: &Reconstruction,
+    maps: &Maps,
     names: &[&str],
     shading_light: [f64; 3],
     dir: &Path,
@@ -313,11 +364,11 @@ pub fn write_pictures(
     let written: Vec<Option<String>> = names
         .par_iter()
         .map(|name| {
-            if !applies(rec, name) {
+            if !applies(maps, name) {
                 return Ok(None);
             }
             write_atomic_with(dir, name, &mut |f| {
-                encode_to(f, rec, name, shading_light).map(|_| ())
+                encode_to(f, maps, name, shading_light).map(|_| ())
             })?;
 
             Ok(Some(name.to_string()))

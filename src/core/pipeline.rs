@@ -1,5 +1,6 @@
-//! `reconstruct`: the one path from an [`ImageSet`] to a [`Reconstruction`], shared by the
-//! CLI and the job worker.
+//! From an [`ImageSet`] to a [`Reconstruction`] (`reconstruct`) or to the written
+//! artifacts (`run`, used by the CLI, the job worker and the bench): both are the same
+//! steps (`prepare`, `Slopes`, `Prepared::finish`), `run` overlapping them.
 
 use std::borrow::Cow;
 use std::path::Path;
@@ -12,8 +13,9 @@ use super::InputError;
 use super::intake::ImageSet;
 use super::lights::{self, Light};
 use super::options::Options;
+use super::outputs::{self, Maps};
 use super::solve::{self, Surface};
-use super::{integrate, mask, outputs};
+use super::{integrate, mask, robust};
 
 /// Named stages, reported to a progress callback as they start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -128,25 +130,42 @@ pub fn reconstruct(
     opts: &Options,
     progress: Progress,
 ) -> Result<Reconstruction, RunError> {
-    reconstruct_from(Cow::Borrowed(set), opts, progress)
+    let mut timings = Timings::default();
+    let surface = prepare(Cow::Borrowed(set), opts, progress, &mut timings)?;
+    step(progress, Stage::Integrate)?;
+    let (slopes, heights) = timings.time(Stage::Integrate, || {
+        let slopes = Slopes::of(&surface);
+        let heights = slopes.integrate(&surface, opts);
+        (slopes, heights)
+    });
+    Ok(surface.finish(slopes.curl, heights, opts, timings))
 }
 
-/// [`reconstruct`] taking the set by value: the 16-bit image stack (the job's largest
-/// buffer) is freed as soon as the solve is done, before integration and outputs.
-pub fn reconstruct_owned(
-    set: ImageSet,
-    opts: &Options,
-    progress: Progress,
-) -> Result<Reconstruction, RunError> {
-    reconstruct_from(Cow::Owned(set), opts, progress)
+/// Everything recovered before integration: solved, masked and clipped to the mask.
+struct Prepared {
+    width: usize,
+    height: usize,
+    lights: Vec<Light>,
+    condition: f64,
+    clamped: usize,
+    albedo: Array2<f32>,
+    albedo_rgb: Option<Array3<f32>>,
+    normals: Array3<f32>,
+    mask: Array2<bool>,
+    residual: Array2<f32>,
+    confidence: Array2<f32>,
+    inliers: Array2<u16>,
+    unreliable: Array2<bool>,
+    estimate: Option<robust::CaptureEstimate>,
 }
 
-fn reconstruct_from(
+/// The solve and the mask stages. An owned set's image stack is dropped after the solve.
+fn prepare(
     mut set: Cow<'_, ImageSet>,
     opts: &Options,
     progress: Progress,
-) -> Result<Reconstruction, RunError> {
-    let mut timings = Timings::default();
+    timings: &mut Timings,
+) -> Result<Prepared, RunError> {
     let condition = lights::check_solvable(&set.lights, opts.max_condition)?;
     if let Some(names) = &opts.outputs {
         outputs::check_selection(names)?;
@@ -200,120 +219,166 @@ fn reconstruct_from(
         .colour_moments
         .as_ref()
         .map(|m| colour_albedo(m, &normals, &mask, &set.lights));
-    if let Cow::Owned(owned) = &mut set {
-        owned.colour_moments = None;
-    }
-
-    step(progress, Stage::Integrate)?;
-    let (heights, curl) = timings.time(Stage::Integrate, || {
-        let (p, q) = integrate::gradients(&normals, &mask);
-        let curl = integrate::curl(&p, &q, &mask);
-        let z = integrate::integrate_with_confidence(&p, &q, &mask, opts.integration, &confidence);
-        (z, curl)
-    });
-
-    let object = mask.iter().filter(|m| **m).count();
-    let over_mask = |a: &Array2<f32>| -> f64 {
-        let sum: f64 = a
-            .iter()
-            .zip(mask.iter())
-            .filter(|(_, m)| **m)
-            .map(|(v, _)| (*v as f64).powi(2))
-            .sum();
-        if object > 0 {
-            (sum / object as f64).sqrt()
-        } else {
-            0.0
-        }
-    };
-    let (height_min, height_max) = heights
-        .iter()
-        .zip(mask.iter())
-        .filter(|(_, m)| **m)
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| {
-            (lo.min(*h), hi.max(*h))
-        });
-    let (height_min, height_max) = if object > 0 {
-        (height_min, height_max)
-    } else {
-        (0.0, 0.0)
-    };
-    let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| {
-        if object > 0 {
-            v.sum::<f64>() / object as f64
-        } else {
-            0.0
-        }
-    };
-    let report = Report {
-        black_level: estimate.map(|e| e.black_level),
-        noise_sigma: estimate.map(|e| e.noise_sigma),
-        confidence_mean: mean_over_mask(&mut confidence.iter().map(|c| *c as f64)),
-        inliers_mean: mean_over_mask(
-            &mut inliers
-                .iter()
-                .zip(mask.iter())
-                .filter(|(_, m)| **m)
-                .map(|(k, _)| *k as f64),
-        ),
-        unreliable_pixels: unreliable.iter().filter(|u| **u).count(),
-        width: set.width,
-        height: set.height,
-        light_count: set.lights.len(),
-        lights: set
-            .lights
-            .iter()
-            .map(|l| LightSummary {
-                name: l.name.clone(),
-                direction: l.direction,
-                intensity: l.intensity,
-            })
-            .collect(),
-        options: opts.clone(),
-        light_condition_number: condition,
-        timings_ms: timings.0,
-        height_min,
-        height_max,
-        integrability_rms: over_mask(&curl),
-        reprojection_rms: over_mask(&residual),
-        clamped_albedo_pixels: clamped,
-        background_pixels: mask.len() - object,
-        object_pixels: object,
-        artifacts: Vec::new(),
-    };
-    Ok(Reconstruction {
+    Ok(Prepared {
         width: set.width,
         height: set.height,
         lights: set.lights.clone(),
+        condition,
+        clamped,
         albedo,
         albedo_rgb,
         normals,
         mask,
-        heights,
-        curl,
         residual,
         confidence,
+        inliers,
         unreliable,
-        report,
+        estimate,
     })
+}
+
+/// The surface gradients integration starts from, and their curl.
+struct Slopes {
+    p: Array2<f32>,
+    q: Array2<f32>,
+    curl: Array2<f32>,
+}
+
+impl Slopes {
+    fn of(surface: &Prepared) -> Self {
+        let (p, q) = integrate::gradients(&surface.normals, &surface.mask);
+        let curl = integrate::curl(&p, &q, &surface.mask);
+        Self { p, q, curl }
+    }
+
+    fn integrate(&self, surface: &Prepared, opts: &Options) -> Array2<f32> {
+        let (p, q, mask) = (&self.p, &self.q, &surface.mask);
+        integrate::integrate_with_confidence(p, q, mask, opts.integration, &surface.confidence)
+    }
+}
+
+impl Prepared {
+    /// The pictures' arrays before the heights exist.
+    fn maps<'a>(&'a self, curl: &'a Array2<f32>) -> outputs::Maps<'a> {
+        outputs::Maps {
+            albedo: &self.albedo,
+            albedo_rgb: self.albedo_rgb.as_ref(),
+            normals: &self.normals,
+            mask: &self.mask,
+            curl,
+            confidence: &self.confidence,
+            unreliable: &self.unreliable,
+            heights: None,
+        }
+    }
+
+    /// The reconstruction and its report, once integrated.
+    fn finish(
+        self,
+        curl: Array2<f32>,
+        heights: Array2<f32>,
+        opts: &Options,
+        timings: Timings,
+    ) -> Reconstruction {
+        let mask = &self.mask;
+        let object = mask.iter().filter(|m| **m).count();
+        let over_mask = |a: &Array2<f32>| -> f64 {
+            let sum: f64 = a
+                .iter()
+                .zip(mask.iter())
+                .filter(|(_, m)| **m)
+                .map(|(v, _)| (*v as f64).powi(2))
+                .sum();
+            if object > 0 {
+                (sum / object as f64).sqrt()
+            } else {
+                0.0
+            }
+        };
+        let (height_min, height_max) = heights
+            .iter()
+            .zip(mask.iter())
+            .filter(|(_, m)| **m)
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| {
+                (lo.min(*h), hi.max(*h))
+            });
+        let (height_min, height_max) = if object > 0 {
+            (height_min, height_max)
+        } else {
+            (0.0, 0.0)
+        };
+        let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| {
+            if object > 0 {
+                v.sum::<f64>() / object as f64
+            } else {
+                0.0
+            }
+        };
+        let report = Report {
+            black_level: self.estimate.map(|e| e.black_level),
+            noise_sigma: self.estimate.map(|e| e.noise_sigma),
+            confidence_mean: mean_over_mask(&mut self.confidence.iter().map(|c| *c as f64)),
+            inliers_mean: mean_over_mask(
+                &mut self
+                    .inliers
+                    .iter()
+                    .zip(mask.iter())
+                    .filter(|(_, m)| **m)
+                    .map(|(k, _)| *k as f64),
+            ),
+            unreliable_pixels: self.unreliable.iter().filter(|u| **u).count(),
+            width: self.width,
+            height: self.height,
+            light_count: self.lights.len(),
+            lights: self
+                .lights
+                .iter()
+                .map(|l| LightSummary {
+                    name: l.name.clone(),
+                    direction: l.direction,
+                    intensity: l.intensity,
+                })
+                .collect(),
+            options: opts.clone(),
+            light_condition_number: self.condition,
+            timings_ms: timings.0,
+            height_min,
+            height_max,
+            integrability_rms: over_mask(&curl),
+            reprojection_rms: over_mask(&self.residual),
+            clamped_albedo_pixels: self.clamped,
+            background_pixels: mask.len() - object,
+            object_pixels: object,
+            artifacts: Vec::new(),
+        };
+        Reconstruction {
+            width: self.width,
+            height: self.height,
+            lights: self.lights,
+            albedo: self.albedo,
+            albedo_rgb: self.albedo_rgb,
+            normals: self.normals,
+            mask: self.mask,
+            heights,
+            curl,
+            residual: self.residual,
+            confidence: self.confidence,
+            unreliable: self.unreliable,
+            report,
+        }
+    }
 }
 
 /// Reconstruct and write every requested artifact into `dir` (each written under a
 /// temporary name and renamed, `result.json` last). Returns the report. Takes the set by
-/// value so that its image stack is freed right after the solve (see
-/// [`reconstruct_owned`]).
+/// value so that its 16-bit image stack (the job's largest buffer) is freed right after
+/// the solve.
+///
+/// The pictures that need no heights are written while the integration runs (both
+/// stages start together); then the height pictures, the meshes and the preview go in
+/// one parallel batch (the `mesh` stage).
 pub fn run(
     set: ImageSet,
-    opts: &Options,
-    dir: &Path,
-    progress: Progress,
-) -> Result<Report, RunError> {
-    let rec = reconstruct_owned(set, opts, progress)?;
-    write_all(rec, opts, dir, progress)
-}
-
-fn write_all(
-    mut rec: Reconstruction,
     opts: &Options,
     dir: &Path,
     progress: Progress,
@@ -327,25 +392,46 @@ fn write_all(
             .as_ref()
             .is_none_or(|o| o.iter().any(|n| n == name))
     };
-    let pictures: Vec<&str> = outputs::ARTIFACTS
+    let (late, early): (Vec<&str>, Vec<&str>) = outputs::ARTIFACTS
         .iter()
         .map(|(n, _)| *n)
         .filter(|n| n.ends_with(".png") || n.ends_with(".exr"))
         .filter(|n| *n != "preview.png" && wanted(n))
-        .collect();
+        .partition(|n| outputs::needs_heights(n));
 
-    step(progress, Stage::Outputs)?;
+    let mut timings = Timings::default();
+    let surface = prepare(Cow::Owned(set), opts, progress, &mut timings)?;
+    step(progress, Stage::Integrate)?;
     let start = Instant::now();
-    let mut written = outputs::write_pictures(&rec, &pictures, opts.shading_light, dir)?;
-    rec.report
-        .timings_ms
-        .push(Timing::new(Stage::Outputs, start));
+    let slopes = Slopes::of(&surface);
+    step(progress, Stage::Outputs)?;
+    let (heights, pictures) = rayon::join(
+        || {
+            let heights = slopes.integrate(&surface, opts);
+            (heights, Timing::new(Stage::Integrate, start))
+        },
+        || {
+            let start = Instant::now();
+            let maps = surface.maps(&slopes.curl);
+            let written = outputs::write_pictures(&maps, &early, opts.shading_light, dir);
+            (written, Timing::new(Stage::Outputs, start))
+        },
+    );
+    timings.0.extend([heights.1, pictures.1]);
+    let mut written = pictures.0?;
+    let mut rec = surface.finish(slopes.curl, heights.0, opts, timings);
 
     step(progress, Stage::Mesh)?;
     let start = Instant::now();
-    written.extend(write_meshes(&rec, opts, dir, &wanted)?);
+    let (pictures, meshes) = rayon::join(
+        || outputs::write_pictures(&Maps::of(&rec), &late, opts.shading_light, dir),
+        || write_meshes(&rec, opts, dir, &wanted),
+    );
+    written.extend(pictures?.into_iter().chain(meshes?));
     rec.report.timings_ms.push(Timing::new(Stage::Mesh, start));
 
+    // In the order of ARTIFACTS, whichever batch wrote them.
+    written.sort_by_key(|n| outputs::ARTIFACTS.iter().position(|(a, _)| a == n));
     written.push("result.json".into());
     rec.report.artifacts = written;
     let json = serde_json::to_vec_pretty(&rec.report).expect("the report serialises");
