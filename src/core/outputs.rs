@@ -9,7 +9,7 @@ use exr::image::write::channels::WritableChannels;
 use exr::prelude::{Encoding, Image, Layer, SpecificChannels, Vec2, WritableImage};
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb};
-use ndarray::{Array2, Array3};
+use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
@@ -146,32 +146,57 @@ fn exr_to<'i, C: WritableChannels<'i>>(
         })
 }
 
-/// 16-bit gray PNG of values in [0, 1] (clamped; NaN → 0), in row-major order.
-fn gray16_to(
+/// A 16-bit PNG (gray or RGB) with one channel per plane: `unit(channel, value)` in
+/// [0, 1] (clamped; NaN → 0), 0 off the mask. Samples are converted in parallel, a
+/// plane at a time.
+fn png16_to<const C: usize>(
     out: &mut dyn Write,
-    (rows, cols): (usize, usize),
-    values: impl Iterator<Item = f32>,
+    mask: &Array2<bool>,
+    planes: [ArrayView2<f32>; C],
+    unit: impl Fn(usize, f32) -> f32 + Sync,
 ) -> std::io::Result<()> {
-    let data: Vec<u16> = values.map(unit16).collect();
-    let img = ImageBuffer::<Luma<u16>, _>::from_raw(cols as u32, rows as u32, data)
-        .expect("one value per pixel");
-    png_to(out, &img)
+    let (rows, cols) = mask.dim();
+    let mut data = Array3::<u16>::zeros((rows, cols, C));
+    for (k, plane) in planes.iter().enumerate() {
+        Zip::from(data.index_axis_mut(Axis(2), k))
+            .and(plane)
+            .and(mask)
+            .par_for_each(|o, &v, &m| {
+                if m {
+                    *o = unit16(unit(k, v));
+                }
+            });
+    }
+    let (data, _) = data.into_raw_vec_and_offset();
+    let (w, h) = (cols as u32, rows as u32);
+    match C {
+        1 => png_to(
+            out,
+            &ImageBuffer::<Luma<u16>, _>::from_raw(w, h, data).expect("1 per pixel"),
+        ),
+        3 => png_to(
+            out,
+            &ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel"),
+        ),
+        _ => unreachable!("16-bit pictures are gray or RGB"),
+    }
 }
 
+/// [0, 1] to 16 bits, rounding half away from zero like `f32::round` but without its
+/// libm call, so the conversion loops vectorise: the fraction x − trunc(x) is exact.
 fn unit16(v: f32) -> u16 {
-    (v.clamp(0.0, 1.0) * 65535.0).round() as u16
-}
-
-fn gray16(values: &Array2<f32>, map: impl Fn(f32) -> f32) -> Vec<u8> {
-    let mut out = Vec::new();
-    gray16_to(&mut out, values.dim(), values.iter().map(|&v| map(v)))
-        .expect("encoding a PNG into memory cannot fail");
-    out
+    let x = v.clamp(0.0, 1.0) * 65535.0;
+    let t = x as u16;
+    t + u16::from(x - t as f32 >= 0.5)
 }
 
 fn binary_to(out: &mut dyn Write, m: &Array2<bool>) -> std::io::Result<()> {
     let (rows, cols) = m.dim();
-    let data: Vec<u8> = m.iter().map(|&b| if b { 255 } else { 0 }).collect();
+    let mut data = Array2::<u8>::zeros((rows, cols));
+    Zip::from(&mut data)
+        .and(m)
+        .par_for_each(|o, &b| *o = if b { 255 } else { 0 });
+    let (data, _) = data.into_raw_vec_and_offset();
     let img = ImageBuffer::<Luma<u8>, _>::from_raw(cols as u32, rows as u32, data)
         .expect("one value per pixel");
     png_to(out, &img)
@@ -255,54 +280,37 @@ pub fn encode_to(
     shading_light: [f64; 3],
 ) -> std::io::Result<bool> {
     let (rows, cols) = maps.mask.dim();
-    let (w, h) = (cols as u32, rows as u32);
     let mask = maps.mask;
-    let normals = || maps.normals.rows().into_iter().zip(mask.iter());
+    let value = |_, v| v;
+    let signed = |_, v: f32| (v + 1.0) * 0.5;
+    let normal = |k| maps.normals.index_axis(Axis(2), k);
     match name {
-        "albedo.png" => gray16_to(out, (rows, cols), maps.albedo.iter().copied())?,
+        "albedo.png" => png16_to(out, mask, [maps.albedo.view()], value)?,
         "albedo_rgb.png" => {
             let Some(rgb) = maps.albedo_rgb else {
                 return Ok(false);
             };
-            let data: Vec<u16> = rgb.iter().map(|&v| unit16(v)).collect();
-            let img = ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel");
-            png_to(out, &img)?
+            let planes = [0, 1, 2].map(|k| rgb.index_axis(Axis(2), k));
+            png16_to(out, mask, planes, value)?
         }
         "mask.png" => binary_to(out, mask)?,
-        "unreliable.png" => binary_to(out, &maps.unreliable)?,
-        "confidence.png" => gray16_to(out, (rows, cols), maps.confidence.iter().copied())?,
-        "normal.png" => {
-            let mut data = Vec::with_capacity(rows * cols * 3);
-            for (n, &m) in normals() {
-                let gl = [n[0], -n[1], n[2]];
-                data.extend(gl.map(|v| if m { unit16((v + 1.0) * 0.5) } else { 0 }));
-            }
-            let img = ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel");
-            png_to(out, &img)?
-        }
-        "normal_x.png" | "normal_y.png" | "normal_z.png" => {
-            let k = match name {
-                "normal_x.png" => 0,
-                "normal_y.png" => 1,
-                _ => 2,
-            };
-            let comp = normals().map(|(n, &m)| if m { (n[k] + 1.0) * 0.5 } else { 0.0 });
-            gray16_to(out, (rows, cols), comp)?
-        }
+        "unreliable.png" => binary_to(out, maps.unreliable)?,
+        "confidence.png" => png16_to(out, mask, [maps.confidence.view()], value)?,
+        // The OpenGL normal-map frame: y up, so the seed frame's y is flipped.
+        "normal.png" => png16_to(out, mask, [0, 1, 2].map(normal), |k, v| {
+            signed(k, if k == 1 { -v } else { v })
+        })?,
+        "normal_x.png" => png16_to(out, mask, [normal(0)], signed)?,
+        "normal_y.png" => png16_to(out, mask, [normal(1)], signed)?,
+        "normal_z.png" => png16_to(out, mask, [normal(2)], signed)?,
         "height.png" => {
-            let Heights {
-                z,
-                min: lo,
-                max: hi,
-            } = maps.heights();
-            let span = if hi > lo { hi - lo } else { 1.0 };
-            let z =
-                (z.iter().zip(mask.iter())).map(|(&z, &m)| if m { (z - lo) / span } else { 0.0 });
-            gray16_to(out, (rows, cols), z)?
+            let Heights { z, min, max } = maps.heights();
+            let span = if max > min { max - min } else { 1.0 };
+            png16_to(out, mask, [z.view()], |_, z| (z - min) / span)?
         }
         "normal.exr" => {
             let n = SpecificChannels::rgb(|p: Vec2<usize>| {
-                let [x, y, z] = gl_normal(&maps.normals, p.y(), p.x());
+                let [x, y, z] = gl_normal(maps.normals, p.y(), p.x());
                 (x, y, z)
             });
             exr_to(out, &exr_image((rows, cols), n))?
@@ -314,11 +322,11 @@ pub fn encode_to(
                 .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
             exr_to(out, &exr_image((rows, cols), z))?
         }
-        "needle.png" => png_to(out, &render::needle_map(&maps.albedo, &maps.normals, mask))?,
-        "curl.png" => png_to(out, &render::diverging(&maps.curl, mask))?,
+        "needle.png" => png_to(out, &render::needle_map(maps.albedo, maps.normals, mask))?,
+        "curl.png" => png_to(out, &render::diverging(maps.curl, mask))?,
         "shaded.png" => {
-            let shaded = render::shade(&maps.albedo, &maps.normals, shading_light);
-            gray16_to(out, (rows, cols), shaded.iter().copied())?
+            let shaded = render::shade(maps.albedo, maps.normals, shading_light);
+            png16_to(out, mask, [shaded.view()], value)?
         }
         _ => return Ok(false),
     }
@@ -402,7 +410,13 @@ pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, Input
         let v = normal.get_pixel(c as u32, r as u32).0[k];
         if k == 1 { -v } else { v }
     });
-    Ok(gray16(&render::shade(&a, &n, light), |v| v))
+    // Off the mask the normals are zero, and so is the shading: every pixel is drawn.
+    let everywhere = Array2::from_elem(a.dim(), true);
+    let shaded = render::shade(&a, &n, light);
+    let mut out = Vec::new();
+    png16_to(&mut out, &everywhere, [shaded.view()], |_, v| v)
+        .expect("encoding a PNG into memory cannot fail");
+    Ok(out)
 }
 
 /// Decode an encoded artifact's pixels, for tests and tools.
