@@ -7,6 +7,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use ndarray::{Array2, Array3, Zip};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::InputError;
@@ -182,7 +183,7 @@ fn prepare(
         mut residual,
         mut confidence,
         inliers,
-        unreliable,
+        mut unreliable,
         estimate,
     } = surface;
 
@@ -190,31 +191,33 @@ fn prepare(
     let mask = timings.time(Stage::Mask, || {
         mask::build(opts.mask, &albedo, set.mask.as_ref())
     })?;
-    let clamped = albedo
-        .iter()
-        .zip(mask.iter())
-        .filter(|(a, m)| **m && **a > 1.0)
-        .count();
-    Zip::from(&mut albedo).and(&mask).par_for_each(|a, &m| {
-        *a = if m { a.min(1.0) } else { 0.0 };
-    });
-    Zip::from(normals.rows_mut())
+    // Clip every map to the mask, counting the albedo clamped to 1.
+    let clamped = Zip::from(&mut albedo)
+        .and(normals.rows_mut())
         .and(&mask)
-        .par_for_each(|mut n, &m| {
-            if !m {
+        .par_fold(
+            || 0,
+            |clamped, a, mut n, &m| {
+                if m {
+                    let over = *a > 1.0;
+                    *a = a.min(1.0);
+                    return clamped + usize::from(over);
+                }
+                *a = 0.0;
                 n.fill(0.0);
-            }
-        });
+                clamped
+            },
+            |a, b| a + b,
+        );
     Zip::from(&mut residual)
         .and(&mut confidence)
+        .and(&mut unreliable)
         .and(&mask)
-        .par_for_each(|r, c, &m| {
+        .par_for_each(|r, c, u, &m| {
             if !m {
-                *r = 0.0;
-                *c = 0.0;
+                (*r, *c, *u) = (0.0, 0.0, false);
             }
         });
-    let unreliable = &unreliable & &mask;
     let albedo_rgb = set
         .colour_moments
         .as_ref()
@@ -280,53 +283,20 @@ impl Prepared {
         opts: &Options,
         timings: Timings,
     ) -> Reconstruction {
-        let mask = &self.mask;
-        let object = mask.iter().filter(|m| **m).count();
-        let over_mask = |a: &Array2<f32>| -> f64 {
-            let sum: f64 = a
-                .iter()
-                .zip(mask.iter())
-                .filter(|(_, m)| **m)
-                .map(|(v, _)| (*v as f64).powi(2))
-                .sum();
-            if object > 0 {
-                (sum / object as f64).sqrt()
-            } else {
-                0.0
-            }
-        };
-        let (height_min, height_max) = heights
-            .iter()
-            .zip(mask.iter())
-            .filter(|(_, m)| **m)
-            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| {
-                (lo.min(*h), hi.max(*h))
-            });
+        let sums = MaskSums::of(&self, &curl, &heights);
+        let object = sums.object;
+        let per_object = |v: f64| if object > 0 { v / object as f64 } else { 0.0 };
         let (height_min, height_max) = if object > 0 {
-            (height_min, height_max)
+            (sums.low, sums.high)
         } else {
             (0.0, 0.0)
-        };
-        let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| {
-            if object > 0 {
-                v.sum::<f64>() / object as f64
-            } else {
-                0.0
-            }
         };
         let report = Report {
             black_level: self.estimate.map(|e| e.black_level),
             noise_sigma: self.estimate.map(|e| e.noise_sigma),
-            confidence_mean: mean_over_mask(&mut self.confidence.iter().map(|c| *c as f64)),
-            inliers_mean: mean_over_mask(
-                &mut self
-                    .inliers
-                    .iter()
-                    .zip(mask.iter())
-                    .filter(|(_, m)| **m)
-                    .map(|(k, _)| *k as f64),
-            ),
-            unreliable_pixels: self.unreliable.iter().filter(|u| **u).count(),
+            confidence_mean: per_object(sums.confidence),
+            inliers_mean: per_object(sums.inliers),
+            unreliable_pixels: sums.unreliable,
             width: self.width,
             height: self.height,
             light_count: self.lights.len(),
@@ -344,10 +314,10 @@ impl Prepared {
             timings_ms: timings.0,
             height_min,
             height_max,
-            integrability_rms: over_mask(&curl),
-            reprojection_rms: over_mask(&self.residual),
+            integrability_rms: per_object(sums.curl2).sqrt(),
+            reprojection_rms: per_object(sums.residual2).sqrt(),
             clamped_albedo_pixels: self.clamped,
-            background_pixels: mask.len() - object,
+            background_pixels: self.mask.len() - object,
             object_pixels: object,
             artifacts: Vec::new(),
         };
@@ -366,6 +336,80 @@ impl Prepared {
             unreliable: self.unreliable,
             report,
         }
+    }
+}
+
+/// The report's sums over the mask, in one pass over fixed row bands added in order (so
+/// the figures do not depend on how the bands were scheduled).
+#[derive(Clone, Copy)]
+struct MaskSums {
+    object: usize,
+    unreliable: usize,
+    confidence: f64,
+    inliers: f64,
+    curl2: f64,
+    residual2: f64,
+    low: f32,
+    high: f32,
+}
+
+impl MaskSums {
+    const NONE: Self = Self {
+        object: 0,
+        unreliable: 0,
+        confidence: 0.0,
+        inliers: 0.0,
+        curl2: 0.0,
+        residual2: 0.0,
+        low: f32::INFINITY,
+        high: f32::NEG_INFINITY,
+    };
+    const BAND: usize = 64;
+
+    fn of(s: &Prepared, curl: &Array2<f32>, heights: &Array2<f32>) -> Self {
+        let rows = s.mask.nrows();
+        let bands: Vec<Self> = (0..rows.div_ceil(Self::BAND))
+            .into_par_iter()
+            .map(|b| {
+                let r = ndarray::s![b * Self::BAND..((b + 1) * Self::BAND).min(rows), ..];
+                let mut sums = Self::NONE;
+                Zip::from(s.mask.slice(r))
+                    .and(heights.slice(r))
+                    .and(s.unreliable.slice(r))
+                    .and(s.confidence.slice(r))
+                    .and(s.inliers.slice(r))
+                    .for_each(|&m, &z, &u, &c, &k| {
+                        if m {
+                            sums.object += 1;
+                            sums.unreliable += usize::from(u);
+                            sums.confidence += c as f64;
+                            sums.inliers += k as f64;
+                            sums.low = sums.low.min(z);
+                            sums.high = sums.high.max(z);
+                        }
+                    });
+                Zip::from(s.mask.slice(r))
+                    .and(curl.slice(r))
+                    .and(s.residual.slice(r))
+                    .for_each(|&m, &c, &e| {
+                        if m {
+                            sums.curl2 += (c as f64).powi(2);
+                            sums.residual2 += (e as f64).powi(2);
+                        }
+                    });
+                sums
+            })
+            .collect();
+        bands.into_iter().fold(Self::NONE, |a, b| Self {
+            object: a.object + b.object,
+            unreliable: a.unreliable + b.unreliable,
+            confidence: a.confidence + b.confidence,
+            inliers: a.inliers + b.inliers,
+            curl2: a.curl2 + b.curl2,
+            residual2: a.residual2 + b.residual2,
+            low: a.low.min(b.low),
+            high: a.high.max(b.high),
+        })
     }
 }
 
@@ -401,17 +445,18 @@ pub fn run(
 
     let mut timings = Timings::default();
     let surface = prepare(Cow::Owned(set), opts, progress, &mut timings)?;
+    // Both stages start with the gradients: integration starts from them, and curl.png
+    // shows their curl.
     step(progress, Stage::Integrate)?;
+    step(progress, Stage::Outputs)?;
     let start = Instant::now();
     let slopes = Slopes::of(&surface);
-    step(progress, Stage::Outputs)?;
     let (heights, pictures) = rayon::join(
         || {
             let heights = slopes.integrate(&surface, opts);
             (heights, Timing::new(Stage::Integrate, start))
         },
         || {
-            let start = Instant::now();
             let maps = surface.maps(&slopes.curl);
             let written = outputs::write_pictures(&maps, &early, opts.shading_light, dir);
             (written, Timing::new(Stage::Outputs, start))
