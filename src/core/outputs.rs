@@ -8,8 +8,8 @@ use std::path::Path;
 use exr::image::write::channels::WritableChannels;
 use exr::prelude::{Encoding, Image, Layer, SpecificChannels, Vec2, WritableImage};
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb};
-use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
+use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma};
+use ndarray::{Array2, Array3, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
@@ -147,39 +147,43 @@ fn exr_to<'i, C: WritableChannels<'i>>(
 }
 
 /// A 16-bit PNG (gray or RGB) with one channel per plane: `unit(channel, value)` in
-/// [0, 1] (clamped; NaN → 0), 0 off the mask. Samples are converted in parallel, a
-/// plane at a time.
+/// [0, 1] (clamped; NaN → 0), 0 off the mask. Streamed a row at a time with the `png`
+/// crate, with the same settings as [`png_to`]: no whole-image buffer (through the image
+/// crate's encoder there were three: the samples, their big-endian copy and the
+/// compressed stream).
 fn png16_to<const C: usize>(
     out: &mut dyn Write,
     mask: &Array2<bool>,
     planes: [ArrayView2<f32>; C],
-    unit: impl Fn(usize, f32) -> f32 + Sync,
+    unit: impl Fn(usize, f32) -> f32,
 ) -> std::io::Result<()> {
     let (rows, cols) = mask.dim();
-    let mut data = Array3::<u16>::zeros((rows, cols, C));
-    for (k, plane) in planes.iter().enumerate() {
-        Zip::from(data.index_axis_mut(Axis(2), k))
-            .and(plane)
-            .and(mask)
-            .par_for_each(|o, &v, &m| {
-                if m {
-                    *o = unit16(unit(k, v));
-                }
-            });
-    }
-    let (data, _) = data.into_raw_vec_and_offset();
-    let (w, h) = (cols as u32, rows as u32);
-    match C {
-        1 => png_to(
-            out,
-            &ImageBuffer::<Luma<u16>, _>::from_raw(w, h, data).expect("1 per pixel"),
-        ),
-        3 => png_to(
-            out,
-            &ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel"),
-        ),
+    let mut encoder = png::Encoder::new(out, cols as u32, rows as u32);
+    encoder.set_color(match C {
+        1 => png::ColorType::Grayscale,
+        3 => png::ColorType::Rgb,
         _ => unreachable!("16-bit pictures are gray or RGB"),
+    });
+    encoder.set_depth(png::BitDepth::Sixteen);
+    encoder.set_compression(png::Compression::Fast);
+    encoder.set_filter(png::Filter::Up);
+    let mut writer = encoder.write_header()?;
+    let mut stream = writer.stream_writer_with_size(1 << 18)?;
+    let mut row = vec![[0u8; 2]; cols * C];
+    for r in 0..rows {
+        let mut samples = ArrayViewMut2::from_shape((cols, C), &mut row).expect("C per pixel");
+        for (k, plane) in planes.iter().enumerate() {
+            Zip::from(samples.column_mut(k))
+                .and(plane.row(r))
+                .and(mask.row(r))
+                .for_each(|s, &v, &m| {
+                    *s = if m { unit16(unit(k, v)) } else { 0 }.to_be_bytes();
+                });
+        }
+        stream.write_all(row.as_flattened())?;
     }
+    stream.finish()?;
+    Ok(writer.finish()?)
 }
 
 /// [0, 1] to 16 bits, rounding half away from zero like `f32::round` but without its
