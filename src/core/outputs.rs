@@ -452,6 +452,46 @@ mod tests {
     use super::*;
 
     #[test]
+    fn unit16_rounds_like_f32_round() {
+        let edges = (0..=65535u32).flat_map(|k| {
+            let x = k as f32 / 65535.0;
+            [x, x + 0.5 / 65535.0, (k as f32 + 0.5).next_down() / 65535.0]
+        });
+        for v in edges.chain([-1.0, 2.0, f32::NAN, f32::INFINITY]) {
+            let expected = (v.clamp(0.0, 1.0) * 65535.0).round() as u16;
+            assert_eq!(unit16(v), expected, "{v}");
+        }
+    }
+
+    #[test]
+    fn png16_rows_decode_to_their_samples() {
+        let mask = Array2::from_shape_fn((3, 4), |(r, c)| r != c);
+        let plane =
+            |k: usize| Array2::from_shape_fn((3, 4), |(r, c)| (r * 4 + c + k) as f32 / 20.0);
+        let (a, b, c) = (plane(0), plane(1), plane(2));
+        let flip = |k: usize, v: f32| if k == 1 { 1.0 - v } else { v };
+        let mut rgb = Vec::new();
+        png16_to(&mut rgb, &mask, [a.view(), b.view(), c.view()], flip).unwrap();
+        let rgb = decode_png16(&rgb).unwrap().into_rgb16();
+        let mut gray = Vec::new();
+        png16_to(&mut gray, &mask, [a.view()], |_, v| v).unwrap();
+        let gray = decode_png16(&gray).unwrap().into_luma16();
+        for ((r, col), &m) in mask.indexed_iter() {
+            let want = |k: usize, v: f32| if m { unit16(flip(k, v)) } else { 0 };
+            let px = rgb.get_pixel(col as u32, r as u32).0;
+            assert_eq!(
+                px,
+                [0, 1, 2].map(|k| want(k, plane(k)[[r, col]])),
+                "({r}, {col})"
+            );
+            assert_eq!(
+                gray.get_pixel(col as u32, r as u32).0,
+                [want(0, a[[r, col]])]
+            );
+        }
+    }
+
+    #[test]
     fn exr_files_round_trip() {
         let (rows, cols) = (3, 5);
         let rgb = |r: usize, c: usize| [r as f32, c as f32 * 0.5, -1.25];

@@ -427,10 +427,6 @@ pub fn run(
     dir: &Path,
     progress: Progress,
 ) -> Result<Report, RunError> {
-    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
-        path: dir.display().to_string(),
-        reason: e.to_string(),
-    })?;
     let wanted = |name: &str| -> bool {
         opts.outputs
             .as_ref()
@@ -445,6 +441,10 @@ pub fn run(
 
     let mut timings = Timings::default();
     let surface = prepare(Cow::Owned(set), opts, progress, &mut timings)?;
+    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
+        path: dir.display().to_string(),
+        reason: e.to_string(),
+    })?;
     // Both stages start with the gradients: integration starts from them, and curl.png
     // shows their curl.
     step(progress, Stage::Integrate)?;
