@@ -6,7 +6,7 @@ use std::collections::{BTreeMap, HashSet};
 use std::time::Duration;
 
 use common::*;
-use photostereo::core::outputs::ARTIFACTS;
+use photostereo::core::outputs::{self, ARTIFACTS};
 use photostereo::service::{AppState, healthcheck, openapi_json, router};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -77,8 +77,14 @@ async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8
             }
             "exr" => {
                 assert_eq!(&bytes[..4], &[0x76, 0x2f, 0x31, 0x01], "{name}: EXR magic");
-                image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
-                    .unwrap_or_else(|e| panic!("{name}: {e}"));
+                if name == "height.exr" {
+                    let z = outputs::decode_height_exr(&bytes)
+                        .unwrap_or_else(|e| panic!("{name}: {e}"));
+                    assert_eq!(z.dim(), (h as usize, w as usize), "{name}");
+                } else {
+                    image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
+                        .unwrap_or_else(|e| panic!("{name}: {e}"));
+                }
             }
             "glb" => {
                 assert_eq!(&bytes[..4], b"glTF", "{name}: glb magic");

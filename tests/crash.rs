@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 
 use binserver::BinServer;
 use common::{archive_form, folder_form, repo_root, seed, zip_folder};
+use photostereo::core::outputs;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 
@@ -72,6 +73,10 @@ fn check_artifact(name: &str, bytes: &[u8]) -> Result<(), String> {
     let ext = name.rsplit('.').next().unwrap_or_default();
     match ext {
         "png" => image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+            .map(|_| ())
+            .map_err(|e| e.to_string()),
+        // height.exr has one channel `Y`, which the image crate does not read.
+        "exr" if name == "height.exr" => outputs::decode_height_exr(bytes)
             .map(|_| ())
             .map_err(|e| e.to_string()),
         "exr" => image::load_from_memory_with_format(bytes, image::ImageFormat::OpenExr)

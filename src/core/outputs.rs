@@ -2,12 +2,14 @@
 //! parallel, each under a temporary name and renamed once complete.
 
 use std::fs::File;
-use std::io::Write;
+use std::io::{Cursor, Seek, Write};
 use std::path::Path;
 
+use exr::image::write::channels::WritableChannels;
+use exr::prelude::{Encoding, Image, Layer, SpecificChannels, Vec2, WritableImage};
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma, Rgb};
-use ndarray::{Array2, Array3};
+use image::{DynamicImage, ImageBuffer, ImageEncoder, ImageFormat, Luma};
+use ndarray::{Array2, Array3, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
@@ -115,100 +117,90 @@ where
         .map_err(std::io::Error::other)
 }
 
-/// Write a 32-bit float RGBA OpenEXR file (single part, scan lines, no compression),
-/// one row at a time from `pixel`: no whole-image buffer, no copy. Uncompressed because
-/// float normals and heights barely compress losslessly and the compressors cost more
-/// than the bytes they save.
-fn write_exr(
-    out: &mut dyn Write,
-    width: usize,
-    height: usize,
-    pixel: impl Fn(usize, usize) -> [f32; 4],
-) -> std::io::Result<()> {
-    fn attribute(h: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
-        h.extend_from_slice(name.as_bytes());
-        h.push(0);
-        h.extend_from_slice(kind.as_bytes());
-        h.push(0);
-        h.extend_from_slice(&(value.len() as i32).to_le_bytes());
-        h.extend_from_slice(value);
-    }
-    let i32s = |v: &[i32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-    let mut h = Vec::with_capacity(512);
-    h.extend_from_slice(&[0x76, 0x2f, 0x31, 0x01, 2, 0, 0, 0]);
-    let mut channels = Vec::new();
-    // Channels in the file are sorted by name: A, B, G, R.
-    for name in ["A", "B", "G", "R"] {
-        channels.extend_from_slice(name.as_bytes());
-        channels.push(0);
-        channels.extend_from_slice(&2i32.to_le_bytes()); // FLOAT
-        channels.extend_from_slice(&[0, 0, 0, 0]); // pLinear, reserved
-        channels.extend_from_slice(&i32s(&[1, 1])); // x, y sampling
-    }
-    channels.push(0);
-    attribute(&mut h, "channels", "chlist", &channels);
-    attribute(&mut h, "compression", "compression", &[0]);
-    let window = i32s(&[0, 0, width as i32 - 1, height as i32 - 1]);
-    attribute(&mut h, "dataWindow", "box2i", &window);
-    attribute(&mut h, "displayWindow", "box2i", &window);
-    attribute(&mut h, "lineOrder", "lineOrder", &[0]);
-    attribute(&mut h, "pixelAspectRatio", "float", &1f32.to_le_bytes());
-    attribute(&mut h, "screenWindowCenter", "v2f", &[0; 8]);
-    attribute(&mut h, "screenWindowWidth", "float", &1f32.to_le_bytes());
-    h.push(0);
-    let line = width * 4 * 4;
-    let first = (h.len() + height * 8) as u64;
-    for y in 0..height as u64 {
-        h.extend_from_slice(&(first + y * (8 + line as u64)).to_le_bytes());
-    }
-    out.write_all(&h)?;
-    let mut row = vec![0u8; 8 + line];
-    let plane = width * 4;
-    for y in 0..height {
-        row[..4].copy_from_slice(&(y as i32).to_le_bytes());
-        row[4..8].copy_from_slice(&(line as i32).to_le_bytes());
-        let (a, rest) = row[8..].split_at_mut(plane);
-        let (b, rest) = rest.split_at_mut(plane);
-        let (g, r) = rest.split_at_mut(plane);
-        for x in 0..width {
-            let p = pixel(y, x);
-            let at = x * 4..x * 4 + 4;
-            r[at.clone()].copy_from_slice(&p[0].to_le_bytes());
-            g[at.clone()].copy_from_slice(&p[1].to_le_bytes());
-            b[at.clone()].copy_from_slice(&p[2].to_le_bytes());
-            a[at].copy_from_slice(&p[3].to_le_bytes());
-        }
-        out.write_all(&row)?;
-    }
-    Ok(())
-}
+/// A seekable writer: the EXR writer goes back to fill in its offset table.
+pub trait WriteSeek: Write + Seek {}
 
-/// 16-bit gray PNG of values in [0, 1] (clamped; NaN → 0), in row-major order.
-fn gray16_to(
-    out: &mut dyn Write,
+impl<T: Write + Seek> WriteSeek for T {}
+
+/// A single-part scan-line float EXR of `channels`, uncompressed: float normals and
+/// heights barely compress losslessly and the compressors cost more than they save.
+fn exr_image<'c, C: 'c + WritableChannels<'c>>(
     (rows, cols): (usize, usize),
-    values: impl Iterator<Item = f32>,
+    channels: C,
+) -> Image<Layer<C>> {
+    Image::from_encoded_channels((cols, rows), Encoding::UNCOMPRESSED, channels)
+}
+
+/// Stream an EXR into `out`; pixels come from the image's closure a line at a time.
+fn exr_to<'i, C: WritableChannels<'i>>(
+    out: &mut dyn WriteSeek,
+    image: &'i Image<Layer<C>>,
 ) -> std::io::Result<()> {
-    let data: Vec<u16> = values.map(unit16).collect();
-    let img = ImageBuffer::<Luma<u16>, _>::from_raw(cols as u32, rows as u32, data)
-        .expect("one value per pixel");
-    png_to(out, &img)
+    image
+        .write()
+        .non_parallel()
+        .to_buffered(out)
+        .map_err(|e| match e {
+            exr::error::Error::Io(e) => e,
+            e => std::io::Error::other(e),
+        })
 }
 
+/// A 16-bit PNG (gray or RGB) with one channel per plane: `unit(channel, value)` in
+/// [0, 1] (clamped; NaN → 0), 0 off the mask. Streamed a row at a time with the `png`
+/// crate, with the same settings as [`png_to`]: no whole-image buffer (through the image
+/// crate's encoder there were three: the samples, their big-endian copy and the
+/// compressed stream).
+fn png16_to<const C: usize>(
+    out: &mut dyn Write,
+    mask: &Array2<bool>,
+    planes: [ArrayView2<f32>; C],
+    unit: impl Fn(usize, f32) -> f32,
+) -> std::io::Result<()> {
+    let (rows, cols) = mask.dim();
+    let mut encoder = png::Encoder::new(out, cols as u32, rows as u32);
+    encoder.set_color(match C {
+        1 => png::ColorType::Grayscale,
+        3 => png::ColorType::Rgb,
+        _ => unreachable!("16-bit pictures are gray or RGB"),
+    });
+    encoder.set_depth(png::BitDepth::Sixteen);
+    encoder.set_compression(png::Compression::Fast);
+    encoder.set_filter(png::Filter::Up);
+    let mut writer = encoder.write_header()?;
+    let mut stream = writer.stream_writer_with_size(1 << 18)?;
+    let mut row = vec![[0u8; 2]; cols * C];
+    for r in 0..rows {
+        let mut samples = ArrayViewMut2::from_shape((cols, C), &mut row).expect("C per pixel");
+        for (k, plane) in planes.iter().enumerate() {
+            Zip::from(samples.column_mut(k))
+                .and(plane.row(r))
+                .and(mask.row(r))
+                .for_each(|s, &v, &m| {
+                    *s = if m { unit16(unit(k, v)) } else { 0 }.to_be_bytes();
+                });
+        }
+        stream.write_all(row.as_flattened())?;
+    }
+    stream.finish()?;
+    Ok(writer.finish()?)
+}
+
+/// [0, 1] to 16 bits, rounding half away from zero like `f32::round` but without its
+/// libm call, so the conversion loops vectorise: the fraction x − trunc(x) is exact.
 fn unit16(v: f32) -> u16 {
-    (v.clamp(0.0, 1.0) * 65535.0).round() as u16
-}
-
-fn gray16(values: &Array2<f32>, map: impl Fn(f32) -> f32) -> Vec<u8> {
-    let mut out = Vec::new();
-    gray16_to(&mut out, values.dim(), values.iter().map(|&v| map(v)))
-        .expect("encoding a PNG into memory cannot fail");
-    out
+    let x = v.clamp(0.0, 1.0) * 65535.0;
+    let t = x as u16;
+    t + u16::from(x - t as f32 >= 0.5)
 }
 
 fn binary_to(out: &mut dyn Write, m: &Array2<bool>) -> std::io::Result<()> {
     let (rows, cols) = m.dim();
-    let data: Vec<u8> = m.iter().map(|&b| if b { 255 } else { 0 }).collect();
+    let mut data = Array2::<u8>::zeros((rows, cols));
+    Zip::from(&mut data)
+        .and(m)
+        .par_for_each(|o, &b| *o = if b { 255 } else { 0 });
+    let (data, _) = data.into_raw_vec_and_offset();
     let img = ImageBuffer::<Luma<u8>, _>::from_raw(cols as u32, rows as u32, data)
         .expect("one value per pixel");
     png_to(out, &img)
@@ -219,19 +211,65 @@ fn gl_normal(n: &Array3<f32>, r: usize, c: usize) -> [f32; 3] {
     [n[[r, c, 0]], -n[[r, c, 1]], n[[r, c, 2]]]
 }
 
-/// Whether artifact `name` applies to this reconstruction (`albedo_rgb.png` needs colour).
-pub fn applies(rec: &Reconstruction, name: &str) -> bool {
-    name != "albedo_rgb.png" || rec.albedo_rgb.is_some()
+/// The arrays the pictures are drawn from, borrowed from a [`Reconstruction`] or, while
+/// the integration still runs, from the surface it starts from (then without heights).
+pub struct Maps<'a> {
+    pub albedo: &'a Array2<f32>,
+    pub albedo_rgb: Option<&'a Array3<f32>>,
+    pub normals: &'a Array3<f32>,
+    pub mask: &'a Array2<bool>,
+    pub curl: &'a Array2<f32>,
+    pub confidence: &'a Array2<f32>,
+    pub unreliable: &'a Array2<bool>,
+    pub heights: Option<Heights<'a>>,
+}
+
+/// Integrated heights and their range over the mask.
+pub struct Heights<'a> {
+    pub z: &'a Array2<f32>,
+    pub min: f32,
+    pub max: f32,
+}
+
+impl<'a> Maps<'a> {
+    pub fn of(rec: &'a Reconstruction) -> Self {
+        Self {
+            albedo: &rec.albedo,
+            albedo_rgb: rec.albedo_rgb.as_ref(),
+            normals: &rec.normals,
+            mask: &rec.mask,
+            curl: &rec.curl,
+            confidence: &rec.confidence,
+            unreliable: &rec.unreliable,
+            heights: Some(Heights {
+                z: &rec.heights,
+                min: rec.report.height_min,
+                max: rec.report.height_max,
+            }),
+        }
+    }
+
+    fn heights(&self) -> &Heights<'a> {
+        (self.heights.as_ref()).expect("height pictures are encoded after the integration")
+    }
+}
+
+/// Whether picture `name` is drawn from the heights (the others can be written while the
+/// integration runs).
+pub fn needs_heights(name: &str) -> bool {
+    matches!(name, "height.png" | "height.exr")
+}
+
+/// Whether artifact `name` applies to these maps (`albedo_rgb.png` needs colour).
+pub fn applies(maps: &Maps, name: &str) -> bool {
+    name != "albedo_rgb.png" || maps.albedo_rgb.is_some()
 }
 
 /// Encode one named artifact (mesh files excepted), or None if it does not apply.
 pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Option<Vec<u8>> {
-    if !applies(rec, name) {
-        return None;
-    }
-    let mut out = Vec::new();
-    match encode_to(&mut out, rec, name, shading_light) {
-        Ok(true) => Some(out),
+    let mut out = Cursor::new(Vec::new());
+    match encode_to(&mut out, &Maps::of(rec), name, shading_light) {
+        Ok(true) => Some(out.into_inner()),
         Ok(false) => None,
         Err(e) => panic!("encoding {name} into memory cannot fail: {e}"),
     }
@@ -240,66 +278,59 @@ pub fn encode(rec: &Reconstruction, name: &str, shading_light: [f64; 3]) -> Opti
 /// Stream one named artifact (mesh files excepted) into `out`; false when `name` is not
 /// a picture this module knows or does not apply.
 pub fn encode_to(
-    out: &mut dyn Write,
-    rec: &Reconstruction,
+    out: &mut dyn WriteSeek,
+    maps: &Maps,
     name: &str,
     shading_light: [f64; 3],
 ) -> std::io::Result<bool> {
-    let (rows, cols) = (rec.height, rec.width);
-    let (w, h) = (cols as u32, rows as u32);
-    let mask = &rec.mask;
-    let normals = || rec.normals.rows().into_iter().zip(mask.iter());
+    let (rows, cols) = maps.mask.dim();
+    let mask = maps.mask;
+    let value = |_, v| v;
+    let signed = |_, v: f32| (v + 1.0) * 0.5;
+    let normal = |k| maps.normals.index_axis(Axis(2), k);
     match name {
-        "albedo.png" => gray16_to(out, (rows, cols), rec.albedo.iter().copied())?,
+        "albedo.png" => png16_to(out, mask, [maps.albedo.view()], value)?,
         "albedo_rgb.png" => {
-            let Some(rgb) = rec.albedo_rgb.as_ref() else {
+            let Some(rgb) = maps.albedo_rgb else {
                 return Ok(false);
             };
-            let data: Vec<u16> = rgb.iter().map(|&v| unit16(v)).collect();
-            let img = ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel");
-            png_to(out, &img)?
+            let planes = [0, 1, 2].map(|k| rgb.index_axis(Axis(2), k));
+            png16_to(out, mask, planes, value)?
         }
         "mask.png" => binary_to(out, mask)?,
-        "unreliable.png" => binary_to(out, &rec.unreliable)?,
-        "confidence.png" => gray16_to(out, (rows, cols), rec.confidence.iter().copied())?,
-        "normal.png" => {
-            let mut data = Vec::with_capacity(rows * cols * 3);
-            for (n, &m) in normals() {
-                let gl = [n[0], -n[1], n[2]];
-                data.extend(gl.map(|v| if m { unit16((v + 1.0) * 0.5) } else { 0 }));
-            }
-            let img = ImageBuffer::<Rgb<u16>, _>::from_raw(w, h, data).expect("3 per pixel");
-            png_to(out, &img)?
-        }
-        "normal_x.png" | "normal_y.png" | "normal_z.png" => {
-            let k = match name {
-                "normal_x.png" => 0,
-                "normal_y.png" => 1,
-                _ => 2,
-            };
-            let comp = normals().map(|(n, &m)| if m { (n[k] + 1.0) * 0.5 } else { 0.0 });
-            gray16_to(out, (rows, cols), comp)?
-        }
+        "unreliable.png" => binary_to(out, maps.unreliable)?,
+        "confidence.png" => png16_to(out, mask, [maps.confidence.view()], value)?,
+        // The OpenGL normal-map frame: y up, so the seed frame's y is flipped.
+        "normal.png" => png16_to(out, mask, [0, 1, 2].map(normal), |k, v| {
+            signed(k, if k == 1 { -v } else { v })
+        })?,
+        "normal_x.png" => png16_to(out, mask, [normal(0)], signed)?,
+        "normal_y.png" => png16_to(out, mask, [normal(1)], signed)?,
+        "normal_z.png" => png16_to(out, mask, [normal(2)], signed)?,
         "height.png" => {
-            let (lo, hi) = (rec.report.height_min, rec.report.height_max);
-            let span = if hi > lo { hi - lo } else { 1.0 };
-            let z = (rec.heights.iter().zip(mask.iter()))
-                .map(|(&z, &m)| if m { (z - lo) / span } else { 0.0 });
-            gray16_to(out, (rows, cols), z)?
+            let Heights { z, min, max } = maps.heights();
+            let span = if max > min { max - min } else { 1.0 };
+            png16_to(out, mask, [z.view()], |_, z| (z - min) / span)?
         }
-        "normal.exr" => write_exr(out, cols, rows, |r, c| {
-            let [nx, ny, nz] = gl_normal(&rec.normals, r, c);
-            [nx, ny, nz, if mask[[r, c]] { 1.0 } else { 0.0 }]
-        })?,
-        "height.exr" => write_exr(out, cols, rows, |r, c| {
-            let z = rec.heights[[r, c]];
-            [z, z, z, if mask[[r, c]] { 1.0 } else { 0.0 }]
-        })?,
-        "needle.png" => png_to(out, &render::needle_map(&rec.albedo, &rec.normals, mask))?,
-        "curl.png" => png_to(out, &render::diverging(&rec.curl, mask))?,
+        "normal.exr" => {
+            let n = SpecificChannels::rgb(|p: Vec2<usize>| {
+                let [x, y, z] = gl_normal(maps.normals, p.y(), p.x());
+                (x, y, z)
+            });
+            exr_to(out, &exr_image((rows, cols), n))?
+        }
+        "height.exr" => {
+            let z = maps.heights().z;
+            let z = SpecificChannels::build()
+                .with_channel("Y")
+                .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
+            exr_to(out, &exr_image((rows, cols), z))?
+        }
+        "needle.png" => png_to(out, &render::needle_map(maps.albedo, maps.normals, mask))?,
+        "curl.png" => png_to(out, &render::diverging(maps.curl, mask))?,
         "shaded.png" => {
-            let shaded = render::shade(&rec.albedo, &rec.normals, shading_light);
-            gray16_to(out, (rows, cols), shaded.iter().copied())?
+            let shaded = render::shade(maps.albedo, maps.normals, shading_light);
+            png16_to(out, mask, [shaded.view()], value)?
         }
         _ => return Ok(false),
     }
@@ -317,7 +348,7 @@ pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError
 pub fn write_atomic_with(
     dir: &Path,
     name: &str,
-    write: &mut dyn FnMut(&mut dyn Write) -> std::io::Result<()>,
+    write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>,
 ) -> Result<(), RunError> {
     let tmp = dir.join(format!(".{name}.tmp"));
     let path = dir.join(name);
@@ -325,19 +356,23 @@ pub fn write_atomic_with(
         path: path.display().to_string(),
         reason: e.to_string(),
     };
-    {
-        let mut f = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp).map_err(fail)?);
-        write(&mut f).map_err(fail)?;
-        let f = f.into_inner().map_err(|e| fail(e.into_error()))?;
-        f.sync_all().map_err(fail)?;
+    let written = (|| {
+        let mut f = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
+        write(&mut f)?;
+        f.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        std::fs::rename(&tmp, &path)
+    })();
+    if written.is_err() {
+        // A failed artifact leaves nothing behind, not even its temporary file.
+        let _ = std::fs::remove_file(&tmp);
     }
-    std::fs::rename(&tmp, &path).map_err(fail)
+    written.map_err(fail)
 }
 
 /// Write the picture artifacts `names` in parallel; returns the names written (an
 /// artifact that does not apply, such as `albedo_rgb.png` for gray inputs, is skipped).
 pub fn write_pictures(
-    rec: &Reconstruction,
+    maps: &Maps,
     names: &[&str],
     shading_light: [f64; 3],
     dir: &Path,
@@ -345,11 +380,11 @@ pub fn write_pictures(
     let written: Vec<Option<String>> = names
         .par_iter()
         .map(|name| {
-            if !applies(rec, name) {
+            if !applies(maps, name) {
                 return Ok(None);
             }
             write_atomic_with(dir, name, &mut |f| {
-                encode_to(f, rec, name, shading_light).map(|_| ())
+                encode_to(f, maps, name, shading_light).map(|_| ())
             })?;
 
             Ok(Some(name.to_string()))
@@ -383,7 +418,13 @@ pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, Input
         let v = normal.get_pixel(c as u32, r as u32).0[k];
         if k == 1 { -v } else { v }
     });
-    Ok(gray16(&render::shade(&a, &n, light), |v| v))
+    // Off the mask the normals are zero, and so is the shading: every pixel is drawn.
+    let everywhere = Array2::from_elem(a.dim(), true);
+    let shaded = render::shade(&a, &n, light);
+    let mut out = Vec::new();
+    png16_to(&mut out, &everywhere, [shaded.view()], |_, v| v)
+        .expect("encoding a PNG into memory cannot fail");
+    Ok(out)
 }
 
 /// Decode an encoded artifact's pixels, for tests and tools.
@@ -391,24 +432,91 @@ pub fn decode_png16(bytes: &[u8]) -> image::ImageResult<DynamicImage> {
     image::load_from_memory_with_format(bytes, ImageFormat::Png)
 }
 
+/// Decode `height.exr` (one float channel `Y`), for tests and tools: the image crate
+/// reads only RGB(A) EXRs.
+pub fn decode_height_exr(bytes: &[u8]) -> exr::error::Result<Array2<f32>> {
+    use exr::prelude::{ReadChannels, ReadLayers, ReadSpecificChannel};
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .specific_channels()
+        .required("Y")
+        .collect_pixels(
+            |size, _| Array2::<f32>::zeros((size.height(), size.width())),
+            |z, p, (v,): (f32,)| z[[p.y(), p.x()]] = v,
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))?;
+    Ok(image.layer_data.channel_data.pixels)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn exr_writer_round_trips_through_the_image_crate() {
-        let (w, h) = (5, 3);
-        let px = |r: usize, c: usize| [r as f32, c as f32 * 0.5, -1.25, (r + c) as f32 % 2.0];
-        let mut bytes = Vec::new();
-        write_exr(&mut bytes, w, h, px).unwrap();
-        let img = image::load_from_memory_with_format(&bytes, ImageFormat::OpenExr)
-            .unwrap()
-            .to_rgba32f();
-        assert_eq!(img.dimensions(), (w as u32, h as u32));
-        for r in 0..h {
-            for c in 0..w {
-                assert_eq!(img.get_pixel(c as u32, r as u32).0, px(r, c), "({r}, {c})");
-            }
+    fn unit16_rounds_like_f32_round() {
+        let edges = (0..=65535u32).flat_map(|k| {
+            let x = k as f32 / 65535.0;
+            [x, x + 0.5 / 65535.0, (k as f32 + 0.5).next_down() / 65535.0]
+        });
+        for v in edges.chain([-1.0, 2.0, f32::NAN, f32::INFINITY]) {
+            let expected = (v.clamp(0.0, 1.0) * 65535.0).round() as u16;
+            assert_eq!(unit16(v), expected, "{v}");
         }
+    }
+
+    #[test]
+    fn png16_rows_decode_to_their_samples() {
+        let mask = Array2::from_shape_fn((3, 4), |(r, c)| r != c);
+        let plane =
+            |k: usize| Array2::from_shape_fn((3, 4), |(r, c)| (r * 4 + c + k) as f32 / 20.0);
+        let (a, b, c) = (plane(0), plane(1), plane(2));
+        let flip = |k: usize, v: f32| if k == 1 { 1.0 - v } else { v };
+        let mut rgb = Vec::new();
+        png16_to(&mut rgb, &mask, [a.view(), b.view(), c.view()], flip).unwrap();
+        let rgb = decode_png16(&rgb).unwrap().into_rgb16();
+        let mut gray = Vec::new();
+        png16_to(&mut gray, &mask, [a.view()], |_, v| v).unwrap();
+        let gray = decode_png16(&gray).unwrap().into_luma16();
+        for ((r, col), &m) in mask.indexed_iter() {
+            let want = |k: usize, v: f32| if m { unit16(flip(k, v)) } else { 0 };
+            let px = rgb.get_pixel(col as u32, r as u32).0;
+            assert_eq!(
+                px,
+                [0, 1, 2].map(|k| want(k, plane(k)[[r, col]])),
+                "({r}, {col})"
+            );
+            assert_eq!(
+                gray.get_pixel(col as u32, r as u32).0,
+                [want(0, a[[r, col]])]
+            );
+        }
+    }
+
+    #[test]
+    fn exr_files_round_trip() {
+        let (rows, cols) = (3, 5);
+        let rgb = |r: usize, c: usize| [r as f32, c as f32 * 0.5, -1.25];
+        let mut out = Cursor::new(Vec::new());
+        let n = SpecificChannels::rgb(|p: Vec2<usize>| rgb(p.y(), p.x()).into());
+        exr_to(&mut out, &exr_image((rows, cols), n)).unwrap();
+        // Read the RGB file as `shaded_png_from_dir` does, through the image crate.
+        let img = image::load_from_memory_with_format(out.get_ref(), ImageFormat::OpenExr)
+            .unwrap()
+            .to_rgb32f();
+        assert_eq!(img.dimensions(), (cols as u32, rows as u32));
+        for (c, r, px) in img.enumerate_pixels() {
+            assert_eq!(px.0, rgb(r as usize, c as usize), "({r}, {c})");
+        }
+
+        let z = Array2::from_shape_fn((rows, cols), |(r, c)| r as f32 - c as f32 * 0.25);
+        let mut out = Cursor::new(Vec::new());
+        let y = SpecificChannels::build()
+            .with_channel("Y")
+            .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
+        exr_to(&mut out, &exr_image((rows, cols), y)).unwrap();
+        assert_eq!(decode_height_exr(out.get_ref()).unwrap(), z);
     }
 }

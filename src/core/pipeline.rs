@@ -1,19 +1,23 @@
-//! `reconstruct`: the one path from an [`ImageSet`] to a [`Reconstruction`], shared by the
-//! CLI and the job worker.
+//! From an [`ImageSet`] to a [`Reconstruction`] (`reconstruct`) or to the written
+//! artifacts (`run`, used by the CLI, the job worker and the bench): both are the same
+//! steps (`prepare`, `Slopes`, `Prepared::finish`), `run` overlapping them.
 
 use std::borrow::Cow;
+use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
 
 use ndarray::{Array2, Array3, Zip};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::InputError;
 use super::intake::ImageSet;
 use super::lights::{self, Light};
 use super::options::Options;
+use super::outputs::{self, Maps};
 use super::solve::{self, Surface};
-use super::{integrate, mask, outputs};
+use super::{integrate, mask, robust};
 
 /// Named stages, reported to a progress callback as they start.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -128,25 +132,42 @@ pub fn reconstruct(
     opts: &Options,
     progress: Progress,
 ) -> Result<Reconstruction, RunError> {
-    reconstruct_from(Cow::Borrowed(set), opts, progress)
+    let mut timings = Timings::default();
+    let surface = prepare(Cow::Borrowed(set), opts, progress, &mut timings)?;
+    step(progress, Stage::Integrate)?;
+    let (slopes, heights) = timings.time(Stage::Integrate, || {
+        let slopes = Slopes::of(&surface);
+        let heights = slopes.integrate(&surface, opts);
+        (slopes, heights)
+    });
+    Ok(surface.finish(slopes.curl, heights, opts, timings))
 }
 
-/// [`reconstruct`] taking the set by value: the 16-bit image stack (the job's largest
-/// buffer) is freed as soon as the solve is done, before integration and outputs.
-pub fn reconstruct_owned(
-    set: ImageSet,
-    opts: &Options,
-    progress: Progress,
-) -> Result<Reconstruction, RunError> {
-    reconstruct_from(Cow::Owned(set), opts, progress)
+/// Everything recovered before integration: solved, masked and clipped to the mask.
+struct Prepared {
+    width: usize,
+    height: usize,
+    lights: Vec<Light>,
+    condition: f64,
+    clamped: usize,
+    albedo: Array2<f32>,
+    albedo_rgb: Option<Array3<f32>>,
+    normals: Array3<f32>,
+    mask: Array2<bool>,
+    residual: Array2<f32>,
+    confidence: Array2<f32>,
+    inliers: Array2<u16>,
+    unreliable: Array2<bool>,
+    estimate: Option<robust::CaptureEstimate>,
 }
 
-fn reconstruct_from(
+/// The solve and the mask stages. An owned set's image stack is dropped after the solve.
+fn prepare(
     mut set: Cow<'_, ImageSet>,
     opts: &Options,
     progress: Progress,
-) -> Result<Reconstruction, RunError> {
-    let mut timings = Timings::default();
+    timings: &mut Timings,
+) -> Result<Prepared, RunError> {
     let condition = lights::check_solvable(&set.lights, opts.max_condition)?;
     if let Some(names) = &opts.outputs {
         outputs::check_selection(names)?;
@@ -163,7 +184,7 @@ fn reconstruct_from(
         mut residual,
         mut confidence,
         inliers,
-        unreliable,
+        mut unreliable,
         estimate,
     } = surface;
 
@@ -171,181 +192,292 @@ fn reconstruct_from(
     let mask = timings.time(Stage::Mask, || {
         mask::build(opts.mask, &albedo, set.mask.as_ref())
     })?;
-    let clamped = albedo
-        .iter()
-        .zip(mask.iter())
-        .filter(|(a, m)| **m && **a > 1.0)
-        .count();
-    Zip::from(&mut albedo).and(&mask).par_for_each(|a, &m| {
-        *a = if m { a.min(1.0) } else { 0.0 };
-    });
-    Zip::from(normals.rows_mut())
+    // Clip every map to the mask, counting the albedo clamped to 1.
+    let clamped = Zip::from(&mut albedo)
+        .and(normals.rows_mut())
         .and(&mask)
-        .par_for_each(|mut n, &m| {
-            if !m {
+        .par_fold(
+            || 0,
+            |clamped, a, mut n, &m| {
+                if m {
+                    let over = *a > 1.0;
+                    *a = a.min(1.0);
+                    return clamped + usize::from(over);
+                }
+                *a = 0.0;
                 n.fill(0.0);
-            }
-        });
+                clamped
+            },
+            |a, b| a + b,
+        );
     Zip::from(&mut residual)
         .and(&mut confidence)
+        .and(&mut unreliable)
         .and(&mask)
-        .par_for_each(|r, c, &m| {
+        .par_for_each(|r, c, u, &m| {
             if !m {
-                *r = 0.0;
-                *c = 0.0;
+                (*r, *c, *u) = (0.0, 0.0, false);
             }
         });
-    let unreliable = &unreliable & &mask;
     let albedo_rgb = set
         .colour_moments
         .as_ref()
         .map(|m| colour_albedo(m, &normals, &mask, &set.lights));
-    if let Cow::Owned(owned) = &mut set {
-        owned.colour_moments = None;
-    }
-
-    step(progress, Stage::Integrate)?;
-    let (heights, curl) = timings.time(Stage::Integrate, || {
-        let (p, q) = integrate::gradients(&normals, &mask);
-        let curl = integrate::curl(&p, &q, &mask);
-        let z = integrate::integrate_with_confidence(&p, &q, &mask, opts.integration, &confidence);
-        (z, curl)
-    });
-
-    let object = mask.iter().filter(|m| **m).count();
-    let over_mask = |a: &Array2<f32>| -> f64 {
-        let sum: f64 = a
-            .iter()
-            .zip(mask.iter())
-            .filter(|(_, m)| **m)
-            .map(|(v, _)| (*v as f64).powi(2))
-            .sum();
-        if object > 0 {
-            (sum / object as f64).sqrt()
-        } else {
-            0.0
-        }
-    };
-    let (height_min, height_max) = heights
-        .iter()
-        .zip(mask.iter())
-        .filter(|(_, m)| **m)
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), (h, _)| {
-            (lo.min(*h), hi.max(*h))
-        });
-    let (height_min, height_max) = if object > 0 {
-        (height_min, height_max)
-    } else {
-        (0.0, 0.0)
-    };
-    let mean_over_mask = |v: &mut dyn Iterator<Item = f64>| {
-        if object > 0 {
-            v.sum::<f64>() / object as f64
-        } else {
-            0.0
-        }
-    };
-    let report = Report {
-        black_level: estimate.map(|e| e.black_level),
-        noise_sigma: estimate.map(|e| e.noise_sigma),
-        confidence_mean: mean_over_mask(&mut confidence.iter().map(|c| *c as f64)),
-        inliers_mean: mean_over_mask(
-            &mut inliers
-                .iter()
-                .zip(mask.iter())
-                .filter(|(_, m)| **m)
-                .map(|(k, _)| *k as f64),
-        ),
-        unreliable_pixels: unreliable.iter().filter(|u| **u).count(),
-        width: set.width,
-        height: set.height,
-        light_count: set.lights.len(),
-        lights: set
-            .lights
-            .iter()
-            .map(|l| LightSummary {
-                name: l.name.clone(),
-                direction: l.direction,
-                intensity: l.intensity,
-            })
-            .collect(),
-        options: opts.clone(),
-        light_condition_number: condition,
-        timings_ms: timings.0,
-        height_min,
-        height_max,
-        integrability_rms: over_mask(&curl),
-        reprojection_rms: over_mask(&residual),
-        clamped_albedo_pixels: clamped,
-        background_pixels: mask.len() - object,
-        object_pixels: object,
-        artifacts: Vec::new(),
-    };
-    Ok(Reconstruction {
+    Ok(Prepared {
         width: set.width,
         height: set.height,
         lights: set.lights.clone(),
+        condition,
+        clamped,
         albedo,
         albedo_rgb,
         normals,
         mask,
-        heights,
-        curl,
         residual,
         confidence,
+        inliers,
         unreliable,
-        report,
+        estimate,
     })
+}
+
+/// The surface gradients integration starts from, and their curl.
+struct Slopes {
+    p: Array2<f32>,
+    q: Array2<f32>,
+    curl: Array2<f32>,
+}
+
+impl Slopes {
+    fn of(surface: &Prepared) -> Self {
+        let (p, q) = integrate::gradients(&surface.normals, &surface.mask);
+        let curl = integrate::curl(&p, &q, &surface.mask);
+        Self { p, q, curl }
+    }
+
+    fn integrate(&self, surface: &Prepared, opts: &Options) -> Array2<f32> {
+        let (p, q, mask) = (&self.p, &self.q, &surface.mask);
+        integrate::integrate_with_confidence(p, q, mask, opts.integration, &surface.confidence)
+    }
+}
+
+impl Prepared {
+    /// The pictures' arrays before the heights exist.
+    fn maps<'a>(&'a self, curl: &'a Array2<f32>) -> outputs::Maps<'a> {
+        outputs::Maps {
+            albedo: &self.albedo,
+            albedo_rgb: self.albedo_rgb.as_ref(),
+            normals: &self.normals,
+            mask: &self.mask,
+            curl,
+            confidence: &self.confidence,
+            unreliable: &self.unreliable,
+            heights: None,
+        }
+    }
+
+    /// The reconstruction and its report, once integrated.
+    fn finish(
+        self,
+        curl: Array2<f32>,
+        heights: Array2<f32>,
+        opts: &Options,
+        timings: Timings,
+    ) -> Reconstruction {
+        let sums = MaskSums::of(&self, &curl, &heights);
+        let object = sums.object;
+        let per_object = |v: f64| if object > 0 { v / object as f64 } else { 0.0 };
+        let (height_min, height_max) = if object > 0 {
+            (sums.low, sums.high)
+        } else {
+            (0.0, 0.0)
+        };
+        let report = Report {
+            black_level: self.estimate.map(|e| e.black_level),
+            noise_sigma: self.estimate.map(|e| e.noise_sigma),
+            confidence_mean: per_object(sums.confidence),
+            inliers_mean: per_object(sums.inliers),
+            unreliable_pixels: sums.unreliable,
+            width: self.width,
+            height: self.height,
+            light_count: self.lights.len(),
+            lights: self
+                .lights
+                .iter()
+                .map(|l| LightSummary {
+                    name: l.name.clone(),
+                    direction: l.direction,
+                    intensity: l.intensity,
+                })
+                .collect(),
+            options: opts.clone(),
+            light_condition_number: self.condition,
+            timings_ms: timings.0,
+            height_min,
+            height_max,
+            integrability_rms: per_object(sums.curl2).sqrt(),
+            reprojection_rms: per_object(sums.residual2).sqrt(),
+            clamped_albedo_pixels: self.clamped,
+            background_pixels: self.mask.len() - object,
+            object_pixels: object,
+            artifacts: Vec::new(),
+        };
+        Reconstruction {
+            width: self.width,
+            height: self.height,
+            lights: self.lights,
+            albedo: self.albedo,
+            albedo_rgb: self.albedo_rgb,
+            normals: self.normals,
+            mask: self.mask,
+            heights,
+            curl,
+            residual: self.residual,
+            confidence: self.confidence,
+            unreliable: self.unreliable,
+            report,
+        }
+    }
+}
+
+/// The report's sums over the mask, in one pass over fixed row bands added in order (so
+/// the figures do not depend on how the bands were scheduled).
+#[derive(Clone, Copy)]
+struct MaskSums {
+    object: usize,
+    unreliable: usize,
+    confidence: f64,
+    inliers: f64,
+    curl2: f64,
+    residual2: f64,
+    low: f32,
+    high: f32,
+}
+
+impl MaskSums {
+    const NONE: Self = Self {
+        object: 0,
+        unreliable: 0,
+        confidence: 0.0,
+        inliers: 0.0,
+        curl2: 0.0,
+        residual2: 0.0,
+        low: f32::INFINITY,
+        high: f32::NEG_INFINITY,
+    };
+    const BAND: usize = 64;
+
+    fn of(s: &Prepared, curl: &Array2<f32>, heights: &Array2<f32>) -> Self {
+        let rows = s.mask.nrows();
+        let bands: Vec<Self> = (0..rows.div_ceil(Self::BAND))
+            .into_par_iter()
+            .map(|b| {
+                let r = ndarray::s![b * Self::BAND..((b + 1) * Self::BAND).min(rows), ..];
+                let mut sums = Self::NONE;
+                Zip::from(s.mask.slice(r))
+                    .and(heights.slice(r))
+                    .and(s.unreliable.slice(r))
+                    .and(s.confidence.slice(r))
+                    .and(s.inliers.slice(r))
+                    .for_each(|&m, &z, &u, &c, &k| {
+                        if m {
+                            sums.object += 1;
+                            sums.unreliable += usize::from(u);
+                            sums.confidence += c as f64;
+                            sums.inliers += k as f64;
+                            sums.low = sums.low.min(z);
+                            sums.high = sums.high.max(z);
+                        }
+                    });
+                Zip::from(s.mask.slice(r))
+                    .and(curl.slice(r))
+                    .and(s.residual.slice(r))
+                    .for_each(|&m, &c, &e| {
+                        if m {
+                            sums.curl2 += (c as f64).powi(2);
+                            sums.residual2 += (e as f64).powi(2);
+                        }
+                    });
+                sums
+            })
+            .collect();
+        bands.into_iter().fold(Self::NONE, |a, b| Self {
+            object: a.object + b.object,
+            unreliable: a.unreliable + b.unreliable,
+            confidence: a.confidence + b.confidence,
+            inliers: a.inliers + b.inliers,
+            curl2: a.curl2 + b.curl2,
+            residual2: a.residual2 + b.residual2,
+            low: a.low.min(b.low),
+            high: a.high.max(b.high),
+        })
+    }
 }
 
 /// Reconstruct and write every requested artifact into `dir` (each written under a
 /// temporary name and renamed, `result.json` last). Returns the report. Takes the set by
-/// value so that its image stack is freed right after the solve (see
-/// [`reconstruct_owned`]).
+/// value so that its 16-bit image stack (the job's largest buffer) is freed right after
+/// the solve.
+///
+/// The pictures that need no heights are written while the integration runs (both
+/// stages start together); then the height pictures, the meshes and the preview go in
+/// one parallel batch (the `mesh` stage).
 pub fn run(
     set: ImageSet,
     opts: &Options,
     dir: &Path,
     progress: Progress,
 ) -> Result<Report, RunError> {
-    let rec = reconstruct_owned(set, opts, progress)?;
-    write_all(rec, opts, dir, progress)
-}
-
-fn write_all(
-    mut rec: Reconstruction,
-    opts: &Options,
-    dir: &Path,
-    progress: Progress,
-) -> Result<Report, RunError> {
-    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
-        path: dir.display().to_string(),
-        reason: e.to_string(),
-    })?;
     let wanted = |name: &str| -> bool {
         opts.outputs
             .as_ref()
             .is_none_or(|o| o.iter().any(|n| n == name))
     };
-    let pictures: Vec<&str> = outputs::ARTIFACTS
+    let (late, early): (Vec<&str>, Vec<&str>) = outputs::ARTIFACTS
         .iter()
         .map(|(n, _)| *n)
         .filter(|n| n.ends_with(".png") || n.ends_with(".exr"))
         .filter(|n| *n != "preview.png" && wanted(n))
-        .collect();
+        .partition(|n| outputs::needs_heights(n));
 
+    let mut timings = Timings::default();
+    let surface = prepare(Cow::Owned(set), opts, progress, &mut timings)?;
+    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
+        path: dir.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    // Both stages start with the gradients: integration starts from them, and curl.png
+    // shows their curl.
+    step(progress, Stage::Integrate)?;
     step(progress, Stage::Outputs)?;
     let start = Instant::now();
-    let mut written = outputs::write_pictures(&rec, &pictures, opts.shading_light, dir)?;
-    rec.report
-        .timings_ms
-        .push(Timing::new(Stage::Outputs, start));
+    let slopes = Slopes::of(&surface);
+    let (heights, pictures) = rayon::join(
+        || {
+            let heights = slopes.integrate(&surface, opts);
+            (heights, Timing::new(Stage::Integrate, start))
+        },
+        || {
+            let maps = surface.maps(&slopes.curl);
+            let written = outputs::write_pictures(&maps, &early, opts.shading_light, dir);
+            (written, Timing::new(Stage::Outputs, start))
+        },
+    );
+    timings.0.extend([heights.1, pictures.1]);
+    let mut written = pictures.0?;
+    let mut rec = surface.finish(slopes.curl, heights.0, opts, timings);
 
     step(progress, Stage::Mesh)?;
     let start = Instant::now();
-    written.extend(write_meshes(&rec, opts, dir, &wanted)?);
+    let (pictures, meshes) = rayon::join(
+        || outputs::write_pictures(&Maps::of(&rec), &late, opts.shading_light, dir),
+        || write_meshes(&rec, opts, dir, &wanted),
+    );
+    written.extend(pictures?.into_iter().chain(meshes?));
     rec.report.timings_ms.push(Timing::new(Stage::Mesh, start));
 
+    // In the order of ARTIFACTS, whichever batch wrote them.
+    written.sort_by_key(|n| outputs::ARTIFACTS.iter().position(|(a, _)| a == n));
     written.push("result.json".into());
     rec.report.artifacts = written;
     let json = serde_json::to_vec_pretty(&rec.report).expect("the report serialises");
@@ -374,6 +506,25 @@ fn write_meshes(
             reason: e.to_string(),
         }),
     };
+    // Each mesh file is streamed from the one document into its file; mesh errors that
+    // are not I/O keep their kind for `save`'s mapping.
+    let stream = |name: &str, write: &dyn Fn(&mut dyn Write) -> Result<(), MeshError>| {
+        let mut failed = None;
+        let written = outputs::write_atomic_with(dir, name, &mut |out| {
+            write(out).map_err(|e| match e {
+                MeshError::Write(io) => io,
+                other => {
+                    let io = std::io::Error::other(other.to_string());
+                    failed = Some(other);
+                    io
+                }
+            })
+        });
+        match failed {
+            Some(e) => save(name, Err(e)),
+            None => written.map(|_| Some(name.to_string())),
+        }
+    };
     let (glb, gltf) = (wanted("mesh.glb"), wanted("mesh.gltf"));
     let (meshes, preview) = rayon::join(
         || -> Vec<Result<Option<String>, RunError>> {
@@ -385,8 +536,8 @@ fn write_meshes(
                 Err(e) => return vec![save(if glb { "mesh.glb" } else { "mesh.gltf" }, Err(e))],
             };
             let (a, b) = rayon::join(
-                || glb.then(|| save("mesh.glb", doc.glb())),
-                || gltf.then(|| save("mesh.gltf", doc.gltf().map(String::into_bytes))),
+                || glb.then(|| stream("mesh.glb", &|out| doc.write_glb(out))),
+                || gltf.then(|| stream("mesh.gltf", &|out| doc.write_gltf(out))),
             );
             a.into_iter().chain(b).collect()
         },

@@ -2,7 +2,7 @@
 //! and a diverging colour map. Pure functions over arrays; encoding lives in `outputs`.
 
 use image::{Rgb, RgbImage};
-use ndarray::{Array2, Array3, Axis, Zip};
+use ndarray::{Array2, Array3, ArrayViewMut3, Axis, Zip};
 
 /// albedo · max(0, n·l̂): the surface re-lit by a distant light (any length, not zero).
 pub fn shade(albedo: &Array2<f32>, normals: &Array3<f32>, light: [f64; 3]) -> Array2<f32> {
@@ -17,11 +17,7 @@ pub fn shade(albedo: &Array2<f32>, normals: &Array3<f32>, light: [f64; 3]) -> Ar
 /// pixels from each sample along the normal's image-plane direction (x right, y down).
 pub fn needle_map(albedo: &Array2<f32>, normals: &Array3<f32>, mask: &Array2<bool>) -> RgbImage {
     let (rows, cols) = albedo.dim();
-    let gray = albedo
-        .iter()
-        .flat_map(|a| [(a.clamp(0.0, 1.0) * 160.0) as u8; 3]);
-    let mut img =
-        RgbImage::from_raw(cols as u32, rows as u32, gray.collect()).expect("3 bytes per pixel");
+    let mut img = rgb_from(albedo, mask, |a, _| [(a.clamp(0.0, 1.0) * 160.0) as u8; 3]);
     let spacing = (rows.max(cols) / 40).max(4);
     let length = spacing as f32 * 1.6;
     for r in (spacing / 2..rows).step_by(spacing) {
@@ -75,17 +71,34 @@ pub fn diverging(values: &Array2<f32>, mask: &Array2<bool>) -> RgbImage {
         let (_, p, _) = mags.select_nth_unstable_by(k, f32::total_cmp);
         if *p > 0.0 { *p } else { 1.0 }
     };
-    let (rows, cols) = values.dim();
-    let mut raw = Vec::with_capacity(rows * cols * 3);
-    for (&v, &m) in values.iter().zip(mask.iter()) {
+    rgb_from(values, mask, |v, m| {
         let t = (v / scale).clamp(-1.0, 1.0);
         let fade = |k: f32| (255.0 * (1.0 - k)) as u8;
-        raw.extend_from_slice(&match (m, t >= 0.0) {
+        match (m, t >= 0.0) {
             (false, _) => [0, 0, 0],
             (true, true) => [255, fade(t), fade(t)],
             (true, false) => [fade(-t), fade(-t), 255],
+        }
+    })
+}
+
+/// An 8-bit RGB picture of `colour(value, inside the mask)` per pixel, rows in parallel.
+fn rgb_from(
+    values: &Array2<f32>,
+    mask: &Array2<bool>,
+    colour: impl Fn(f32, bool) -> [u8; 3] + Sync,
+) -> RgbImage {
+    let (rows, cols) = values.dim();
+    let mut raw = vec![0u8; rows * cols * 3];
+    let mut pixels =
+        ArrayViewMut3::from_shape((rows, cols, 3), &mut raw).expect("3 bytes per pixel");
+    Zip::from(pixels.lanes_mut(Axis(2)))
+        .and(values)
+        .and(mask)
+        .par_for_each(|mut p, &v, &m| {
+            let [r, g, b] = colour(v, m);
+            (p[0], p[1], p[2]) = (r, g, b);
         });
-    }
     RgbImage::from_raw(cols as u32, rows as u32, raw).expect("3 bytes per pixel")
 }
 
