@@ -674,15 +674,7 @@ async fn full_queue_gets_503_and_low_disk_507() {
         .map(|v| v.to_str().unwrap().to_string());
     expect_problem(r, 503, &["queue is full"]).await;
     assert!(retry.unwrap().parse::<u64>().unwrap() > 0);
-    let metrics = s
-        .client
-        .get(s.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let metrics = s.metrics_text().await;
     assert!(
         metrics.contains("photostereo_jobs_rejected_queue_full_total 1"),
         "{metrics}"
@@ -805,15 +797,7 @@ async fn twenty_jobs_at_once_all_finish_within_the_pool_size() {
     }
     let max = s.state.max_running();
     assert!((1..=2).contains(&max), "max running {max}");
-    let metrics = s
-        .client
-        .get(s.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let metrics = s.metrics_text().await;
     assert!(
         metrics.contains(&format!("photostereo_workers_running_max {max}")),
         "{metrics}"
@@ -1300,15 +1284,7 @@ async fn a_data_directory_serves_one_server_at_a_time() {
 
 /// A metric's value in the `/metrics` text.
 async fn metric(s: &TestServer, name: &str) -> f64 {
-    let text = s
-        .client
-        .get(s.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let text = s.metrics_text().await;
     text.lines()
         .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.parse().ok())
         .unwrap_or_else(|| panic!("{name} missing from\n{text}"))

@@ -92,6 +92,13 @@ impl TestServer {
             .unwrap();
     }
 
+    /// The `/metrics` text.
+    pub async fn metrics_text(&self) -> String {
+        let r = self.client.get(self.url("/metrics")).send().await.unwrap();
+        assert_eq!(r.status(), 200, "GET /metrics");
+        r.text().await.unwrap()
+    }
+
     pub async fn get_json(&self, path: &str) -> Value {
         let r = self.client.get(self.url(path)).send().await.unwrap();
         assert_eq!(r.status(), 200, "GET {path}");
