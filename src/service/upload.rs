@@ -391,10 +391,16 @@ fn file_name(field: &Field<'_>, part: &str) -> Result<String, ApiError> {
 
 /// Parse the `options` part; errors name the field at fault.
 pub fn parse_options(bytes: &[u8]) -> Result<Options, ApiError> {
-    let value: serde_json::Value = serde_json::from_slice(bytes)
-        .map_err(|e| ApiError::from(InputError::Options(format!("not valid JSON: {e}"))))?;
-    let options = Options::deserialize(&value)
-        .map_err(|e| ApiError::from(InputError::Options(explain_options_error(&value, e))))?;
+    // Straight from the bytes, as the worker reads them back: a `Value` would keep only
+    // the last of repeated keys, where this refuses them. The `Value` is built only to
+    // explain a refusal.
+    let options =
+        serde_json::from_slice::<Options>(bytes).map_err(|e| {
+            match serde_json::from_slice::<serde_json::Value>(bytes) {
+                Ok(value) => InputError::Options(explain_options_error(&value, e)),
+                Err(e) => InputError::Options(format!("not valid JSON: {e}")),
+            }
+        })?;
     if let Some(names) = &options.outputs {
         outputs::check_selection(names)?;
     }
@@ -1048,6 +1054,15 @@ mod tests {
             (r#"{"mesh": {"pixel_size": -1}}"#, "pixel_size"),
             (r#"{"shading_light": [0, 0, 0]}"#, "shading_light"),
             (r#"{"shading_light": [1e300, 1e300, 1]}"#, "shading_light"),
+            // Repeated keys are refused, not resolved to the last one (found by fuzzing).
+            (
+                r#"{"mask": "none", "mask": "given"}"#,
+                "duplicate field `mask`",
+            ),
+            (
+                r#"{"mesh": {"step": 2, "step": 3}}"#,
+                "duplicate field `step`",
+            ),
         ] {
             let e = parse_options(bad.as_bytes()).unwrap_err();
             assert_eq!(e.status().as_u16(), 422, "{bad}");
