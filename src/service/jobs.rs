@@ -538,7 +538,7 @@ fn load_inputs(
 }
 
 /// Every artifact that exists in `dir`, with its size and a content-hash ETag. The files
-/// are hashed in parallel: at 2048² they are ~190 MB, read back from the page cache.
+/// are hashed in parallel: at 2048² they are ~120 MB, read back from the page cache.
 fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
     use rayon::prelude::*;
     let found: Vec<Option<ArtifactInfo>> = ARTIFACTS
