@@ -80,7 +80,7 @@ cache = { enabled = false }
 values = ["$succeeded", "$failed"]
 
 [dictionaries.artifacts]
-values = ["albedo.png", "shaded.png", "normal.exr", "mesh.glb", "result.json", "albedo_rgb.png"]
+values = ["albedo.png", "shaded.png", "normal.png", "mesh.glb", "result.json", "albedo_rgb.png"]
 
 [[operations]]
 include-path = "/v1/jobs/{id}/artifacts/{name}"

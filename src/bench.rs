@@ -16,7 +16,7 @@ use anyhow::{Context, anyhow, bail, ensure};
 use clap::Args;
 use photostereo::core::intake::{self, LIGHTS_FILE, Limits};
 use photostereo::core::options::Integration;
-use photostereo::core::{Options, integrate, pipeline, synth};
+use photostereo::core::{Options, integrate, outputs, pipeline, synth};
 use photostereo::service::{AppState, Config, serve_with};
 use serde_json::Value;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
@@ -239,6 +239,8 @@ struct SizeResult {
     job_decode_ms: Vec<f64>,
     /// `load_dir` + `pipeline::run`.
     full_ms: Vec<f64>,
+    /// The same with every artifact written (`"outputs": ["all"]`).
+    all_ms: Vec<f64>,
     /// Per stage of [`STAGES`], one entry per run.
     stage_ms: Vec<Vec<f64>>,
     /// Full minus decode minus the wall time of the reported stages, per run.
@@ -269,6 +271,7 @@ impl SizeResult {
             decode_only_ms: Vec::new(),
             job_decode_ms: Vec::new(),
             full_ms: Vec::new(),
+            all_ms: Vec::new(),
             stage_ms: vec![Vec::new(); STAGES.len()],
             other_ms: Vec::new(),
             peak_bytes: Vec::new(),
@@ -342,7 +345,6 @@ fn integration_run(set: &mut SizeResult, g: &Gradients) {
 
 fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow::Result<()> {
     let limits = Limits::default();
-    let opts = Options::default();
     trim_heap();
     let start = Instant::now();
     let decoded = intake::load_dir(&set.dir, None, &limits)
@@ -357,22 +359,19 @@ fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow
     );
     drop(decoded);
 
-    let out = tmp.join(format!("out-{}-{run}", set.size));
-    trim_heap();
-    let base = status_bytes("VmRSS");
-    let reset = reset_peak();
-    let start = Instant::now();
-    let decoded = intake::load_dir(&set.dir, None, &limits)
-        .with_context(|| format!("decoding the {}² set", set.size))?;
-    let job_decode = ms(start.elapsed());
-    let report = pipeline::run(decoded, &opts, &out, &mut |_| true)
-        .with_context(|| format!("reconstructing the {}² set", set.size))?;
-    let full = ms(start.elapsed());
-    let peak = status_bytes("VmHWM");
-    std::fs::remove_dir_all(&out).with_context(|| format!("removing {}", out.display()))?;
+    let job = timed_job(
+        set,
+        &Options::default(),
+        &tmp.join(format!("out-{}-{run}", set.size)),
+    )?;
+    let every = Options {
+        outputs: Some(vec![outputs::ALL.to_string()]),
+        ..Options::default()
+    };
+    let all = timed_job(set, &every, &tmp.join(format!("all-{}-{run}", set.size)))?;
 
     let stages = STAGES.map(|stage| {
-        (report.timings_ms.iter())
+        (job.report.timings_ms.iter())
             .filter(|t| t.stage == stage)
             .map(|t| t.ms)
             .sum::<f64>()
@@ -381,29 +380,66 @@ fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow
         set.stage_ms[i].push(*t);
     }
     set.decode_only_ms.push(decode_only);
-    set.job_decode_ms.push(job_decode);
-    set.full_ms.push(full);
+    set.job_decode_ms.push(job.decode_ms);
+    set.full_ms.push(job.full_ms);
+    set.all_ms.push(all.full_ms);
     set.other_ms
-        .push((full - job_decode - wall_of_stages(stages)).max(0.0));
-    if let (true, Some(p)) = (reset, peak) {
-        set.peak_bytes.push(p);
+        .push((job.full_ms - job.decode_ms - wall_of_stages(stages)).max(0.0));
+    for j in [&job, &all] {
+        if let (Some(p), Some(b)) = (j.peak, j.base) {
+            set.peak_bytes.push(p);
+            set.base_bytes.push(b);
+            set.growth_bytes.push(p - b);
+        }
     }
-    if let Some(b) = base {
-        set.base_bytes.push(b);
-    }
-    if let (true, Some(p), Some(b)) = (reset, peak, base) {
-        set.growth_bytes.push(p - b);
-    }
+    let peak = |j: &Job| {
+        j.peak
+            .map_or(String::new(), |p| format!(", peak RSS {:.0} MB", p / MB))
+    };
     eprintln!(
-        "bench: core {}² run {}/{runs}: decode {decode_only:.0} ms, full job {full:.0} ms{}",
+        "bench: core {}² run {}/{runs}: decode {decode_only:.0} ms, full job {:.0} ms{}, \
+         every artifact {:.0} ms{}",
         set.size,
         run + 1,
-        match (reset, peak) {
-            (true, Some(p)) => format!(", peak RSS {:.0} MB", p / MB),
-            _ => String::new(),
-        }
+        job.full_ms,
+        peak(&job),
+        all.full_ms,
+        peak(&all),
     );
     Ok(())
+}
+
+/// One timed core job: decode and `pipeline::run` into `out` (removed afterwards).
+struct Job {
+    decode_ms: f64,
+    full_ms: f64,
+    report: pipeline::Report,
+    /// VmHWM over the job and VmRSS before it (bytes), when the peak could be reset.
+    peak: Option<f64>,
+    base: Option<f64>,
+}
+
+fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job> {
+    let limits = Limits::default();
+    trim_heap();
+    let base = status_bytes("VmRSS");
+    let reset = reset_peak();
+    let start = Instant::now();
+    let decoded = intake::load_dir(&set.dir, None, &limits)
+        .with_context(|| format!("decoding the {}² set", set.size))?;
+    let decode_ms = ms(start.elapsed());
+    let report = pipeline::run(decoded, opts, out, &mut |_| true)
+        .with_context(|| format!("reconstructing the {}² set", set.size))?;
+    let full_ms = ms(start.elapsed());
+    let peak = status_bytes("VmHWM").filter(|_| reset);
+    std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
+    Ok(Job {
+        decode_ms,
+        full_ms,
+        report,
+        peak,
+        base: base.filter(|_| reset),
+    })
 }
 
 /// Give freed heap back to the system so each job's peak starts from a clean baseline.
@@ -1102,8 +1138,9 @@ fn tables(
     let _ = writeln!(
         o,
         "- data: `synth::Scene::sphere(size)`, {} lights (`light_rings({}, 10, 60)`), 16-bit \
-         gray PNG; default options (all outputs and meshes written); times are medians of {} \
-         run(s), peak RSS the largest; MB = 10⁶ bytes",
+         gray PNG; default options (the default artifact set); \"every artifact\" = the same \
+         job with `\"outputs\": [\"all\"]`; times are medians of {} run(s), peak RSS the \
+         largest over both jobs; MB = 10⁶ bytes",
         args.lights, args.lights, args.runs
     );
     let _ = writeln!(
@@ -1132,10 +1169,10 @@ fn tables(
     // Time.
     let _ = writeln!(o, "\n### Time (medians)\n");
     let mut header = format!(
-        "| size × lights | decode ms | full job ms | full / decode (≤ {TARGET_FULL_OVER_DECODE} at 2048²) | ns per pixel-image | vs {ref_label} (± {:.0} % at 2048²) |",
+        "| size × lights | decode ms | full job ms | full / decode (≤ {TARGET_FULL_OVER_DECODE} at 2048²) | ns per pixel-image | vs {ref_label} (± {:.0} % at 2048²) | every artifact ms | every artifact / decode |",
         TARGET_LINEARITY * 100.0
     );
-    let mut rule = "|---|---:|---:|---:|---:|---:|".to_string();
+    let mut rule = "|---|---:|---:|---:|---:|---:|---:|---:|".to_string();
     if args.http {
         let _ = write!(
             header,
@@ -1151,8 +1188,9 @@ fn tables(
         let ns = s.ns_per_pixel_image();
         let lin = zip2(ns, ref_ns, |a, b| a / b);
         let judged = s.size == TARGET_SIZE;
+        let all = median(&s.all_ms);
         let mut row = format!(
-            "| {}² × {} | {} | {} | {} | {} | {} |",
+            "| {}² × {} | {} | {} | {} | {} | {} | {} | {} |",
             s.size,
             s.lights,
             num(decode, 0),
@@ -1160,6 +1198,8 @@ fn tables(
             with_mark(ratio, 2, judged, |r| r <= TARGET_FULL_OVER_DECODE),
             num(ns, 1),
             with_mark(lin, 2, judged, linear_enough),
+            num(all, 0),
+            num(zip2(all, decode, |a, d| a / d), 2),
         );
         if args.http {
             let http = median(&s.http_ms);

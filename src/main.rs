@@ -86,7 +86,9 @@ struct ReconstructArgs {
         allow_negative_numbers = true
     )]
     light: Option<Vec<f64>>,
-    /// Write only these artifacts (comma-separated names, e.g. albedo.png,mesh.glb).
+    /// Write these artifacts (comma-separated names, e.g. albedo.png,mesh.glb, or `all`)
+    /// instead of the default set (albedo, mask, normal, height, confidence and shaded
+    /// PNGs, mesh.glb, result.json).
     #[arg(long, value_delimiter = ',')]
     outputs: Option<Vec<String>>,
     /// Largest light-matrix condition number accepted.

@@ -21,20 +21,17 @@ async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8
         job["result"]["width"].as_u64().unwrap() as u32,
         job["result"]["height"].as_u64().unwrap() as u32,
     );
-    for required in [
-        "albedo.png",
-        "normal.png",
-        "height.png",
-        "mask.png",
-        "normal.exr",
-        "shaded.png",
-        "result.json",
-        "mesh.glb",
-    ] {
-        assert!(
-            artifacts.contains_key(required),
-            "{required} missing from {artifacts:?}"
-        );
+    // Exactly the selection (`albedo_rgb.png` only for colour inputs).
+    let every = job["options"]["outputs"] == serde_json::json!([outputs::ALL]);
+    for (name, _) in ARTIFACTS {
+        let selected = every || outputs::DEFAULT_OUTPUTS.contains(name);
+        if *name != "albedo_rgb.png" {
+            assert_eq!(
+                artifacts.contains_key(*name),
+                selected,
+                "{name} in {artifacts:?}"
+            );
+        }
     }
     let mut out = BTreeMap::new();
     for (name, url) in artifacts {
@@ -130,12 +127,17 @@ fn expected_size(set: &str) -> u64 {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn seed_sets_as_files_produce_every_artifact() {
+async fn seed_sets_as_files_produce_their_selected_artifacts() {
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
     let mut ids = Vec::new();
-    for set in SEED_SETS {
-        let job = s.submit(folder_form(&seed(set))).await;
+    for (i, set) in SEED_SETS.iter().enumerate() {
+        // The first set asks for every artifact, the others get the default set.
+        let form = match i {
+            0 => folder_form(&seed(set)).text("options", r#"{"outputs": ["all"]}"#),
+            _ => folder_form(&seed(set)),
+        };
+        let job = s.submit(form).await;
         assert_eq!(job["image_count"], 4);
         ids.push((set, job["id"].as_str().unwrap().to_string()));
     }
@@ -196,6 +198,28 @@ async fn seed_sets_as_files_produce_every_artifact() {
         .await
         .unwrap();
     expect_problem(r, 400, &["shaded.png"]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_selection_writes_only_its_artifacts_and_reshading_names_what_it_lacks() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let form = folder_form(&seed("synth-images"))
+        .text("options", r#"{"outputs": ["albedo.png", "shaded.png"]}"#);
+    let id = s.submit(form).await["id"].as_str().unwrap().to_string();
+    let job = s.wait_succeeded(&id).await;
+    let names: Vec<&String> = job["artifacts"].as_object().unwrap().keys().collect();
+    assert_eq!(names, ["albedo.png", "result.json", "shaded.png"]);
+    let get = |path: String| s.client.get(s.url(&path)).send();
+    let r = get(format!("/v1/jobs/{id}/artifacts/normal.png"))
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["normal.png"]).await;
+    let r = get(format!("/v1/jobs/{id}/artifacts/shaded.png?light=0,0,1"))
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["normal.png", "re-shading"]).await;
     s.stop().await;
 }
 

@@ -38,7 +38,7 @@ fn reconstruct(dir: &Path, extra: &[&str]) -> (tempfile::TempDir, serde_json::Va
 #[test]
 fn seed_sets_reconstruct_with_every_output_decodable() {
     for name in ["synth-images", "sphere-images", "dog-images"] {
-        let (out, report) = reconstruct(&seed(name), &[]);
+        let (out, report) = reconstruct(&seed(name), &["--outputs", outputs::ALL]);
         let artifacts = report["artifacts"].as_array().unwrap();
         for required in [
             "albedo.png",
@@ -85,6 +85,26 @@ fn seed_sets_reconstruct_with_every_output_decodable() {
         assert!(report["height_max"].as_f64().unwrap() > report["height_min"].as_f64().unwrap());
         assert_eq!(report["light_count"], 4);
     }
+}
+
+#[test]
+fn without_a_selection_the_default_set_is_written() {
+    let (out, report) = reconstruct(&seed("synth-images"), &[]);
+    let mut written: Vec<String> = std::fs::read_dir(out.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    written.sort();
+    let mut expected: Vec<String> = (outputs::DEFAULT_OUTPUTS.iter())
+        .filter(|n| **n != "albedo_rgb.png") // gray inputs
+        .map(|n| n.to_string())
+        .collect();
+    expected.sort();
+    assert_eq!(written, expected);
+    let listed: Vec<&str> = (report["artifacts"].as_array().unwrap().iter())
+        .map(|a| a.as_str().unwrap())
+        .collect();
+    assert_eq!(listed.len(), expected.len(), "{listed:?}");
 }
 
 #[test]

@@ -102,7 +102,9 @@ pub struct Options {
     pub mesh: MeshOptions,
     /// Largest light-matrix condition number accepted before refusing the set.
     pub max_condition: f64,
-    /// Artifact names to write; all of them when absent.
+    /// Artifact names to write, `"all"` for every one; when absent, the default set:
+    /// albedo.png, albedo_rgb.png (colour inputs), mask.png, normal.png, height.png,
+    /// confidence.png, shaded.png, mesh.glb and result.json.
     pub outputs: Option<Vec<String>>,
 }
 

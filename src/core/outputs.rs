@@ -39,6 +39,35 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
     ("result.json", "application/json"),
 ];
 
+/// What a job writes when its options name no `outputs`: the maps most users fetch, in
+/// their most precise lossless form that every viewer opens. The rest (EXRs, the three
+/// normal components, needle/curl/unreliable pictures, the preview, `mesh.gltf`) cost
+/// about as much again to encode and are written on request. `albedo_rgb.png` is written
+/// only for colour inputs.
+pub const DEFAULT_OUTPUTS: &[&str] = &[
+    "albedo.png",
+    "albedo_rgb.png",
+    "mask.png",
+    "normal.png",
+    "height.png",
+    "confidence.png",
+    "shaded.png",
+    "mesh.glb",
+    "result.json",
+];
+
+/// In an `outputs` selection, stands for every artifact.
+pub const ALL: &str = "all";
+
+/// Whether artifact `name` is to be written under the `outputs` selection `selection`
+/// (the default set when there is none).
+pub fn wanted(selection: Option<&[String]>, name: &str) -> bool {
+    match selection {
+        None => DEFAULT_OUTPUTS.contains(&name),
+        Some(names) => names.iter().any(|n| n == name || n == ALL),
+    }
+}
+
 /// Content-Type of an artifact, or None when the name is not one.
 pub fn content_type(name: &str) -> Option<&'static str> {
     ARTIFACTS.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
@@ -46,9 +75,12 @@ pub fn content_type(name: &str) -> Option<&'static str> {
 
 /// Check an `outputs` selection names only known artifacts.
 pub fn check_selection(names: &[String]) -> Result<(), InputError> {
-    match names.iter().find(|n| content_type(n).is_none()) {
+    match names
+        .iter()
+        .find(|n| *n != ALL && content_type(n).is_none())
+    {
         Some(bad) => Err(InputError::Options(format!(
-            "unknown output {bad:?}; known: {}",
+            "unknown output {bad:?}; known: {ALL:?} or {}",
             ARTIFACTS
                 .iter()
                 .map(|(n, _)| *n)
@@ -393,8 +425,9 @@ pub fn write_pictures(
     Ok(written.into_iter().flatten().collect())
 }
 
-/// Re-shade a finished job's outputs (`albedo.png`, `normal.exr` in `dir`) under `light`
-/// and encode the picture as a 16-bit PNG.
+/// Re-shade a finished job's outputs (`albedo.png`, `normal.png` in `dir`) under `light`
+/// and encode the picture as a 16-bit PNG. The 16-bit normals are within 2⁻¹⁶ of the
+/// float ones, so the picture matches `shaded.png` to a unit or two in its last bit.
 pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, InputError> {
     super::lights::check_direction(light)?;
     let read = |name: &str| {
@@ -402,23 +435,31 @@ pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, Input
             .map_err(|e| InputError::io(dir.join(name), format!("cannot re-shade: {e}")))
     };
     let albedo = read("albedo.png")?.to_luma32f();
-    let normal = read("normal.exr")?.to_rgba32f();
+    let normal = read("normal.png")?.to_rgb32f();
     if albedo.dimensions() != normal.dimensions() {
         return Err(InputError::io(
             dir,
-            "albedo.png and normal.exr differ in size",
+            "albedo.png and normal.png differ in size",
         ));
     }
     let (w, h) = albedo.dimensions();
     let a = Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
         albedo.get_pixel(c as u32, r as u32).0[0]
     });
-    // normal.exr is in the OpenGL frame (y up): back to the seed frame for shading.
-    let n = Array3::from_shape_fn((h as usize, w as usize, 3), |(r, c, k)| {
-        let v = normal.get_pixel(c as u32, r as u32).0[k];
-        if k == 1 { -v } else { v }
+    // normal.png holds (n + 1) / 2 in the OpenGL frame (y up): back to unit normals in the
+    // seed frame. Off the mask it is 0, but so is the albedo, and with it the shading.
+    let mut n = Array3::<f32>::zeros((h as usize, w as usize, 3));
+    Zip::indexed(n.lanes_mut(Axis(2))).par_for_each(|(r, c), mut n| {
+        let v = normal
+            .get_pixel(c as u32, r as u32)
+            .0
+            .map(|v| 2.0 * v - 1.0);
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        if len > 0.0 {
+            n.assign(&ndarray::arr1(&[v[0] / len, -v[1] / len, v[2] / len]));
+        }
     });
-    // Off the mask the normals are zero, and so is the shading: every pixel is drawn.
+    // Every pixel is drawn: off the mask the albedo, and so the shading, is zero.
     let everywhere = Array2::from_elem(a.dim(), true);
     let shaded = render::shade(&a, &n, light);
     let mut out = Vec::new();
@@ -495,6 +536,79 @@ mod tests {
         }
     }
 
+    /// A hemisphere of varying albedo on a disc mask, in the seed frame.
+    fn dome(n: usize) -> (Array2<f32>, Array3<f32>, Array2<bool>) {
+        let c = (n as f32 - 1.0) / 2.0;
+        let mask = Array2::from_shape_fn((n, n), |(r, col)| {
+            (r as f32 - c).hypot(col as f32 - c) < 0.45 * n as f32
+        });
+        let mut normals = Array3::zeros((n, n, 3));
+        let mut albedo = Array2::zeros((n, n));
+        for ((r, col), &m) in mask.indexed_iter() {
+            if m {
+                let (x, y) = (
+                    (col as f32 - c) / (0.5 * n as f32),
+                    (r as f32 - c) / (0.5 * n as f32),
+                );
+                let z = (1.0 - x * x - y * y).sqrt();
+                normals[[r, col, 0]] = x;
+                normals[[r, col, 1]] = y;
+                normals[[r, col, 2]] = z;
+                albedo[[r, col]] = 0.3 + 0.6 * (col as f32 / n as f32);
+            }
+        }
+        (albedo, normals, mask)
+    }
+
+    #[test]
+    fn reshading_from_the_pictures_matches_shaded_png() {
+        let (albedo, normals, mask) = dome(48);
+        let zero = Array2::zeros(mask.dim());
+        let no = Array2::from_elem(mask.dim(), false);
+        let maps = Maps {
+            albedo: &albedo,
+            albedo_rgb: None,
+            normals: &normals,
+            mask: &mask,
+            curl: &zero,
+            confidence: &zero,
+            unreliable: &no,
+            heights: None,
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let light = [-1.0, 0.5, 2.0];
+        let names = ["albedo.png", "normal.png", "shaded.png"];
+        write_pictures(&maps, &names, light, dir.path()).unwrap();
+        let direct = image::open(dir.path().join("shaded.png"))
+            .unwrap()
+            .into_luma16();
+        let again = decode_png16(&shaded_png_from_dir(dir.path(), light).unwrap())
+            .unwrap()
+            .into_luma16();
+        let worst = direct
+            .pixels()
+            .zip(again.pixels())
+            .map(|(a, b)| a.0[0].abs_diff(b.0[0]))
+            .max()
+            .unwrap();
+        // 16-bit albedo and normals: a few units in the last bit, nothing more.
+        assert!(worst <= 4, "re-shaded differs by {worst} / 65535");
+        assert!(direct.pixels().any(|p| p.0[0] > 10_000), "the dome is lit");
+    }
+
+    #[test]
+    fn the_default_selection_is_the_default_set_and_all_is_everything() {
+        for (name, _) in ARTIFACTS {
+            assert_eq!(wanted(None, name), DEFAULT_OUTPUTS.contains(name), "{name}");
+            assert!(wanted(Some(&[ALL.to_string()]), name), "{name}");
+        }
+        let some = ["mesh.gltf".to_string()];
+        assert!(wanted(Some(&some), "mesh.gltf") && !wanted(Some(&some), "albedo.png"));
+        assert!(DEFAULT_OUTPUTS.iter().all(|n| content_type(n).is_some()));
+        assert!(check_selection(&[ALL.to_string(), "height.exr".into()]).is_ok());
+        assert!(check_selection(&["everything".to_string()]).is_err());
+    }
+
     #[test]
     fn exr_files_round_trip() {
         let (rows, cols) = (3, 5);
@@ -502,7 +616,7 @@ mod tests {
         let mut out = Cursor::new(Vec::new());
         let n = SpecificChannels::rgb(|p: Vec2<usize>| rgb(p.y(), p.x()).into());
         exr_to(&mut out, &exr_image((rows, cols), n)).unwrap();
-        // Read the RGB file as `shaded_png_from_dir` does, through the image crate.
+        // An RGB file reads back through the image crate too.
         let img = image::load_from_memory_with_format(out.get_ref(), ImageFormat::OpenExr)
             .unwrap()
             .to_rgb32f();

@@ -428,11 +428,7 @@ pub fn run(
     dir: &Path,
     progress: Progress,
 ) -> Result<Report, RunError> {
-    let wanted = |name: &str| -> bool {
-        opts.outputs
-            .as_ref()
-            .is_none_or(|o| o.iter().any(|n| n == name))
-    };
+    let wanted = |name: &str| outputs::wanted(opts.outputs.as_deref(), name);
     let (late, early): (Vec<&str>, Vec<&str>) = outputs::ARTIFACTS
         .iter()
         .map(|(n, _)| *n)

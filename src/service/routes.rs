@@ -594,13 +594,13 @@ pub async fn get_artifact(
             )));
         }
         let light = parse_light(&light)?;
-        let missing: Vec<&str> = ["albedo.png", "normal.exr"]
+        let missing: Vec<&str> = ["albedo.png", "normal.png"]
             .into_iter()
             .filter(|n| !job.artifacts.iter().any(|a| a.name == *n))
             .collect();
         if !missing.is_empty() {
             return Err(ApiError::not_found(format!(
-                "re-shading needs albedo.png and normal.exr, and job {id} did not produce {}",
+                "re-shading needs albedo.png and normal.png, and job {id} did not produce {}",
                 missing.join(" or ")
             )));
         }
