@@ -17,7 +17,8 @@ use image::{ExtendedColorType, ImageBuffer, ImageEncoder, Pixel};
 use json::accessor::{ComponentType, GenericComponentType, Type};
 use json::buffer::Target;
 use json::validation::{Checked::Valid, USize64};
-use ndarray::{Array2, Axis, s};
+use ndarray::{Array2, ArrayView2, Axis, s};
+use rayon::prelude::*;
 use serde_json::Value;
 
 use super::options::{MeshNormals, MeshOptions};
@@ -545,28 +546,40 @@ fn bounds(points: &[[f32; 3]]) -> (Value, Value) {
 /// The albedo as an 8-bit PNG: gray, or RGB when colour albedo exists. Values are
 /// written as stored, like `albedo.png` (intake does not linearise its inputs).
 fn albedo_png(rec: &Reconstruction) -> Result<Vec<u8>, MeshError> {
-    let mut planes: Vec<Array2<f32>> = match &rec.albedo_rgb {
-        Some(rgb) => rgb.axis_iter(Axis(2)).map(|p| p.to_owned()).collect(),
-        None => vec![rec.albedo.clone()],
+    let planes: Vec<ArrayView2<f32>> = match &rec.albedo_rgb {
+        Some(rgb) => rgb.axis_iter(Axis(2)).collect(),
+        None => vec![rec.albedo.view()],
     };
-    fill_background(&mut planes, &rec.mask);
+    let texels = texels(&planes, &rec.mask);
     let (h, w) = rec.mask.dim();
-    let mut raw = Vec::with_capacity(w * h * planes.len());
-    for r in 0..h {
-        for c in 0..w {
-            // NaN saturates to 0.
-            raw.extend(
-                planes
-                    .iter()
-                    .map(|p| (p[[r, c]].clamp(0.0, 1.0) * 255.0).round() as u8),
-            );
-        }
-    }
     if planes.len() == 1 {
-        png(image::GrayImage::from_raw(w as u32, h as u32, raw))
+        png(image::GrayImage::from_raw(w as u32, h as u32, texels))
     } else {
-        png(image::RgbImage::from_raw(w as u32, h as u32, raw))
+        png(image::RgbImage::from_raw(w as u32, h as u32, texels))
     }
+}
+
+/// Interleaved 8-bit texels of `planes` (one channel each), the background filled by
+/// [`fill_background`]. Rows are converted in parallel; the texture is made on every job
+/// with a mesh, and at 2048² a per-pixel sequential pass was most of the mesh's time.
+fn texels(planes: &[ArrayView2<f32>], mask: &Array2<bool>) -> Vec<u8> {
+    let (h, w) = mask.dim();
+    let n = planes.len();
+    let mut out = vec![0u8; h * w * n];
+    if out.is_empty() {
+        return out;
+    }
+    out.par_chunks_mut(w * n).enumerate().for_each(|(r, row)| {
+        for (k, plane) in planes.iter().enumerate() {
+            for (t, &v) in row.iter_mut().skip(k).step_by(n).zip(plane.row(r)) {
+                // Rounds to nearest; NaN saturates to 0.
+                *t = (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+            }
+        }
+    });
+    let mask: Vec<bool> = mask.iter().copied().collect();
+    fill_background(&mut out, n, &mask, w);
+    out
 }
 
 fn png<P: Pixel<Subpixel = u8> + 'static>(
@@ -595,11 +608,10 @@ fn png<P: Pixel<Subpixel = u8> + 'static>(
 /// Give background texels near the mask the mean of their already-filled 4-neighbours,
 /// ring by ring, and the rest the mask's mean colour: filtering and mipmaps then blend
 /// the object's edge with its own colours, not black. Each ring is found from the last
-/// one's neighbours, so the cost follows the mask's outline, not the frame.
-fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
-    let (h, w) = mask.dim();
-    let mut known: Vec<bool> = mask.iter().copied().collect();
-    let mut values: Vec<Vec<f32>> = planes.iter().map(|p| p.iter().copied().collect()).collect();
+/// one's neighbours, so the cost follows the mask's outline, not the frame. `texels` holds
+/// `n` interleaved channels per pixel of a `mask.len() / w`-row grid.
+fn fill_background(texels: &mut [u8], n: usize, mask: &[bool], w: usize) {
+    let h = mask.len() / w;
     let neighbours = |i: usize| {
         let (r, c) = (i / w, i % w);
         [
@@ -611,11 +623,32 @@ fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
         .into_iter()
         .flatten()
     };
-    // Ring 1 candidates: background pixels with an object neighbour.
+    // The mask's mean colour, from exact integer sums.
+    let (sums, count) = (texels.par_chunks(n).zip(mask.par_iter()))
+        .filter(|(_, m)| **m)
+        .fold(
+            || (vec![0u64; n], 0u64),
+            |(mut s, k), (t, _)| {
+                s.iter_mut().zip(t).for_each(|(s, &v)| *s += u64::from(v));
+                (s, k + 1)
+            },
+        )
+        .reduce(
+            || (vec![0u64; n], 0u64),
+            |(a, k), (b, l)| (a.iter().zip(&b).map(|(a, b)| a + b).collect(), k + l),
+        );
+    let mean: Vec<u8> = sums
+        .iter()
+        .map(|&s| ((s + count / 2) / count.max(1)) as u8)
+        .collect();
+
+    let mut known = mask.to_vec();
+    // Ring 1: background pixels with an object neighbour (in index order).
     let mut ring: Vec<usize> = (0..h * w)
+        .into_par_iter()
         .filter(|&i| !known[i] && neighbours(i).any(|j| known[j]))
         .collect();
-    let mut fills: Vec<f32> = Vec::new();
+    let mut fills: Vec<u8> = Vec::new();
     for depth in 0..FILL_RINGS {
         if ring.is_empty() {
             break;
@@ -623,19 +656,17 @@ fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
         // Values first (from pixels known before this ring), then mark the ring known.
         fills.clear();
         for &i in &ring {
-            for v in &values {
-                let (mut sum, mut n) = (0.0f32, 0u32);
+            for k in 0..n {
+                let (mut sum, mut m) = (0u32, 0u32);
                 for j in neighbours(i).filter(|&j| known[j]) {
-                    sum += v[j];
-                    n += 1;
+                    sum += u32::from(texels[j * n + k]);
+                    m += 1;
                 }
-                fills.push(sum / n as f32);
+                fills.push(((sum + m / 2) / m) as u8);
             }
         }
-        for (k, &i) in ring.iter().enumerate() {
-            for (p, v) in values.iter_mut().enumerate() {
-                v[i] = fills[k * planes.len() + p];
-            }
+        for (f, &i) in fills.chunks(n).zip(&ring) {
+            texels[i * n..(i + 1) * n].copy_from_slice(f);
             known[i] = true;
         }
         if depth + 1 < FILL_RINGS {
@@ -648,22 +679,55 @@ fn fill_background(planes: &mut [Array2<f32>], mask: &Array2<bool>) {
             ring = next;
         }
     }
-    let count = mask.iter().filter(|&&m| m).count().max(1) as f32;
-    for (p, v) in planes.iter_mut().zip(values) {
-        let mean = (p.iter().zip(mask))
-            .filter(|(_, m)| **m)
-            .map(|(v, _)| v)
-            .sum::<f32>()
-            / count;
-        for ((out, v), &k) in p.iter_mut().zip(v).zip(&known) {
-            *out = if k { v } else { mean };
-        }
-    }
+    (texels.par_chunks_mut(n).zip(known.par_iter()))
+        .filter(|(_, k)| !**k)
+        .for_each(|(t, _)| t.copy_from_slice(&mean));
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn texture_keeps_the_object_and_pads_its_outline_with_its_own_colours() {
+        // A 3×3 object in a 16×16 frame: left column 0.2, the rest 1.0 (RGB: the green
+        // channel is inverted).
+        let (h, w) = (16, 16);
+        let mask =
+            Array2::from_shape_fn((h, w), |(r, c)| (5..8).contains(&r) && (5..8).contains(&c));
+        let value = |c: usize| if c == 5 { 0.2 } else { 1.0 };
+        let gray =
+            Array2::from_shape_fn((h, w), |(r, c)| if mask[[r, c]] { value(c) } else { 0.0 });
+        let inverted = gray.mapv(|v| 1.0 - v);
+        let q = |v: f32| (v * 255.0).round() as u8;
+        for planes in [
+            vec![gray.view()],
+            vec![gray.view(), inverted.view(), gray.view()],
+        ] {
+            let n = planes.len();
+            let t = texels(&planes, &mask);
+            let at = |r: usize, c: usize, k: usize| t[(r * w + c) * n + k];
+            let want = |v: f32, k: usize| if k == 1 { q(1.0 - v) } else { q(v) };
+            for k in 0..n {
+                for ((r, c), &m) in mask.indexed_iter() {
+                    if m {
+                        assert_eq!(at(r, c, k), want(value(c), k), "object ({r}, {c})");
+                    }
+                }
+                // Ring 1, left of the object: its one known neighbour.
+                assert_eq!(at(6, 4, k), want(0.2, k));
+                // Ring 2, diagonal to the corner: the mean of its two ring-1 neighbours.
+                let corner = (u32::from(at(4, 5, k)) + u32::from(at(5, 4, k))).div_ceil(2) as u8;
+                assert_eq!(at(4, 4, k), corner);
+                // Beyond the rings: the object's mean colour.
+                let mean = (0.2 + 2.0 * 1.0) / 3.0;
+                let mean_q =
+                    ((3 * u32::from(want(0.2, k)) + 6 * u32::from(want(1.0, k)) + 4) / 9) as u8;
+                assert!(want(mean, k).abs_diff(mean_q) <= 1);
+                assert_eq!(at(0, 15, k), mean_q, "far corner");
+            }
+        }
+    }
 
     #[test]
     fn mesh_gltf_data_uri_spans_several_base64_chunks() {
