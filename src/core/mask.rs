@@ -1,7 +1,10 @@
 //! Which pixels are the object: a given mask, every pixel, or a threshold on albedo with
 //! holes filled and specks dropped.
 
+use std::borrow::Cow;
+
 use ndarray::Array2;
+use rayon::prelude::*;
 
 use super::InputError;
 use super::options::MaskMode;
@@ -43,33 +46,91 @@ pub fn auto(albedo: &Array2<f32>) -> Array2<bool> {
 /// else a tenth of the 99th-percentile albedo (an object filling the frame, or one on
 /// a black background with nothing to split).
 pub fn auto_threshold(albedo: &Array2<f32>) -> f32 {
-    let mut v: Vec<f32> = albedo
-        .iter()
-        .copied()
-        .filter(|a| a.is_finite() && *a > 0.0)
-        .collect();
-    if v.is_empty() {
+    let values: Cow<'_, [f32]> = match albedo.as_slice() {
+        Some(s) => Cow::Borrowed(s),
+        None => Cow::Owned(albedo.iter().copied().collect()),
+    };
+    let Some(p99) = positive_quantile(&values, 0.99) else {
         return MIN_THRESHOLD;
-    }
-    let k = ((v.len() - 1) as f64 * 0.99) as usize;
-    let p99 = *v.select_nth_unstable_by(k, f32::total_cmp).1;
+    };
     let relative = (RELATIVE_THRESHOLD * p99).max(MIN_THRESHOLD);
-    match otsu(albedo.iter().copied(), p99) {
+    match otsu(&values, p99) {
         Some((t, low, high)) if low * 2.5 <= high => t.max(relative),
         _ => relative,
     }
 }
 
+/// Values per rayon task in the histogram passes.
+const CHUNK: usize = 1 << 16;
+
+/// Histogram of `key` over `values` (keys < `bins`; `None` skips a value), in parallel.
+fn histogram(values: &[f32], bins: usize, key: impl Fn(f32) -> Option<usize> + Sync) -> Vec<u64> {
+    values
+        .par_chunks(CHUNK)
+        .fold(
+            || vec![0u64; bins],
+            |mut h, chunk| {
+                for k in chunk.iter().filter_map(|&v| key(v)) {
+                    h[k] += 1;
+                }
+                h
+            },
+        )
+        .reduce(
+            || vec![0u64; bins],
+            |mut a, b| {
+                a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+                a
+            },
+        )
+}
+
+/// The `q`-quantile of the positive finite values: the element of rank
+/// `⌊(n − 1)·q⌋` in sorted order, exactly, `None` when there are none. For positive
+/// floats the order of the bit patterns is the order of the values, so two parallel
+/// histogram passes (high 16 bits, then the low 16 within the chosen bin) find it
+/// without copying or sorting the 4M albedos of a 2048² job.
+fn positive_quantile(values: &[f32], q: f64) -> Option<f32> {
+    let bits = |v: f32| (v.is_finite() && v > 0.0).then(|| v.to_bits());
+    let high = histogram(values, 1 << 16, |v| bits(v).map(|b| (b >> 16) as usize));
+    let n: u64 = high.iter().sum();
+    if n == 0 {
+        return None;
+    }
+    let mut rank = ((n - 1) as f64 * q) as u64;
+    let (bin, below) = select_bin(&high, rank);
+    rank -= below;
+    let low = histogram(values, 1 << 16, |v| {
+        bits(v)
+            .filter(|b| (b >> 16) as usize == bin)
+            .map(|b| (b & 0xffff) as usize)
+    });
+    let (lo, _) = select_bin(&low, rank);
+    Some(f32::from_bits(((bin as u32) << 16) | lo as u32))
+}
+
+/// The bin holding the element of 0-based `rank`, and how many elements lie below it.
+fn select_bin(hist: &[u64], rank: u64) -> (usize, u64) {
+    let mut below = 0;
+    for (i, &h) in hist.iter().enumerate() {
+        if below + h > rank {
+            return (i, below);
+        }
+        below += h;
+    }
+    unreachable!("rank {rank} is below the histogram's total")
+}
+
 /// Otsu's threshold over [0, top] in 256 bins: (threshold, low-class mean, high-class mean).
-fn otsu(values: impl Iterator<Item = f32>, top: f32) -> Option<(f32, f64, f64)> {
+fn otsu(values: &[f32], top: f32) -> Option<(f32, f64, f64)> {
     const BINS: usize = 256;
     if top <= 0.0 {
         return None;
     }
-    let mut hist = [0u64; BINS];
-    for v in values.filter(|v| v.is_finite()) {
-        hist[((v / top).clamp(0.0, 1.0) * (BINS - 1) as f32) as usize] += 1;
-    }
+    let hist = histogram(values, BINS, |v| {
+        v.is_finite()
+            .then(|| ((v / top).clamp(0.0, 1.0) * (BINS - 1) as f32) as usize)
+    });
     let total: u64 = hist.iter().sum();
     let sum: f64 = hist
         .iter()
@@ -245,6 +306,45 @@ pub fn fill_holes(mask: &Array2<bool>) -> Array2<bool> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The rank-⌊(n − 1)q⌋ positive finite value, by sorting.
+    fn sorted_quantile(values: &[f32], q: f64) -> Option<f32> {
+        let mut v: Vec<f32> = (values.iter().copied())
+            .filter(|a| a.is_finite() && *a > 0.0)
+            .collect();
+        v.sort_by(f32::total_cmp);
+        (!v.is_empty()).then(|| v[((v.len() - 1) as f64 * q) as usize])
+    }
+
+    #[test]
+    fn quantile_by_histograms_is_the_sorted_one() {
+        // Deterministic pseudo-random values with ties, zeros, negatives and non-finite ones.
+        let mut x = 0x2545_f491_u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        let special = [0.0, -0.5, f32::NAN, f32::INFINITY, 1e-30, 0.25, 0.25];
+        for len in [0, 1, 2, 7, 1000, 200_000] {
+            let values: Vec<f32> = (0..len)
+                .map(|i| match next() % 10 {
+                    0 => special[i % special.len()],
+                    _ => (next() % 100_000) as f32 / 37_000.0,
+                })
+                .collect();
+            for q in [0.0, 0.5, 0.99, 1.0] {
+                assert_eq!(
+                    positive_quantile(&values, q).map(f32::to_bits),
+                    sorted_quantile(&values, q).map(f32::to_bits),
+                    "{len} values, q = {q}"
+                );
+            }
+        }
+        assert_eq!(positive_quantile(&[3.0; 5000], 0.99), Some(3.0));
+        assert_eq!(positive_quantile(&[0.0, -1.0, f32::NAN], 0.99), None);
+    }
 
     fn disc(n: usize, r: f32, hole: f32) -> Array2<f32> {
         Array2::from_shape_fn((n, n), |(y, x)| {
