@@ -138,21 +138,32 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
                         *sq += d * d;
                     }
                 }
-                let normals = n_row
-                    .as_slice_mut()
-                    .expect("a row of a fresh array is contiguous");
-                for c in 0..cols {
-                    let g = [gx[c], gy[c], gz[c]];
-                    let rho = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-                    a_row[c] = rho;
+                let fresh = "a row of a fresh array is contiguous";
+                let normals = n_row.as_slice_mut().expect(fresh);
+                let (a_row, res_row) = (
+                    a_row.as_slice_mut().expect(fresh),
+                    res_row.as_slice_mut().expect(fresh),
+                );
+                // |g| and the RMS residual in lane loops that vectorise; the normals and
+                // the confidence (an `exp` per pixel) after them.
+                let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
+                for (a, ((x, y), z)) in a_row.iter_mut().zip(lanes) {
+                    *a = (x * x + y * y + z * z).sqrt();
+                }
+                for (res, sq) in res_row.iter_mut().zip(sq.iter()) {
+                    *res = (sq / n as f32).sqrt();
+                }
+                for (c, &rho) in a_row.iter().enumerate() {
                     if rho > 0.0 && rho.is_finite() {
-                        for k in 0..3 {
-                            normals[c * 3 + k] = g[k] / rho;
-                        }
+                        normals[c * 3] = gx[c] / rho;
+                        normals[c * 3 + 1] = gy[c] / rho;
+                        normals[c * 3 + 2] = gz[c] / rho;
                     }
-                    let res = (sq[c] / n as f32).sqrt();
-                    res_row[c] = res;
-                    conf_row[c] = robust::confidence_of(n, res, 3.0 * quantum + 0.02 * rho);
+                }
+                for ((conf, &res), &rho) in
+                    conf_row.iter_mut().zip(res_row.iter()).zip(a_row.iter())
+                {
+                    *conf = robust::confidence_of(n, res, 3.0 * quantum + 0.02 * rho);
                 }
             },
         );
