@@ -226,6 +226,13 @@ pub(super) struct PcgStats {
     pub levels: usize,
 }
 
+/// `n` zeros, written in parallel. A zeroed allocation (`vec![0.0; n]`) comes as untouched
+/// pages: reading one maps the shared zero page, and the first write after that faults
+/// again for a copy-on-write with a TLB shootdown to the other CPUs, page by page.
+fn written_zeros(n: usize) -> Vec<f32> {
+    (0..n).into_par_iter().map(|_| 0.0).collect()
+}
+
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     a.par_chunks(CHUNK)
         .zip(b.par_chunks(CHUNK))
@@ -237,9 +244,18 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 /// by a multigrid V-cycle. Storage: the solution, the residual, the search direction and one
 /// shared vector for `M r` / `A p`, all f32; dot products in f64.
 pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>) -> (Vec<f32>, PcgStats) {
+    solve_pcg_until(st, b, TOL, MAX_ITER)
+}
+
+/// [`solve_pcg`] with an explicit stopping rule: `‖r‖ ≤ tol ‖b‖` or `max_iter` iterations.
+pub(super) fn solve_pcg_until<S: Stencil>(
+    st: &S,
+    b: Vec<f32>,
+    tol: f64,
+    max_iter: usize,
+) -> (Vec<f32>, PcgStats) {
     let n = b.len();
     let mut r = b;
-    let mut x = vec![0f32; n];
     let bnorm = dot(&r, &r).sqrt();
     let mut stats = PcgStats {
         iterations: 0,
@@ -247,24 +263,25 @@ pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>) -> (Vec<f32>, PcgStats)
         levels: 0,
     };
     if bnorm == 0.0 || !bnorm.is_finite() {
-        return (x, stats);
+        return (vec![0.0; n], stats);
     }
     let mut hier = Hierarchy::new(st);
     stats.levels = hier.depth();
     stats.rel_residual = 1.0;
-    let mut zq = vec![0f32; n]; // M r, then A p
-    let mut p = vec![0f32; n];
+    // x and p are read before they are written: zero them by writing, not with calloc.
+    let (mut x, mut p) = (written_zeros(n), written_zeros(n));
+    let mut zq = vec![0f32; n]; // M r, then A p: written first
     let mut rz = hier.apply(st, &r, &mut zq);
     // The update x += α p of each step is applied lazily, by the next direction update
     // (which reads p anyway), or after the loop.
     let (mut alpha, mut beta) = (0.0f32, 0.0f32);
-    let stop_sq = (TOL * bnorm).powi(2);
-    while stats.iterations < MAX_ITER {
+    let stop_sq = (tol * bnorm).powi(2);
+    while stats.iterations < max_iter {
         if !(rz > 0.0 && rz.is_finite()) {
             break;
         }
         // x += α p_old; p = z + β p_old; zq = A p.
-        let pap = multigrid::direction_apply(st, &mut zq, &mut p, &mut x, alpha, beta);
+        let pap = hier.direction_apply(st, &mut zq, &mut p, &mut x, alpha, beta);
         alpha = 0.0;
         if !(pap > 0.0 && pap.is_finite()) {
             break;
@@ -272,7 +289,7 @@ pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>) -> (Vec<f32>, PcgStats)
         stats.iterations += 1;
         alpha = (rz / pap) as f32;
         // r -= α A p; zq = M r unless converged.
-        let last = stats.iterations == MAX_ITER;
+        let last = stats.iterations == max_iter;
         let (rr, rz_new) = hier.step(st, &mut r, &mut zq, alpha, |rr| rr <= stop_sq || last);
         stats.rel_residual = rr.sqrt() / bnorm;
         let Some(rz_new) = rz_new else { break };

@@ -546,3 +546,143 @@ fn ragged_mask_converges() {
     let zi = integrate(&p, &q, &mask, Integration::Poisson);
     assert!(zi.iter().all(|v| v.is_finite()));
 }
+
+/// The rendered 2048² sphere set (`$PHOTOSTEREO_SET`, default `/tmp/set2048`, from
+/// `photostereo render`), reconstructed with the default options: normals and auto mask.
+fn rendered_set() -> Option<(Array3<f32>, Array2<bool>, Option<Array2<f32>>)> {
+    let dir = std::env::var("PHOTOSTEREO_SET").unwrap_or_else(|_| "/tmp/set2048".into());
+    let dir = std::path::Path::new(&dir);
+    let set = crate::core::intake::load_dir(dir, None, &Default::default()).ok()?;
+    let rec = crate::core::reconstruct(&set, &Default::default(), &mut |_| true).ok()?;
+    let truth = crate::core::synth::read_truth(dir).ok().map(|t| t.depth);
+    Some((rec.normals, rec.mask, truth))
+}
+
+/// Where the job's `integrate` stage spends its time on the rendered set (best of 5):
+/// `cargo test --release --lib timings_rendered_set -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn timings_rendered_set() {
+    let Some((normals, mask, _)) = rendered_set() else {
+        eprintln!("no rendered set: skipped");
+        return;
+    };
+    let (h, w) = mask.dim();
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let mut best = [f64::INFINITY; 8];
+    let mut stats = None;
+    for _ in 0..5 {
+        let mut lap = Instant::now();
+        let mut t = |k: usize| {
+            best[k] = best[k].min(lap.elapsed().as_secs_f64() * 1e3);
+            lap = Instant::now();
+        };
+        let (p, q) = gradients(&normals, &mask);
+        t(0);
+        let c = curl(&p, &q, &mask);
+        t(1);
+        std::hint::black_box(&c);
+        let z = integrate(&p, &q, &mask, Integration::Poisson);
+        t(2);
+        std::hint::black_box(&z);
+        let (ps, qs) = (p.as_slice().unwrap(), q.as_slice().unwrap());
+        let comps = Components::new(&m, h, w);
+        t(3);
+        let st = MaskStencil::new(&m, h, w);
+        t(4);
+        let mut b = poisson::rhs(&st, ps, qs);
+        comps.remove_means(&mut b);
+        t(5);
+        let (z, s) = poisson::solve_pcg(&st, b);
+        t(6);
+        std::hint::black_box(&z);
+        stats = Some(s);
+    }
+    let names = [
+        "gradients",
+        "curl",
+        "integrate (poisson)",
+        "  of which components",
+        "  of which stencil",
+        "  of which rhs",
+        "  of which PCG",
+    ];
+    eprintln!(
+        "rendered set {h}×{w}, {} mask pixels, best of 5:",
+        m.iter().filter(|&&v| v).count()
+    );
+    for (name, ms) in names.iter().zip(best) {
+        eprintln!("  {name:<24} {ms:>6.1} ms");
+    }
+    eprintln!("  {:?}", stats.unwrap());
+}
+
+/// Height error of CG stopped after `k` iterations, against a solve converged to f32
+/// round-off, on the 2048² disc, the full frame, a holey disc and the rendered set:
+/// `cargo test --release --lib pcg_error_by_iteration -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn pcg_error_by_iteration() {
+    let n = 2048;
+    let rad = 0.45 * n as f64;
+    let c = n as f64 / 2.0;
+    let sphere = hemisphere(c, c, rad);
+    let k = n as f64 / 128.0;
+    let bumps = move |x: f64, y: f64| {
+        let (z, zx, zy) = gaussians(x / k, y / k);
+        (z * k, zx, zy)
+    };
+    let disc_mask = disc(n, n, c, c, 0.95 * rad);
+    let full = Array2::from_elem((n, n), true);
+    let mut seed = 12345u64;
+    let mut rnd = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed % 1000) as f64 / 1000.0
+    };
+    let holey = Array2::from_shape_fn((n, n), |(r, c)| disc_mask[(r, c)] && rnd() < 0.9);
+    let mut cases: Vec<(String, Array2<f32>, Array2<f32>, Array2<bool>)> = Vec::new();
+    for (name, s, mask) in [
+        ("disc, sphere", &sphere as &Surface, &disc_mask),
+        ("full frame, bumps", &bumps, &full),
+        ("disc with 10% holes, sphere", &sphere, &holey),
+    ] {
+        let (p, q) = gradients(&normals_of(s, mask), mask);
+        cases.push((name.into(), p, q, mask.clone()));
+    }
+    if let Some((normals, mask, _)) = rendered_set() {
+        let (p, q) = gradients(&normals, &mask);
+        cases.push(("rendered set, auto mask".into(), p, q, mask));
+    }
+    for (name, p, q, mask) in &cases {
+        let (h, w) = mask.dim();
+        let m: Vec<bool> = mask.iter().copied().collect();
+        let comps = Components::new(&m, h, w);
+        let st = MaskStencil::new(&m, h, w);
+        let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+        comps.remove_means(&mut b);
+        let (mut exact, s) = poisson::solve_pcg_until(&st, b.clone(), 1e-9, 40);
+        comps.remove_means(&mut exact);
+        let count = m.iter().filter(|&&v| v).count() as f64;
+        eprintln!("{name}: reference {s:?}");
+        for k in 1..=10 {
+            let (mut z, s) = poisson::solve_pcg_until(&st, b.clone(), 0.0, k);
+            comps.remove_means(&mut z);
+            let (mut e2, mut emax) = (0.0f64, 0.0f64);
+            for i in 0..h * w {
+                if m[i] {
+                    let d = f64::from(z[i] - exact[i]);
+                    e2 += d * d;
+                    emax = emax.max(d.abs());
+                }
+            }
+            eprintln!(
+                "  {k:>2} iterations: rel residual {:.1e}, height error rms {:.5} px, max {:.4} px",
+                s.rel_residual,
+                (e2 / count).sqrt(),
+                emax
+            );
+        }
+    }
+}
