@@ -526,7 +526,8 @@ fn ragged_mask_converges() {
         .sum();
     let den: f64 = b.iter().map(|&b| f64::from(b).powi(2)).sum();
     let true_rel = (num / den).sqrt();
-    assert!(true_rel < 1e-4, "true residual {true_rel}");
+    // The recurrence's residual must be the true one (to within f32 storage of z).
+    assert!(true_rel < 2.0 * poisson::TOL, "true residual {true_rel}");
     // Heights match the surface up to one constant per component.
     let truth = heights_of(&s, h, w);
     let mut err: Vec<f32> = (0..h * w)
@@ -662,11 +663,18 @@ fn pcg_error_by_iteration() {
         let st = MaskStencil::new(&m, h, w);
         let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
         comps.remove_means(&mut b);
-        let (mut exact, s) = poisson::solve_pcg_until(&st, b.clone(), 1e-9, 40);
+        // Past ~1e-8, f32 round-off makes CG drift away again: stop the reference earlier.
+        let (mut exact, s) = poisson::solve_pcg_until(&st, b.clone(), 3e-7, 60);
         comps.remove_means(&mut exact);
         let count = m.iter().filter(|&&v| v).count() as f64;
         eprintln!("{name}: reference {s:?}");
-        for k in 1..=10 {
+        let (_, at_tol) = poisson::solve_pcg(&st, b.clone());
+        eprintln!(
+            "  stops at TOL = {:.0e} after {} iterations",
+            poisson::TOL,
+            at_tol.iterations
+        );
+        for k in 1..=12 {
             let (mut z, s) = poisson::solve_pcg_until(&st, b.clone(), 0.0, k);
             comps.remove_means(&mut z);
             let (mut e2, mut emax) = (0.0f64, 0.0f64);
