@@ -62,10 +62,20 @@ pub(super) fn finite(v: f32) -> f32 {
 /// (second order either way).
 #[inline(always)]
 pub(super) fn edge_slope(a: [f32; 2], b: [f32; 2], k: usize) -> f32 {
-    let nz = |g: [f32; 2]| 1.0 / (1.0 + g[0] * g[0] + g[1] * g[1]).sqrt();
-    let (wa, wb) = (nz(a), nz(b));
-    let s = wa + wb;
-    let v = (wa * a[k] + wb * b[k]) / s;
+    weighted_slope(normal_z(a[0], a[1]), a[k], normal_z(b[0], b[1]), b[k])
+}
+
+/// The weight `n_z = 1/√(1 + p² + q²)` of a pixel in [`edge_slope`].
+#[inline(always)]
+pub(super) fn normal_z(p: f32, q: f32) -> f32 {
+    1.0 / (1.0 + p * p + q * q).sqrt()
+}
+
+/// [`edge_slope`] from the two pixels' weights `wa`, `wb` ([`normal_z`]) and slopes `ga`,
+/// `gb` along the edge; bit-identical to it, for kernels that form each weight once.
+#[inline(always)]
+pub(super) fn weighted_slope(wa: f32, ga: f32, wb: f32, gb: f32) -> f32 {
+    let v = (wa * ga + wb * gb) / (wa + wb);
     if v.is_finite() { v } else { 0.0 }
 }
 
@@ -77,17 +87,49 @@ pub(super) fn rhs<S: Stencil>(st: &S, p: &[f32], q: &[f32]) -> Vec<f32> {
     if h * w == 0 {
         return b;
     }
-    b.par_chunks_mut(w).enumerate().for_each_init(
-        || RhsScratch::new(w),
-        |s, (r, out)| rhs_row(st, p, q, r, out, s),
-    );
+    // Bands of rows, so that each vertical edge (shared by two rows) is formed once.
+    let rows = h.div_ceil(4 * rayon::current_num_threads()).max(8);
+    b.par_chunks_mut(rows * w)
+        .enumerate()
+        .for_each(|(k, band)| rhs_band(st, p, q, k * rows, band, &mut RhsScratch::new(w)));
     b
 }
 
-/// Row buffers of [`rhs_row`].
+/// One image row as [`rhs_band`] reads it: finite slopes and their weights.
+struct SlopeRow {
+    p: Vec<f32>,
+    q: Vec<f32>,
+    nz: Vec<f32>,
+}
+
+impl SlopeRow {
+    fn new(w: usize) -> Self {
+        Self {
+            p: vec![0.0; w],
+            q: vec![0.0; w],
+            nz: vec![0.0; w],
+        }
+    }
+
+    #[inline(always)]
+    fn load(&mut self, p: &[f32], q: &[f32], r: usize) {
+        let w = self.p.len();
+        let (p, q) = (&p[r * w..(r + 1) * w], &q[r * w..(r + 1) * w]);
+        let (sp, sq, nz) = (&mut self.p[..w], &mut self.q[..w], &mut self.nz[..w]);
+        for c in 0..w {
+            let (pc, qc) = (finite(p[c]), finite(q[c]));
+            (sp[c], sq[c], nz[c]) = (pc, qc, normal_z(pc, qc));
+        }
+    }
+}
+
+/// Row buffers of [`rhs_band`].
 struct RhsScratch {
+    cur: SlopeRow,
+    next: SlopeRow,
     /// Edge gradient × weight, shifted by one: `gx[c + 1]` is the edge `c → c + 1`.
     gx: Vec<f32>,
+    /// Weighted vertical edge gradients above and below the current row.
     up: Vec<f32>,
     down: Vec<f32>,
     east: Vec<f32>,
@@ -98,6 +140,8 @@ impl RhsScratch {
     fn new(w: usize) -> Self {
         let v = || vec![0f32; w];
         Self {
+            cur: SlopeRow::new(w),
+            next: SlopeRow::new(w),
             gx: vec![0f32; w + 1],
             up: v(),
             down: v(),
@@ -108,67 +152,73 @@ impl RhsScratch {
 }
 
 multiversion! {
-    fn rhs_row<S: Stencil>(
-        st: &S, p: &[f32], q: &[f32], r: usize, out: &mut [f32], s: &mut RhsScratch,
-    ) -> () => rhs_row_body
+    fn rhs_band<S: Stencil>(
+        st: &S, p: &[f32], q: &[f32], r0: usize, out: &mut [f32], s: &mut RhsScratch,
+    ) -> () => rhs_band_body
 }
 
-/// One row of `b`. Weighted edge gradients are formed once per edge in f32 (both end pixels
-/// see the same value, so `b` is an exact divergence); their differences are taken in f64.
+/// Weighted gradients `g` of the vertical edges from row `top` to row `bottom`.
 #[inline(always)]
-fn rhs_row_body<S: Stencil>(
+fn vertical_edges(top: &SlopeRow, bottom: &SlopeRow, weight: &[f32], g: &mut [f32]) {
+    let w = g.len();
+    let (t, b, weight) = (&top.nz[..w], &bottom.nz[..w], &weight[..w]);
+    let (tq, bq) = (&top.q[..w], &bottom.q[..w]);
+    for c in 0..w {
+        g[c] = weight[c] * weighted_slope(t[c], tq[c], b[c], bq[c]);
+    }
+}
+
+/// Rows `r0..` of `b` (as many as `out` holds). Weighted edge gradients are formed once per
+/// edge in f32 (both end pixels see the same value, so `b` is an exact divergence); their
+/// differences are taken in f64.
+#[inline(always)]
+fn rhs_band_body<S: Stencil>(
     st: &S,
     p: &[f32],
     q: &[f32],
-    r: usize,
+    r0: usize,
     out: &mut [f32],
     s: &mut RhsScratch,
 ) {
     let (h, w) = st.dims();
     let RhsScratch {
+        cur,
+        next,
         gx,
         up,
         down,
         east,
         south,
     } = s;
-    // Vertical edges above (row r − 1 → r) and below (r → r + 1).
-    for (g, above) in [(&mut *up, true), (&mut *down, false)] {
-        let other = if above {
-            r.checked_sub(1)
-        } else {
-            Some(r + 1).filter(|&a| a < h)
-        };
-        match other {
-            Some(a) => {
-                let (top, bottom) = if above { (a, r) } else { (r, a) };
-                st.edge_row(top, east, south);
-                let (t, b) = (top * w, bottom * w);
-                for c in 0..w {
-                    let v = edge_slope(
-                        [finite(p[t + c]), finite(q[t + c])],
-                        [finite(p[b + c]), finite(q[b + c])],
-                        1,
-                    );
-                    g[c] = south[c] * v;
-                }
-            }
-            None => g.fill(0.0),
+    cur.load(p, q, r0);
+    match r0.checked_sub(1) {
+        Some(a) => {
+            next.load(p, q, a);
+            st.edge_row(a, east, south);
+            vertical_edges(next, cur, south, up);
         }
+        None => up.fill(0.0),
     }
-    st.edge_row(r, east, south);
-    let (pr, qr) = (&p[r * w..(r + 1) * w], &q[r * w..(r + 1) * w]);
-    for c in 0..w.saturating_sub(1) {
-        let v = edge_slope(
-            [finite(pr[c]), finite(qr[c])],
-            [finite(pr[c + 1]), finite(qr[c + 1])],
-            0,
-        );
-        gx[c + 1] = east[c] * v;
-    }
-    for c in 0..w {
-        let s = f64::from(gx[c]) - f64::from(gx[c + 1]) + (f64::from(up[c]) - f64::from(down[c]));
-        out[c] = s as f32;
+    for (r, out) in (r0..).zip(out.chunks_mut(w)) {
+        if r + 1 < h {
+            next.load(p, q, r + 1);
+            st.edge_row(r, east, south);
+            vertical_edges(cur, next, south, down);
+        } else {
+            st.edge_row(r, east, south);
+            down.fill(0.0);
+        }
+        for c in 0..w.saturating_sub(1) {
+            let v = weighted_slope(cur.nz[c], cur.p[c], cur.nz[c + 1], cur.p[c + 1]);
+            gx[c + 1] = east[c] * v;
+        }
+        for c in 0..w {
+            let s =
+                f64::from(gx[c]) - f64::from(gx[c + 1]) + (f64::from(up[c]) - f64::from(down[c]));
+            out[c] = s as f32;
+        }
+        std::mem::swap(cur, next);
+        std::mem::swap(up, down);
     }
 }
 
