@@ -612,13 +612,12 @@ fn ragged_mask_converges() {
 
 /// The rendered 2048² sphere set (`$PHOTOSTEREO_SET`, default `/tmp/set2048`, from
 /// `photostereo render`), reconstructed with the default options: normals and auto mask.
-fn rendered_set() -> Option<(Array3<f32>, Array2<bool>, Option<Array2<f32>>)> {
+fn rendered_set() -> Option<(Array3<f32>, Array2<bool>)> {
     let dir = std::env::var("PHOTOSTEREO_SET").unwrap_or_else(|_| "/tmp/set2048".into());
     let dir = std::path::Path::new(&dir);
     let set = crate::core::intake::load_dir(dir, None, &Default::default()).ok()?;
     let rec = crate::core::reconstruct(&set, &Default::default(), &mut |_| true).ok()?;
-    let truth = crate::core::synth::read_truth(dir).ok().map(|t| t.depth);
-    Some((rec.normals, rec.mask, truth))
+    Some((rec.normals, rec.mask))
 }
 
 /// Where the job's `integrate` stage spends its time on the rendered set (best of 5):
@@ -626,7 +625,7 @@ fn rendered_set() -> Option<(Array3<f32>, Array2<bool>, Option<Array2<f32>>)> {
 #[test]
 #[ignore]
 fn timings_rendered_set() {
-    let Some((normals, mask, _)) = rendered_set() else {
+    let Some((normals, mask)) = rendered_set() else {
         eprintln!("no rendered set: skipped");
         return;
     };
@@ -711,7 +710,8 @@ fn pcg_error_by_iteration() {
         (seed % 1000) as f64 / 1000.0
     };
     let holey = Array2::from_shape_fn((n, n), |(r, c)| disc_mask[(r, c)] && rnd() < 0.9);
-    let mut cases: Vec<(String, Array2<f32>, Array2<f32>, Array2<bool>)> = Vec::new();
+    type Case = (String, Array2<f32>, Array2<f32>, Array2<bool>);
+    let mut cases: Vec<Case> = Vec::new();
     for (name, s, mask) in [
         ("disc, sphere", &sphere as &Surface, &disc_mask),
         ("full frame, bumps", &bumps, &full),
@@ -720,7 +720,7 @@ fn pcg_error_by_iteration() {
         let (p, q) = gradients(&normals_of(s, mask), mask);
         cases.push((name.into(), p, q, mask.clone()));
     }
-    if let Some((normals, mask, _)) = rendered_set() {
+    if let Some((normals, mask)) = rendered_set() {
         let (p, q) = gradients(&normals, &mask);
         cases.push(("rendered set, auto mask".into(), p, q, mask));
     }
