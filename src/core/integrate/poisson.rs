@@ -38,8 +38,9 @@ use std::sync::Arc;
 ///
 /// That is far below the ~0.1 px the integrators' accuracy is judged by (discretisation
 /// and normal noise); the iterations a 1e-6 tolerance adds cost ~40% of the solve (the
-/// holey mask's 0.17 px maximum is local: its RMS is 0.0007 px). One iteration less
-/// (1e-3) would leave ~0.008 px RMS.
+/// holey mask's 0.17 px maximum is local: its RMS is 0.0007 px). Against the rendered
+/// set's true depth, `photostereo evaluate` gives 0.003 px RMS with the `weighted` solver's
+/// normals (0.000 at 1e-6). One iteration less (1e-3) would leave ~0.008 px RMS.
 pub(super) const TOL: f64 = 2e-4;
 /// Hard cap on CG iterations (solid masks need ~5, ragged ones a dozen or two; this only
 /// bounds the time on pathological inputs).
