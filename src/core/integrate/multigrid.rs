@@ -13,10 +13,11 @@
 //!   parent's value) and restriction `R = Pᵀ` (sum over the children). They are cheap, keep
 //!   constants per component, never reach across a gap of the mask, and — with the ½-scaled
 //!   coarse operator, which compensates the too-stiff Galerkin product `PᵀAP` — give a
-//!   preconditioner whose CG iteration count stays ~8 from 128² to 4096² on solid masks
-//!   (cell-centred bilinear transfers needed as many iterations at ~2× the cost). Ragged
-//!   masks converge more slowly (27 iterations with 25% random holes), since a coarse cell
-//!   may then merge pieces that are not connected on the fine grid.
+//!   preconditioner whose CG iteration count to a relative residual of 1e-6 stays ~8 from
+//!   128² to 4096² on solid masks (cell-centred bilinear transfers needed as many
+//!   iterations at ~2× the cost). Ragged masks converge more slowly (27 iterations with 25%
+//!   random holes), since a coarse cell may then merge pieces that are not connected on the
+//!   fine grid.
 //! * Smoother: red–black Gauss–Seidel, red then black before the coarse correction and
 //!   black then red after it, so the V-cycle is a symmetric operator (required by CG).
 //! * Coarsest level (≤ [`COARSEST_CELLS`] cells): dense Cholesky of `A + Q`, where `Q`
@@ -385,24 +386,65 @@ impl Bands {
 }
 
 /// For every band, the `halo` rows above it then the `halo` rows below it (zero rows
-/// outside the grid), copied from `x` before an in-place pass.
-fn ghosts(x: &[f32], h: usize, w: usize, bands: Bands, halo: usize) -> Vec<f32> {
-    let mut g = vec![0f32; bands.count * 2 * halo * w];
+/// outside the grid), copied from `x` into `g` before an in-place pass. Every element of
+/// `g` is written.
+fn ghosts(x: &[f32], h: usize, w: usize, bands: Bands, halo: usize, g: &mut [f32]) {
     for (k, gb) in g.chunks_mut(2 * halo * w).enumerate() {
         let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
-        for j in 0..halo {
-            // Above: row r0 − halo + j; below: row r1 + j.
-            if r0 + j >= halo {
-                let r = r0 + j - halo;
-                gb[j * w..(j + 1) * w].copy_from_slice(&x[r * w..(r + 1) * w]);
-            }
-            let r = r1 + j;
-            if r < h {
-                gb[(halo + j) * w..(halo + j + 1) * w].copy_from_slice(&x[r * w..(r + 1) * w]);
+        // Above: rows r0 − halo .. r0; below: rows r1 .. r1 + halo.
+        let rows =
+            (r0 as isize - halo as isize..r0 as isize).chain(r1 as isize..(r1 + halo) as isize);
+        for (j, r) in rows.enumerate() {
+            let out = &mut gb[j * w..(j + 1) * w];
+            if in_grid(r, h) {
+                let r = r as usize;
+                out.copy_from_slice(&x[r * w..(r + 1) * w]);
+            } else {
+                out.fill(0.0);
             }
         }
     }
-    g
+}
+
+/// Per-level buffers of the band passes, allocated once per solve and reused by every
+/// pass: one [`Scratch`] per band and two ghost-row arrays. Fresh allocations per pass
+/// page-faulted in the kernel on every call (and read-before-write of untouched zeroed
+/// pages costs a copy-on-write fault with a TLB shootdown each).
+struct Work {
+    bands: Bands,
+    scratch: Vec<Scratch>,
+    ghost: [Vec<f32>; 2],
+}
+
+impl Work {
+    fn new(h: usize, w: usize) -> Self {
+        let bands = Bands::new(h, w);
+        let len = bands.count * 2 * PRE_HALO.max(POST_HALO) * w;
+        Self {
+            bands,
+            scratch: (0..bands.count).map(|_| Scratch::new(w)).collect(),
+            ghost: [vec![0.0; len], vec![0.0; len]],
+        }
+    }
+
+    /// The band partition, the band scratches, and the ghost rows (`halo` deep) of `x` and
+    /// (if given) of `y`.
+    fn split(
+        &mut self,
+        dims: (usize, usize),
+        halo: usize,
+        x: &[f32],
+        y: Option<&[f32]>,
+    ) -> (Bands, &mut [Scratch], &[f32], &[f32]) {
+        let (h, w) = dims;
+        let len = self.bands.count * 2 * halo * w;
+        let [gx, gy] = &mut self.ghost;
+        ghosts(x, h, w, self.bands, halo, &mut gx[..len]);
+        if let Some(y) = y {
+            ghosts(y, h, w, self.bands, halo, &mut gy[..len]);
+        }
+        (self.bands, &mut self.scratch, &gx[..len], &gy[..len])
+    }
 }
 
 /// Row `k` of an array being rewritten in place by the band `[r0, r1)`: from the band while
@@ -668,20 +710,24 @@ const PRE_HALO: usize = 2;
 
 /// Pre-smoothing from a zero guess (red half-sweep, then black) into `x`, fused with the
 /// restriction of the resulting residual: `cb = Pᵀ (b − A x)`.
-fn presmooth_restrict<S: Stencil>(st: &S, b: &[f32], x: &mut [f32], cb: &mut [f32]) {
+fn presmooth_restrict<S: Stencil>(
+    st: &S,
+    b: &[f32],
+    x: &mut [f32],
+    cb: &mut [f32],
+    work: &mut Work,
+) {
     let (h, w) = st.dims();
     let cw = w.div_ceil(2);
-    let bands = Bands::new(h, w);
+    let bands = work.bands;
     x.par_chunks_mut(bands.rows * w)
         .zip(cb.par_chunks_mut(bands.rows / 2 * cw))
+        .zip(work.scratch.par_iter_mut())
         .enumerate()
-        .for_each_init(
-            || Scratch::new(w),
-            |s, (k, (xband, cband))| {
-                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
-                presmooth_band(st, Rhs::Fixed(b), xband, cband, s, r0, r1);
-            },
-        );
+        .for_each(|(k, ((xband, cband), s))| {
+            let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+            presmooth_band(st, Rhs::Fixed(b), xband, cband, s, r0, r1);
+        });
 }
 
 /// The CG residual update `r ← r − α A p` (`zq` holds `A p`) fused with
@@ -693,12 +739,11 @@ fn step_presmooth_restrict<S: Stencil>(
     zq: &mut [f32],
     alpha: f32,
     cb: &mut [f32],
+    work: &mut Work,
 ) -> f64 {
     let (h, w) = st.dims();
     let cw = w.div_ceil(2);
-    let bands = Bands::new(h, w);
-    let g_r = ghosts(r, h, w, bands, PRE_HALO);
-    let g_ap = ghosts(zq, h, w, bands, PRE_HALO);
+    let (bands, scratch, g_r, g_ap) = work.split((h, w), PRE_HALO, r, Some(zq));
     let rows = bands.rows;
     zq.par_chunks_mut(rows * w)
         .zip(cb.par_chunks_mut(rows / 2 * cw))
@@ -707,20 +752,18 @@ fn step_presmooth_restrict<S: Stencil>(
             g_r.par_chunks(2 * PRE_HALO * w)
                 .zip(g_ap.par_chunks(2 * PRE_HALO * w)),
         )
+        .zip(scratch.par_iter_mut())
         .enumerate()
-        .map_init(
-            || Scratch::new(w),
-            |s, (k, (((xband, cband), rband), (ghost_r, ghost_ap)))| {
-                let (r0, r1) = (k * rows, ((k + 1) * rows).min(h));
-                let rhs = Rhs::Step {
-                    r: rband,
-                    ghost_r,
-                    ghost_ap,
-                    alpha,
-                };
-                presmooth_band(st, rhs, xband, cband, s, r0, r1)
-            },
-        )
+        .map(|(k, ((((xband, cband), rband), (ghost_r, ghost_ap)), s))| {
+            let (r0, r1) = (k * rows, ((k + 1) * rows).min(h));
+            let rhs = Rhs::Step {
+                r: rband,
+                ghost_r,
+                ghost_ap,
+                alpha,
+            };
+            presmooth_band(st, rhs, xband, cband, s, r0, r1)
+        })
         .sum()
 }
 
@@ -806,20 +849,23 @@ const POST_HALO: usize = 2;
 
 /// Coarse correction and post-smoothing, fused: `x += P xc`, then a black half-sweep, then
 /// a red one. Returns `bᵀ x` of the result.
-fn prolong_postsmooth<S: Stencil>(st: &S, b: &[f32], x: &mut [f32], xc: &[f32]) -> f64 {
+fn prolong_postsmooth<S: Stencil>(
+    st: &S,
+    b: &[f32],
+    x: &mut [f32],
+    xc: &[f32],
+    work: &mut Work,
+) -> f64 {
     let (h, w) = st.dims();
-    let bands = Bands::new(h, w);
-    let g = ghosts(x, h, w, bands, POST_HALO);
+    let (bands, scratch, g, _) = work.split((h, w), POST_HALO, x, None);
     x.par_chunks_mut(bands.rows * w)
         .zip(g.par_chunks(2 * POST_HALO * w))
+        .zip(scratch.par_iter_mut())
         .enumerate()
-        .map_init(
-            || Scratch::new(w),
-            |s, (k, (xband, gb))| {
-                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
-                postsmooth_band(st, b, xc, xband, gb, s, r0, r1)
-            },
-        )
+        .map(|(k, ((xband, gb), s))| {
+            let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+            postsmooth_band(st, b, xc, xband, gb, s, r0, r1)
+        })
         .sum()
 }
 
@@ -878,33 +924,30 @@ multiversion! {
 /// The CG direction update fused with the operator and the deferred solution update:
 /// `x ← x + α p`, `p ← z + β p`, then `z ← A p` (in place: the buffer holding `z` receives
 /// `A p`). Returns `pᵀ A p` (f64 sums).
-pub(super) fn direction_apply<S: Stencil>(
+fn direction_apply<S: Stencil>(
     st: &S,
     zq: &mut [f32],
     p: &mut [f32],
     x: &mut [f32],
     alpha: f32,
     beta: f32,
+    work: &mut Work,
 ) -> f64 {
     let (h, w) = st.dims();
     if h * w == 0 {
         return 0.0;
     }
-    let bands = Bands::new(h, w);
-    let gz = ghosts(zq, h, w, bands, 1);
-    let gp = ghosts(p, h, w, bands, 1);
+    let (bands, scratch, gz, gp) = work.split((h, w), 1, zq, Some(p));
     let rows = bands.rows * w;
     zq.par_chunks_mut(rows)
         .zip(p.par_chunks_mut(rows).zip(x.par_chunks_mut(rows)))
         .zip(gz.par_chunks(2 * w).zip(gp.par_chunks(2 * w)))
+        .zip(scratch.par_iter_mut())
         .enumerate()
-        .map_init(
-            || Scratch::new(w),
-            |s, (k, ((zband, (pband, xband)), (gzb, gpb)))| {
-                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
-                direction_band(st, zband, pband, xband, gzb, gpb, s, r0, r1, [alpha, beta])
-            },
-        )
+        .map(|(k, (((zband, (pband, xband)), (gzb, gpb)), s))| {
+            let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+            direction_band(st, zband, pband, xband, gzb, gpb, s, r0, r1, [alpha, beta])
+        })
         .sum()
 }
 
@@ -914,7 +957,8 @@ pub(super) fn apply<S: Stencil>(st: &S, x: &[f32], out: &mut [f32]) -> f64 {
     let mut p = vec![0f32; x.len()];
     let mut dummy = vec![0f32; x.len()];
     out.copy_from_slice(x);
-    direction_apply(st, out, &mut p, &mut dummy, 0.0, 0.0)
+    let (h, w) = st.dims();
+    direction_apply(st, out, &mut p, &mut dummy, 0.0, 0.0, &mut Work::new(h, w))
 }
 
 /// One coarse level: its operator and work vectors.
@@ -922,6 +966,7 @@ struct Level {
     st: WeightStencil,
     x: Vec<f32>,
     b: Vec<f32>,
+    work: Work,
 }
 
 fn coarsen<S: Stencil>(fine: &S) -> Level {
@@ -959,6 +1004,7 @@ fn coarsen<S: Stencil>(fine: &S) -> Level {
         st: WeightStencil::new(ch, cw, wx, wy),
         x: vec![0.0; ch * cw],
         b: vec![0.0; ch * cw],
+        work: Work::new(ch, cw),
     }
 }
 
@@ -1069,6 +1115,8 @@ impl Dense {
 pub(super) struct Hierarchy {
     levels: Vec<Level>,
     dense: Dense,
+    /// Band buffers of the fine level.
+    work: Work,
 }
 
 impl Hierarchy {
@@ -1088,7 +1136,12 @@ impl Hierarchy {
             Some(l) => Dense::new(&l.st),
             None => Dense::new(fine),
         };
-        Self { levels, dense }
+        let (h, w) = fine.dims();
+        Self {
+            levels,
+            dense,
+            work: Work::new(h, w),
+        }
     }
 
     /// Number of levels including the fine one.
@@ -1099,7 +1152,20 @@ impl Hierarchy {
     /// `x = M b` with `M ≈ A⁺` symmetric positive definite; returns `bᵀ x`. `b` must be 0
     /// on inactive cells; so is `x`.
     pub(super) fn apply<S: Stencil>(&mut self, fine: &S, b: &[f32], x: &mut [f32]) -> f64 {
-        vcycle(fine, b, x, &mut self.levels, &self.dense)
+        vcycle(fine, b, x, &mut self.work, &mut self.levels, &self.dense)
+    }
+
+    /// [`direction_apply`] on the fine level.
+    pub(super) fn direction_apply<S: Stencil>(
+        &mut self,
+        fine: &S,
+        zq: &mut [f32],
+        p: &mut [f32],
+        x: &mut [f32],
+        alpha: f32,
+        beta: f32,
+    ) -> f64 {
+        direction_apply(fine, zq, p, x, alpha, beta, &mut self.work)
     }
 
     /// One CG step's residual update and preconditioning, fused: `r ← r − α A p` (with
@@ -1113,7 +1179,12 @@ impl Hierarchy {
         alpha: f32,
         stop: impl FnOnce(f64) -> bool,
     ) -> (f64, Option<f64>) {
-        let Some((next, rest)) = self.levels.split_first_mut() else {
+        let Self {
+            levels,
+            dense,
+            work,
+        } = self;
+        let Some((next, rest)) = levels.split_first_mut() else {
             r.iter_mut()
                 .zip(zq.iter())
                 .for_each(|(r, &ap)| *r -= alpha * ap);
@@ -1121,15 +1192,15 @@ impl Hierarchy {
             if stop(rr) {
                 return (rr, None);
             }
-            self.dense.solve(r, zq);
+            dense.solve(r, zq);
             return (rr, Some(dot_f64(r, zq)));
         };
-        let rr = step_presmooth_restrict(fine, r, zq, alpha, &mut next.b);
+        let rr = step_presmooth_restrict(fine, r, zq, alpha, &mut next.b, work);
         if stop(rr) {
             return (rr, None);
         }
-        vcycle(&next.st, &next.b, &mut next.x, rest, &self.dense);
-        (rr, Some(prolong_postsmooth(fine, r, zq, &next.x)))
+        vcycle(&next.st, &next.b, &mut next.x, &mut next.work, rest, dense);
+        (rr, Some(prolong_postsmooth(fine, r, zq, &next.x, work)))
     }
 }
 
@@ -1137,6 +1208,7 @@ fn vcycle<S: Stencil>(
     st: &S,
     b: &[f32],
     x: &mut [f32],
+    work: &mut Work,
     levels: &mut [Level],
     dense: &Dense,
 ) -> f64 {
@@ -1148,9 +1220,9 @@ fn vcycle<S: Stencil>(
             .map(|(&u, &v)| f64::from(u) * f64::from(v))
             .sum();
     };
-    presmooth_restrict(st, b, x, &mut next.b);
-    vcycle(&next.st, &next.b, &mut next.x, rest, dense);
-    prolong_postsmooth(st, b, x, &next.x)
+    presmooth_restrict(st, b, x, &mut next.b, work);
+    vcycle(&next.st, &next.b, &mut next.x, &mut next.work, rest, dense);
+    prolong_postsmooth(st, b, x, &next.x, work)
 }
 
 #[cfg(test)]

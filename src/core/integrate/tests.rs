@@ -239,6 +239,68 @@ fn curl_is_zero_for_surfaces_and_two_for_rotation() {
     assert!((c[(6, 6)] + 2.0).abs() < 1e-5);
 }
 
+/// `curl` and `rhs` form each pixel's weight once; they must give exactly what
+/// `edge_slope` per edge gives.
+#[test]
+fn curl_and_rhs_match_edge_slopes_bitwise() {
+    use poisson::edge_slope;
+    let (h, w) = (37, 53);
+    let mut seed = 99u64;
+    let mut rnd = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed % 10_000) as f32 / 500.0 - 10.0
+    };
+    let p = Array2::from_shape_fn((h, w), |_| rnd());
+    let q = Array2::from_shape_fn((h, w), |_| rnd());
+    let mask = Array2::from_shape_fn((h, w), |(r, c)| (r * 7 + c * 3) % 11 != 0);
+    let g = |r: usize, c: usize| [p[(r, c)], q[(r, c)]];
+    let on = |r: usize, c: usize| r < h && c < w && mask[(r, c)];
+    let got = curl(&p, &q, &mask);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let b = poisson::rhs(
+        &MaskStencil::new(&m, h, w),
+        p.as_slice().unwrap(),
+        q.as_slice().unwrap(),
+    );
+    for r in 0..h {
+        for c in 0..w {
+            let inside = on(r, c) && on(r, c + 1) && on(r + 1, c) && on(r + 1, c + 1);
+            let want = if inside {
+                let dpy = edge_slope(g(r + 1, c), g(r + 1, c + 1), 0)
+                    - edge_slope(g(r, c), g(r, c + 1), 0);
+                let dqx = edge_slope(g(r, c + 1), g(r + 1, c + 1), 1)
+                    - edge_slope(g(r, c), g(r + 1, c), 1);
+                dpy - dqx
+            } else {
+                0.0
+            };
+            assert_eq!(got[(r, c)].to_bits(), want.to_bits(), "curl at ({r}, {c})");
+            // Edges into (r, c) minus edges out of it, each weighted 1 between mask pixels.
+            let mut sum = 0.0f64;
+            if on(r, c) {
+                if c > 0 && on(r, c - 1) {
+                    sum += f64::from(edge_slope(g(r, c - 1), g(r, c), 0));
+                }
+                if on(r, c + 1) {
+                    sum -= f64::from(edge_slope(g(r, c), g(r, c + 1), 0));
+                }
+                if r > 0 && on(r - 1, c) {
+                    sum += f64::from(edge_slope(g(r - 1, c), g(r, c), 1));
+                }
+                if on(r + 1, c) {
+                    sum -= f64::from(edge_slope(g(r, c), g(r + 1, c), 1));
+                }
+            }
+            assert!(
+                (f64::from(b[r * w + c]) - sum).abs() < 1e-5,
+                "rhs at ({r}, {c})"
+            );
+        }
+    }
+}
+
 #[test]
 fn gradients_clamp_grazing_normals() {
     let mut n = Array3::zeros((1, 3, 3));
@@ -526,7 +588,8 @@ fn ragged_mask_converges() {
         .sum();
     let den: f64 = b.iter().map(|&b| f64::from(b).powi(2)).sum();
     let true_rel = (num / den).sqrt();
-    assert!(true_rel < 1e-4, "true residual {true_rel}");
+    // The recurrence's residual must be the true one (to within f32 storage of z).
+    assert!(true_rel < 2.0 * poisson::TOL, "true residual {true_rel}");
     // Heights match the surface up to one constant per component.
     let truth = heights_of(&s, h, w);
     let mut err: Vec<f32> = (0..h * w)
@@ -545,4 +608,157 @@ fn ragged_mask_converges() {
     assert!(e < 0.05, "rms {e}");
     let zi = integrate(&p, &q, &mask, Integration::Poisson);
     assert!(zi.iter().all(|v| v.is_finite()));
+}
+
+/// The rendered 2048² sphere set (`$PHOTOSTEREO_SET`, default `/tmp/set2048`, from
+/// `photostereo render`), reconstructed with the default options: normals and auto mask.
+fn rendered_set() -> Option<(Array3<f32>, Array2<bool>)> {
+    let dir = std::env::var("PHOTOSTEREO_SET").unwrap_or_else(|_| "/tmp/set2048".into());
+    let dir = std::path::Path::new(&dir);
+    let set = crate::core::intake::load_dir(dir, None, &Default::default()).ok()?;
+    let rec = crate::core::reconstruct(&set, &Default::default(), &mut |_| true).ok()?;
+    Some((rec.normals, rec.mask))
+}
+
+/// Where the job's `integrate` stage spends its time on the rendered set (best of 5):
+/// `cargo test --release --lib timings_rendered_set -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn timings_rendered_set() {
+    let Some((normals, mask)) = rendered_set() else {
+        eprintln!("no rendered set: skipped");
+        return;
+    };
+    let (h, w) = mask.dim();
+    let m: Vec<bool> = mask.iter().copied().collect();
+    // The first round runs on fresh pages, as the job does (its arrays are new to the
+    // process); later rounds reuse freed memory.
+    let (mut first, mut best) = ([0.0; 8], [f64::INFINITY; 8]);
+    let mut stats = None;
+    for round in 0..5 {
+        let mut lap = Instant::now();
+        let mut t = |k: usize| {
+            let ms = lap.elapsed().as_secs_f64() * 1e3;
+            best[k] = best[k].min(ms);
+            if round == 0 {
+                first[k] = ms;
+            }
+            lap = Instant::now();
+        };
+        let (p, q) = gradients(&normals, &mask);
+        t(0);
+        let c = curl(&p, &q, &mask);
+        t(1);
+        std::hint::black_box(&c);
+        let z = integrate(&p, &q, &mask, Integration::Poisson);
+        t(2);
+        std::hint::black_box(&z);
+        let (ps, qs) = (p.as_slice().unwrap(), q.as_slice().unwrap());
+        let comps = Components::new(&m, h, w);
+        t(3);
+        let st = MaskStencil::new(&m, h, w);
+        t(4);
+        let mut b = poisson::rhs(&st, ps, qs);
+        comps.remove_means(&mut b);
+        t(5);
+        let (z, s) = poisson::solve_pcg(&st, b);
+        t(6);
+        std::hint::black_box(&z);
+        stats = Some(s);
+    }
+    let names = [
+        "gradients",
+        "curl",
+        "integrate (poisson)",
+        "  of which components",
+        "  of which stencil",
+        "  of which rhs",
+        "  of which PCG",
+    ];
+    eprintln!(
+        "rendered set {h}×{w}, {} mask pixels, first round / best of 5:",
+        m.iter().filter(|&&v| v).count()
+    );
+    for ((name, ms), cold) in names.iter().zip(best).zip(first) {
+        eprintln!("  {name:<24} {cold:>6.1} / {ms:>6.1} ms");
+    }
+    eprintln!("  {:?}", stats.unwrap());
+}
+
+/// Height error of CG stopped after `k` iterations, against a solve converged to f32
+/// round-off, on the 2048² disc, the full frame, a holey disc and the rendered set:
+/// `cargo test --release --lib pcg_error_by_iteration -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn pcg_error_by_iteration() {
+    let n = 2048;
+    let rad = 0.45 * n as f64;
+    let c = n as f64 / 2.0;
+    let sphere = hemisphere(c, c, rad);
+    let k = n as f64 / 128.0;
+    let bumps = move |x: f64, y: f64| {
+        let (z, zx, zy) = gaussians(x / k, y / k);
+        (z * k, zx, zy)
+    };
+    let disc_mask = disc(n, n, c, c, 0.95 * rad);
+    let full = Array2::from_elem((n, n), true);
+    let mut seed = 12345u64;
+    let mut rnd = || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed % 1000) as f64 / 1000.0
+    };
+    let holey = Array2::from_shape_fn((n, n), |(r, c)| disc_mask[(r, c)] && rnd() < 0.9);
+    type Case = (String, Array2<f32>, Array2<f32>, Array2<bool>);
+    let mut cases: Vec<Case> = Vec::new();
+    for (name, s, mask) in [
+        ("disc, sphere", &sphere as &Surface, &disc_mask),
+        ("full frame, bumps", &bumps, &full),
+        ("disc with 10% holes, sphere", &sphere, &holey),
+    ] {
+        let (p, q) = gradients(&normals_of(s, mask), mask);
+        cases.push((name.into(), p, q, mask.clone()));
+    }
+    if let Some((normals, mask)) = rendered_set() {
+        let (p, q) = gradients(&normals, &mask);
+        cases.push(("rendered set, auto mask".into(), p, q, mask));
+    }
+    for (name, p, q, mask) in &cases {
+        let (h, w) = mask.dim();
+        let m: Vec<bool> = mask.iter().copied().collect();
+        let comps = Components::new(&m, h, w);
+        let st = MaskStencil::new(&m, h, w);
+        let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+        comps.remove_means(&mut b);
+        // Past ~1e-8, f32 round-off makes CG drift away again: stop the reference earlier.
+        let (mut exact, s) = poisson::solve_pcg_until(&st, b.clone(), 3e-7, 60);
+        comps.remove_means(&mut exact);
+        let count = m.iter().filter(|&&v| v).count() as f64;
+        eprintln!("{name}: reference {s:?}");
+        let (_, at_tol) = poisson::solve_pcg(&st, b.clone());
+        eprintln!(
+            "  stops at TOL = {:.0e} after {} iterations",
+            poisson::TOL,
+            at_tol.iterations
+        );
+        for k in 1..=12 {
+            let (mut z, s) = poisson::solve_pcg_until(&st, b.clone(), 0.0, k);
+            comps.remove_means(&mut z);
+            let (mut e2, mut emax) = (0.0f64, 0.0f64);
+            for i in 0..h * w {
+                if m[i] {
+                    let d = f64::from(z[i] - exact[i]);
+                    e2 += d * d;
+                    emax = emax.max(d.abs());
+                }
+            }
+            eprintln!(
+                "  {k:>2} iterations: rel residual {:.1e}, height error rms {:.5} px, max {:.4} px",
+                s.rel_residual,
+                (e2 / count).sqrt(),
+                emax
+            );
+        }
+    }
 }
