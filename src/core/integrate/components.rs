@@ -3,6 +3,9 @@
 
 use rayon::prelude::*;
 
+/// Runs summed per rayon task in [`Components::means`].
+const RUNS_PER_TASK: usize = 256;
+
 /// A maximal horizontal run of mask pixels `[c0, c1)` in row `r`.
 #[derive(Debug, Clone, Copy)]
 struct Run {
@@ -105,28 +108,27 @@ impl Components {
             (v.iter().map(|&v| f64::from(v)).sum(), v.len())
         };
         let (sum, n) = if self.count <= 1 << 12 {
-            // Few components: per-task accumulators are small, sum the runs in parallel.
-            self.runs
-                .par_iter()
-                .zip(self.labels.par_iter())
-                .with_min_len(256)
-                .fold(
-                    || (vec![0.0f64; self.count], vec![0usize; self.count]),
-                    |(mut sum, mut n), (run, &l)| {
+            // Few components: per-task accumulators are small, sum fixed chunks of runs in
+            // parallel and add the chunks in order (so the means do not depend on how the
+            // work was scheduled).
+            let parts: Vec<(Vec<f64>, Vec<usize>)> = (self.runs.par_chunks(RUNS_PER_TASK))
+                .zip(self.labels.par_chunks(RUNS_PER_TASK))
+                .map(|(runs, labels)| {
+                    let (mut sum, mut n) = (vec![0.0f64; self.count], vec![0usize; self.count]);
+                    for (run, &l) in runs.iter().zip(labels) {
                         let (s, k) = run_sum(run);
                         sum[l] += s;
                         n[l] += k;
-                        (sum, n)
-                    },
-                )
-                .reduce(
-                    || (vec![0.0f64; self.count], vec![0usize; self.count]),
-                    |(mut s1, mut n1), (s2, n2)| {
-                        s1.iter_mut().zip(&s2).for_each(|(a, b)| *a += b);
-                        n1.iter_mut().zip(&n2).for_each(|(a, b)| *a += b);
-                        (s1, n1)
-                    },
-                )
+                    }
+                    (sum, n)
+                })
+                .collect();
+            let (mut sum, mut n) = (vec![0.0f64; self.count], vec![0usize; self.count]);
+            for (s, k) in parts {
+                sum.iter_mut().zip(&s).for_each(|(a, b)| *a += b);
+                n.iter_mut().zip(&k).for_each(|(a, b)| *a += b);
+            }
+            (sum, n)
         } else {
             let mut sum = vec![0.0f64; self.count];
             let mut n = vec![0usize; self.count];

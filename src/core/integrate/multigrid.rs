@@ -552,6 +552,14 @@ impl Scratch {
     }
 }
 
+/// The sum of `parts` added in index order. Rayon's `sum` adds in an order that depends
+/// on how the work was split and stolen, and f64 addition is not associative: heights
+/// (and so artifacts) could then differ in their last bits from run to run.
+pub(super) fn ordered_sum(parts: impl IndexedParallelIterator<Item = f64>) -> f64 {
+    let parts: Vec<f64> = parts.collect();
+    parts.iter().sum()
+}
+
 /// `Σ a_i b_i` in f64 with independent partial sums (so it pipelines / vectorises).
 #[inline(always)]
 pub(super) fn dot_f64(a: &[f32], b: &[f32]) -> f64 {
@@ -745,26 +753,27 @@ fn step_presmooth_restrict<S: Stencil>(
     let cw = w.div_ceil(2);
     let (bands, scratch, g_r, g_ap) = work.split((h, w), PRE_HALO, r, Some(zq));
     let rows = bands.rows;
-    zq.par_chunks_mut(rows * w)
-        .zip(cb.par_chunks_mut(rows / 2 * cw))
-        .zip(r.par_chunks_mut(rows * w))
-        .zip(
-            g_r.par_chunks(2 * PRE_HALO * w)
-                .zip(g_ap.par_chunks(2 * PRE_HALO * w)),
-        )
-        .zip(scratch.par_iter_mut())
-        .enumerate()
-        .map(|(k, ((((xband, cband), rband), (ghost_r, ghost_ap)), s))| {
-            let (r0, r1) = (k * rows, ((k + 1) * rows).min(h));
-            let rhs = Rhs::Step {
-                r: rband,
-                ghost_r,
-                ghost_ap,
-                alpha,
-            };
-            presmooth_band(st, rhs, xband, cband, s, r0, r1)
-        })
-        .sum()
+    ordered_sum(
+        zq.par_chunks_mut(rows * w)
+            .zip(cb.par_chunks_mut(rows / 2 * cw))
+            .zip(r.par_chunks_mut(rows * w))
+            .zip(
+                g_r.par_chunks(2 * PRE_HALO * w)
+                    .zip(g_ap.par_chunks(2 * PRE_HALO * w)),
+            )
+            .zip(scratch.par_iter_mut())
+            .enumerate()
+            .map(|(k, ((((xband, cband), rband), (ghost_r, ghost_ap)), s))| {
+                let (r0, r1) = (k * rows, ((k + 1) * rows).min(h));
+                let rhs = Rhs::Step {
+                    r: rband,
+                    ghost_r,
+                    ghost_ap,
+                    alpha,
+                };
+                presmooth_band(st, rhs, xband, cband, s, r0, r1)
+            }),
+    )
 }
 
 /// Band body of [`prolong_postsmooth`]: rows `[r0, r1)` of `x`, with ghost rows `gb`.
@@ -858,15 +867,16 @@ fn prolong_postsmooth<S: Stencil>(
 ) -> f64 {
     let (h, w) = st.dims();
     let (bands, scratch, g, _) = work.split((h, w), POST_HALO, x, None);
-    x.par_chunks_mut(bands.rows * w)
-        .zip(g.par_chunks(2 * POST_HALO * w))
-        .zip(scratch.par_iter_mut())
-        .enumerate()
-        .map(|(k, ((xband, gb), s))| {
-            let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
-            postsmooth_band(st, b, xc, xband, gb, s, r0, r1)
-        })
-        .sum()
+    ordered_sum(
+        x.par_chunks_mut(bands.rows * w)
+            .zip(g.par_chunks(2 * POST_HALO * w))
+            .zip(scratch.par_iter_mut())
+            .enumerate()
+            .map(|(k, ((xband, gb), s))| {
+                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+                postsmooth_band(st, b, xc, xband, gb, s, r0, r1)
+            }),
+    )
 }
 
 /// Band body of [`direction_apply`].
@@ -939,16 +949,17 @@ fn direction_apply<S: Stencil>(
     }
     let (bands, scratch, gz, gp) = work.split((h, w), 1, zq, Some(p));
     let rows = bands.rows * w;
-    zq.par_chunks_mut(rows)
-        .zip(p.par_chunks_mut(rows).zip(x.par_chunks_mut(rows)))
-        .zip(gz.par_chunks(2 * w).zip(gp.par_chunks(2 * w)))
-        .zip(scratch.par_iter_mut())
-        .enumerate()
-        .map(|(k, (((zband, (pband, xband)), (gzb, gpb)), s))| {
-            let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
-            direction_band(st, zband, pband, xband, gzb, gpb, s, r0, r1, [alpha, beta])
-        })
-        .sum()
+    ordered_sum(
+        zq.par_chunks_mut(rows)
+            .zip(p.par_chunks_mut(rows).zip(x.par_chunks_mut(rows)))
+            .zip(gz.par_chunks(2 * w).zip(gp.par_chunks(2 * w)))
+            .zip(scratch.par_iter_mut())
+            .enumerate()
+            .map(|(k, (((zband, (pband, xband)), (gzb, gpb)), s))| {
+                let (r0, r1) = (k * bands.rows, ((k + 1) * bands.rows).min(h));
+                direction_band(st, zband, pband, xband, gzb, gpb, s, r0, r1, [alpha, beta])
+            }),
+    )
 }
 
 /// `out = A x` (f64 arithmetic, f32 storage); returns `xᵀ A x`.

@@ -299,10 +299,11 @@ fn written_zeros(n: usize) -> Vec<f32> {
 }
 
 fn dot(a: &[f32], b: &[f32]) -> f64 {
-    a.par_chunks(CHUNK)
-        .zip(b.par_chunks(CHUNK))
-        .map(|(a, b)| multigrid::dot_f64(a, b))
-        .sum()
+    multigrid::ordered_sum(
+        a.par_chunks(CHUNK)
+            .zip(b.par_chunks(CHUNK))
+            .map(|(a, b)| multigrid::dot_f64(a, b)),
+    )
 }
 
 /// Conjugate gradients on `A z = b` (b already orthogonal to the null space), preconditioned
