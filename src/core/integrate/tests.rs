@@ -420,6 +420,15 @@ fn peak_rss_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// The 128-px test bumps scaled up to an `n`-px frame (same slopes).
+fn scaled_bumps(n: usize) -> impl Fn(f64, f64) -> (f64, f64, f64) {
+    let k = n as f64 / 128.0;
+    move |x, y| {
+        let (z, zx, zy) = gaussians(x / k, y / k);
+        (z * k, zx, zy)
+    }
+}
+
 /// 2048² timings, best of 7 interleaved rounds (the machine may be shared):
 /// `cargo test --release --lib integrate -- --ignored --nocapture`.
 #[test]
@@ -429,12 +438,7 @@ fn timings_2048() {
     let rad = 0.45 * n as f64;
     let c = n as f64 / 2.0;
     let s = hemisphere(c, c, rad);
-    // The 128-px test bumps scaled up to the frame (same slopes).
-    let k = n as f64 / 128.0;
-    let bumps = move |x: f64, y: f64| {
-        let (z, zx, zy) = gaussians(x / k, y / k);
-        (z * k, zx, zy)
-    };
+    let bumps = scaled_bumps(n);
     let full = Array2::from_elem((n, n), true);
     let mask = disc(n, n, c, c, 0.95 * rad);
     let (pf, qf) = gradients(&normals_of(&bumps, &full), &full);
@@ -695,11 +699,7 @@ fn pcg_error_by_iteration() {
     let rad = 0.45 * n as f64;
     let c = n as f64 / 2.0;
     let sphere = hemisphere(c, c, rad);
-    let k = n as f64 / 128.0;
-    let bumps = move |x: f64, y: f64| {
-        let (z, zx, zy) = gaussians(x / k, y / k);
-        (z * k, zx, zy)
-    };
+    let bumps = scaled_bumps(n);
     let disc_mask = disc(n, n, c, c, 0.95 * rad);
     let full = Array2::from_elem((n, n), true);
     let mut seed = 12345u64;
