@@ -1,5 +1,6 @@
 //! Hostile clients against the real binary. Every case expects a 4xx
-//! `application/problem+json` answer whose detail names the problem, then checks that
+//! `application/problem+json` answer whose detail names the problem (at submission, or as
+//! the failed job's error for what only the job decodes), then checks that
 //! `GET /healthz` still answers and that the server's memory (VmHWM of the child process)
 //! stayed under [`MEMORY_BOUND_KB`]. Also: the API key guards every /v1 route, and a
 //! bounded load test (20 jobs and 1,000 status requests at once).
@@ -12,7 +13,10 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use binserver::BinServer;
-use common::{archive_form, expect_problem, file_part, folder_form, images_of, png, seed};
+use common::{
+    archive_form, expect_problem, file_part, folder_form, images_of, palette_png, png, png_chunk,
+    seed,
+};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -117,15 +121,6 @@ fn three_pngs(table: Part) -> Form {
 
 // ---------------------------------------------------------------------------------------
 // Hand-made files.
-
-fn png_chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
-    out.extend_from_slice(&(data.len() as u32).to_be_bytes());
-    let start = out.len();
-    out.extend_from_slice(kind);
-    out.extend_from_slice(data);
-    let crc = crc32fast::hash(&out[start..]);
-    out.extend_from_slice(&crc.to_be_bytes());
-}
 
 /// A PNG whose header claims `w`×`h` 8-bit gray, followed by a small zlib stream of
 /// zeros (what a decompression bomb looks like from the outside).
@@ -371,6 +366,69 @@ async fn image_headers_claiming_huge_sizes_are_refused_before_decoding() {
         assert_alive(&s, "BMP header").await;
     }
     nothing_accepted(&s).await;
+}
+
+/// POST a form whose images are only decoded by the job (after the 202): the job must fail
+/// with a 422 problem naming every needle, and the server must be alive and lean.
+async fn job_fails(s: &BinServer, case: &str, form: Form, needles: &[&str]) {
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap_or_else(|e| panic!("{case}: {e}"));
+    assert_eq!(r.status(), 202, "{case}");
+    let id = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_owned();
+    let job = s
+        .wait_json(&format!("/v1/jobs/{id}"), Duration::from_secs(30), |j| {
+            j["status"] != "queued" && j["status"] != "running"
+        })
+        .await;
+    assert_eq!(job["status"], "failed", "{case}: {job}");
+    assert_eq!(job["error"]["status"], 422, "{case}: {job}");
+    let detail = job["error"]["detail"].as_str().unwrap();
+    for n in needles {
+        assert!(detail.contains(n), "{case}: detail {detail:?} lacks {n:?}");
+    }
+    assert_alive(s, case).await;
+}
+
+/// A palette PNG whose PLTE chunk is 13 bytes long made the `png` crate panic on a rayon
+/// thread, which aborted the whole server (found by the intake_decode fuzz target). Now
+/// its job fails naming the file and the chunk, and the server goes on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_ragged_png_palette_fails_its_job_by_name_and_the_server_lives() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = start(dir.path());
+    let ragged = palette_png(6, 5, 1);
+    let needles = ["\"b.png\"", "PLTE", "13 bytes"];
+
+    let form = Form::new()
+        .text("lights", TABLE3)
+        .part("images", Part::bytes(png(6, 5, 9)).file_name("a.png"))
+        .part("images", Part::bytes(ragged.clone()).file_name("b.png"))
+        .part("images", Part::bytes(png(6, 5, 9)).file_name("c.png"));
+    job_fails(&s, "ragged palette", form, &needles).await;
+
+    let zip = common::zip_entries(&[
+        ("a.png", &png(6, 5, 1)),
+        ("b.png", &ragged),
+        ("c.png", &png(6, 5, 1)),
+        ("light_directions.csv", TABLE3.as_bytes()),
+    ]);
+    job_fails(&s, "ragged palette in a zip", archive_form(zip), &needles).await;
+
+    let form = Form::new()
+        .text("lights", TABLE3)
+        .part("images", Part::bytes(png(6, 5, 9)).file_name("a.png"))
+        .part("images", Part::bytes(png(6, 5, 9)).file_name("b.png"))
+        .part("images", Part::bytes(png(6, 5, 9)).file_name("c.png"))
+        .part("mask", Part::bytes(ragged).file_name("mask.png"));
+    job_fails(&s, "ragged palette mask", form, &["PLTE", "13 bytes"]).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -2,6 +2,8 @@
 
 use std::path::Path;
 
+mod common;
+
 use image::{GrayImage, ImageBuffer, Luma, Rgb, RgbImage};
 use photostereo::core::intake::{self, Limits};
 use photostereo::core::{Options, reconstruct};
@@ -130,6 +132,34 @@ fn decompression_bomb_header_is_refused_before_decoding() {
             .contains("\"a.png\" is 8×8 = 64 pixels, over the limit of 32"),
         "{e}"
     );
+}
+
+#[test]
+fn palette_pngs_decode_and_a_ragged_palette_is_refused() {
+    // A well-formed palette: entry (x + y) % 4 of the ramp 0, 85, 170, 255.
+    let plane = intake::to_luma16(
+        intake::decode("a.png", &common::palette_png(6, 5, 0), &Limits::default()).unwrap(),
+    );
+    assert_eq!(plane.dim(), (5, 6));
+    for ((y, x), &v) in plane.indexed_iter() {
+        assert_eq!(v, ((x + y) % 4) as u16 * 85 * 257, "({x}, {y})");
+    }
+    // 13 or 14 bytes: the png crate would panic expanding it.
+    for extra in [1, 2] {
+        let e = intake::decode(
+            "a.png",
+            &common::palette_png(6, 5, extra),
+            &Limits::default(),
+        )
+        .unwrap_err()
+        .to_string();
+        let len = 12 + extra;
+        assert!(e.contains("\"a.png\""), "{e}");
+        assert!(
+            e.contains(&format!("PLTE (palette) chunk is {len} bytes long")),
+            "{e}"
+        );
+    }
 }
 
 #[test]

@@ -5,11 +5,12 @@
 //! the Rec. 709 weights (0.2126 R + 0.7152 G + 0.0722 B) applied to the stored values.
 
 use std::io::Cursor;
+use std::panic::AssertUnwindSafe;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-use image::{DynamicImage, ImageReader};
+use image::{DynamicImage, ImageFormat, ImageReader};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
@@ -318,6 +319,14 @@ pub fn decode(name: &str, bytes: &[u8], limits: &Limits) -> Result<DynamicImage,
             reason: other.to_string(),
         },
     };
+    if format == ImageFormat::Png
+        && let Some(reason) = png_palette_problem(bytes)
+    {
+        return Err(InputError::Decode {
+            name: name.into(),
+            reason,
+        });
+    }
     let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
         .into_dimensions()
         .map_err(undecodable)?;
@@ -336,7 +345,46 @@ pub fn decode(name: &str, bytes: &[u8], limits: &Limits) -> Result<DynamicImage,
     // Room for a 4-channel 16-bit image of the allowed size, plus decoder scratch.
     l.max_alloc = Some(limits.max_pixels_per_image.saturating_mul(8) + (64 << 20));
     reader.limits(l);
-    reader.decode().map_err(undecodable)
+    // A decoder bug must cost one refused file, not the process: these run on rayon's
+    // pool, which aborts on a panic, while a set is still being uploaded.
+    std::panic::catch_unwind(AssertUnwindSafe(|| reader.decode()))
+        .map_err(|panic| InputError::Decode {
+            name: name.into(),
+            reason: format!(
+                "the {format:?} decoder failed on it ({})",
+                panic_text(&*panic)
+            ),
+        })?
+        .map_err(undecodable)
+}
+
+/// What a caught panic said.
+fn panic_text(panic: &(dyn std::any::Any + Send)) -> &str {
+    panic
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("no message")
+}
+
+/// A PLTE chunk whose length is not a multiple of 3, which the `png` crate (0.18.1) accepts
+/// and then panics on while expanding the palette. Only the chunks before the first IDAT
+/// are looked at (PLTE must precede it); everything else is left to the decoder.
+fn png_palette_problem(bytes: &[u8]) -> Option<String> {
+    let mut at = 8; // the signature
+    while let Some(head) = bytes.get(at..at + 8) {
+        let len = u32::from_be_bytes([head[0], head[1], head[2], head[3]]);
+        match &head[4..8] {
+            b"PLTE" if len % 3 != 0 => {
+                return Some(format!(
+                    "its PLTE (palette) chunk is {len} bytes long, not a multiple of 3"
+                ));
+            }
+            b"IDAT" | b"IEND" => return None,
+            _ => at = at.checked_add(12 + len as usize)?,
+        }
+    }
+    None
 }
 
 fn bit_depth(img: &DynamicImage) -> u8 {

@@ -275,6 +275,48 @@ pub fn png(w: u32, h: u32, v: u8) -> Vec<u8> {
     out.into_inner()
 }
 
+/// Append one PNG chunk (length, kind, data, CRC) to `out`.
+pub fn png_chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+    out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+    let start = out.len();
+    out.extend_from_slice(kind);
+    out.extend_from_slice(data);
+    let crc = crc32fast::hash(&out[start..]);
+    out.extend_from_slice(&crc.to_be_bytes());
+}
+
+/// A `w`×`h` 8-bit indexed PNG: pixel (x, y) is palette entry (x + y) % 4 of the gray
+/// ramp 0, 85, 170, 255, with `extra` bytes appended to the PLTE chunk (its CRC still
+/// right), so that `extra` = 1 or 2 gives a palette whose length is not a multiple of 3.
+pub fn palette_png(w: u32, h: u32, extra: usize) -> Vec<u8> {
+    let ramp: Vec<u8> = (0..4u8).flat_map(|i| [85 * i; 3]).collect();
+    let mut encoded = Vec::new();
+    let mut enc = png::Encoder::new(&mut encoded, w, h);
+    enc.set_color(png::ColorType::Indexed);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_palette(ramp);
+    let indices: Vec<u8> = (0..h)
+        .flat_map(|y| (0..w).map(move |x| ((x + y) % 4) as u8))
+        .collect();
+    let mut writer = enc.write_header().unwrap();
+    writer.write_image_data(&indices).unwrap();
+    writer.finish().unwrap();
+    // Re-emit the chunks, lengthening PLTE.
+    let mut out = encoded[..8].to_vec();
+    let mut at = 8;
+    while at < encoded.len() {
+        let len = u32::from_be_bytes(encoded[at..at + 4].try_into().unwrap()) as usize;
+        let kind: [u8; 4] = encoded[at + 4..at + 8].try_into().unwrap();
+        let mut data = encoded[at + 8..at + 8 + len].to_vec();
+        if &kind == b"PLTE" {
+            data.extend(std::iter::repeat_n(7u8, extra));
+        }
+        png_chunk(&mut out, &kind, &data);
+        at += 12 + len;
+    }
+    out
+}
+
 /// A synthetic set of `n` lit images of a bump, `size`×`size`, with its light table.
 pub fn synthetic_form(size: u32, n: usize) -> Form {
     let lights: Vec<[f64; 3]> = (0..n)
