@@ -15,6 +15,9 @@
 #                cd fuzz && cargo +nightly fuzz run -O <target> artifacts/<target>/crash-<sha1>
 #                and shrink it with  cargo +nightly fuzz tmin -O <target> artifacts/<target>/crash-<sha1>
 #
+# intake_decode passes when a third-party decoder panics and intake::decode turns that
+# into an error (what the service relies on); PHOTOSTEREO_FUZZ_STRICT=1 fails on those too.
+#
 # The corpus grows in fuzz/corpus/<target>/ (not committed) from the small hand-made inputs
 # in fuzz/seeds/<target>/. The build goes to $CARGO_TARGET_DIR/fuzz when CARGO_TARGET_DIR is
 # set (else fuzz/target); the first build takes several minutes. The script exits non-zero
@@ -54,7 +57,8 @@ for t in "${targets[@]}"; do
     -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2048 -max_len=65536 \
     -print_final_stats=1 2>"corpus/$t.log"; then
     status=1
-    echo "fuzz: $t FAILED; its log:"
+    echo "fuzz: $t FAILED; the panic, then the end of its log:"
+    grep -m 3 -A 2 "panicked at" "corpus/$t.log" || true
     tail -n 60 "corpus/$t.log"
   else
     grep -E '^(stat::number_of_executed_units|stat::peak_rss_mb|#[0-9]+ +DONE)' "corpus/$t.log" || true
