@@ -428,7 +428,7 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
     let decoded = intake::load_dir(&set.dir, None, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_ms = ms(start.elapsed());
-    let report = pipeline::run(decoded, opts, out, &mut |_| true)
+    let report = pipeline::run(decoded, opts, out, &mut pipeline::RunToEnd)
         .with_context(|| format!("reconstructing the {}² set", set.size))?;
     let full_ms = ms(start.elapsed());
     let peak = status_bytes("VmHWM").filter(|_| reset);

@@ -153,7 +153,7 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let start = std::time::Instant::now();
     let set = intake::load_dir(&args.dir, args.mask_file.as_deref(), &Limits::default())?;
     let decoded = start.elapsed();
-    let report = pipeline::run(set, &opts, &args.out, &mut |stage| {
+    let report = pipeline::run(set, &opts, &args.out, &mut |stage: pipeline::Stage| {
         eprintln!("  {}", stage.as_str());
         true
     })?;
@@ -203,7 +203,7 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
                 integration,
                 ..Options::default()
             };
-            let rec = pipeline::reconstruct(&set, &opts, &mut |_| true)?;
+            let rec = pipeline::reconstruct(&set, &opts, &mut pipeline::RunToEnd)?;
             let acc = metrics::accuracy(&rec, &truth, &truth.mask);
             let solve_ms = rec
                 .report

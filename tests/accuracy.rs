@@ -8,7 +8,7 @@ use photostereo::core::intake::{self, Limits};
 use photostereo::core::metrics::{self, Accuracy};
 use photostereo::core::options::{Integration, MaskMode, Solver};
 use photostereo::core::synth::{self, Truth};
-use photostereo::core::{Options, Reconstruction, mask, reconstruct};
+use photostereo::core::{Options, Reconstruction, RunToEnd, mask, reconstruct};
 
 fn res(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("res").join(name)
@@ -30,7 +30,7 @@ fn seed(name: &str) -> PathBuf {
 fn run(dir: &Path, opts: &Options, mask: Option<&Array2<bool>>) -> Reconstruction {
     let mut set = intake::load_dir(dir, None, &Limits::default()).unwrap();
     set.mask = mask.cloned();
-    reconstruct(&set, opts, &mut |_| true).unwrap()
+    reconstruct(&set, opts, &mut RunToEnd).unwrap()
 }
 
 fn check(rec: &Reconstruction, truth: &Truth) -> Accuracy {
@@ -168,7 +168,7 @@ fn seed_dog_auto_mask_fills_the_eye_holes() {
             mask: MaskMode::None,
             ..Options::default()
         },
-        &mut |_| true,
+        &mut RunToEnd,
     )
     .unwrap();
     let t = mask::auto_threshold(&raw.albedo);

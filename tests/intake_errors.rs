@@ -6,7 +6,7 @@ mod common;
 
 use image::{GrayImage, ImageBuffer, Luma, Rgb, RgbImage};
 use photostereo::core::intake::{self, Limits};
-use photostereo::core::{Options, reconstruct};
+use photostereo::core::{Options, RunToEnd, reconstruct};
 
 fn gray(path: &Path, w: u32, h: u32) {
     GrayImage::from_pixel(w, h, Luma([100])).save(path).unwrap();
@@ -167,7 +167,7 @@ fn ill_conditioned_and_rank_deficient_light_sets() {
     let coplanar = "a.png, 1, 0, 1\nb.png, -1, 0, 1\nc.png, 0, 0, 1\n";
     let d = folder(&["a.png", "b.png", "c.png"], coplanar);
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
-    let e = reconstruct(&set, &Options::default(), &mut |_| true)
+    let e = reconstruct(&set, &Options::default(), &mut RunToEnd)
         .unwrap_err()
         .to_string();
     assert!(e.contains("rank 2"), "{e}");
@@ -175,7 +175,7 @@ fn ill_conditioned_and_rank_deficient_light_sets() {
     let narrow = "a.png, 0, 0, 1\nb.png, 0.001, 0, 1\nc.png, 0, 0.001, 1\n";
     let d = folder(&["a.png", "b.png", "c.png"], narrow);
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
-    let e = reconstruct(&set, &Options::default(), &mut |_| true)
+    let e = reconstruct(&set, &Options::default(), &mut RunToEnd)
         .unwrap_err()
         .to_string();
     assert!(
@@ -212,7 +212,7 @@ fn colour_inputs_keep_per_channel_albedo() {
             .unwrap();
     }
     let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
-    let rec = reconstruct(&set, &Options::default(), &mut |_| true).unwrap();
+    let rec = reconstruct(&set, &Options::default(), &mut RunToEnd).unwrap();
     let rgb = rec.albedo_rgb.expect("colour inputs give albedo_rgb");
     for (k, want) in [0.8f32, 0.4, 0.2].iter().enumerate() {
         assert!(

@@ -9,7 +9,7 @@ use photostereo::core::integrate;
 use photostereo::core::metrics::{self, Accuracy};
 use photostereo::core::options::{Integration, MaskMode, Solver};
 use photostereo::core::synth::{Capture, Scene};
-use photostereo::core::{Options, Reconstruction, reconstruct, synth};
+use photostereo::core::{Options, Reconstruction, RunToEnd, reconstruct, synth};
 
 fn res(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("res").join(name)
@@ -22,7 +22,7 @@ fn solve(dir: &Path, solver: Solver, mask: Option<ndarray::Array2<bool>>) -> Rec
         solver,
         ..Options::default()
     };
-    reconstruct(&set, &opts, &mut |_| true).unwrap()
+    reconstruct(&set, &opts, &mut RunToEnd).unwrap()
 }
 
 /// (robust, least squares) accuracy on a rendered scene, over its true mask.
@@ -116,7 +116,7 @@ fn seed_reprojection_is_no_worse_than_least_squares() {
             mask: MaskMode::Given,
             ..Options::default()
         };
-        let robust = reconstruct(&set, &opts, &mut |_| true).unwrap();
+        let robust = reconstruct(&set, &opts, &mut RunToEnd).unwrap();
         let (r, l) = (robust.report.reprojection_rms, l2.report.reprojection_rms);
         // The seed sphere has no shadowed observation: the two solves coincide there.
         assert!(
@@ -200,7 +200,7 @@ fn low_light_bumps(
                 integration,
                 ..Options::default()
             };
-            let rec = reconstruct(&set, &opts, &mut |_| true).unwrap();
+            let rec = reconstruct(&set, &opts, &mut RunToEnd).unwrap();
             flagged = rec.report.unreliable_pixels;
             metrics::accuracy(&rec, &truth, &truth.mask)
         })

@@ -21,4 +21,4 @@ pub mod synth;
 
 pub use error::InputError;
 pub use options::Options;
-pub use pipeline::{Reconstruction, reconstruct};
+pub use pipeline::{Reconstruction, RunToEnd, reconstruct};

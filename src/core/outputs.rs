@@ -13,7 +13,7 @@ use ndarray::{Array2, Array3, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
-use super::pipeline::{Reconstruction, RunError};
+use super::pipeline::{Halt, Reconstruction, RunError};
 use super::render;
 
 /// Every artifact a job can produce: file name and Content-Type.
@@ -402,17 +402,19 @@ pub fn write_atomic_with(
 }
 
 /// Write the picture artifacts `names` in parallel; returns the names written (an
-/// artifact that does not apply, such as `albedo_rgb.png` for gray inputs, is skipped).
+/// artifact that does not apply, such as `albedo_rgb.png` for gray inputs, is skipped, and
+/// so is every picture not yet started once `halt` says stop).
 pub fn write_pictures(
     maps: &Maps,
     names: &[&str],
     shading_light: [f64; 3],
     dir: &Path,
+    halt: Halt,
 ) -> Result<Vec<String>, RunError> {
     let written: Vec<Option<String>> = names
         .par_iter()
         .map(|name| {
-            if !applies(maps, name) {
+            if !applies(maps, name) || halt() {
                 return Ok(None);
             }
             write_atomic_with(dir, name, &mut |f| {
@@ -495,6 +497,7 @@ pub fn decode_height_exr(bytes: &[u8]) -> exr::error::Result<Array2<f32>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::pipeline::NEVER;
 
     #[test]
     fn unit16_rounds_like_f32_round() {
@@ -578,7 +581,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let light = [-1.0, 0.5, 2.0];
         let names = ["albedo.png", "normal.png", "shaded.png"];
-        write_pictures(&maps, &names, light, dir.path()).unwrap();
+        write_pictures(&maps, &names, light, dir.path(), NEVER).unwrap();
         let direct = image::open(dir.path().join("shaded.png"))
             .unwrap()
             .into_luma16();

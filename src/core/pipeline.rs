@@ -123,23 +123,59 @@ pub enum RunError {
     Output { path: String, reason: String },
 }
 
-/// Called as each stage starts; returning `false` cancels the run.
-pub type Progress<'a> = &'a mut dyn FnMut(Stage) -> bool;
+/// How a run reports its stages and learns that it must stop.
+///
+/// `enter` is called as each stage starts; `halted` is polled inside the long stages
+/// (each CG iteration and re-weighting round of the integration, each row of the robust
+/// solve, each picture and mesh file), so that a cancelled or timed-out job frees its
+/// worker within one step of work instead of one stage. Any `FnMut(Stage) -> bool + Sync`
+/// closure is a `Progress` that is only asked at stage starts.
+pub trait Progress: Sync {
+    /// A stage starts; `false` stops the run.
+    fn enter(&mut self, stage: Stage) -> bool;
+    /// Whether the run must stop now (from any thread).
+    fn halted(&self) -> bool {
+        false
+    }
+}
+
+impl<F: FnMut(Stage) -> bool + Sync> Progress for F {
+    fn enter(&mut self, stage: Stage) -> bool {
+        self(stage)
+    }
+}
+
+/// A [`Progress`] that reports nothing and never stops the run.
+pub struct RunToEnd;
+
+impl Progress for RunToEnd {
+    fn enter(&mut self, _: Stage) -> bool {
+        true
+    }
+}
+
+/// A polled stop request for the numeric stages below the pipeline.
+pub type Halt<'a> = &'a (dyn Fn() -> bool + Sync);
+
+/// A [`Halt`] that never stops.
+pub const NEVER: Halt<'static> = &|| false;
 
 /// Reconstruct albedo, normals, mask and heights from a decoded image set.
 pub fn reconstruct(
     set: &ImageSet,
     opts: &Options,
-    progress: Progress,
+    progress: &mut dyn Progress,
 ) -> Result<Reconstruction, RunError> {
     let mut timings = Timings::default();
     let surface = prepare(Cow::Borrowed(set), opts, progress, &mut timings)?;
     step(progress, Stage::Integrate)?;
+    let polled: &dyn Progress = progress;
     let (slopes, heights) = timings.time(Stage::Integrate, || {
         let slopes = Slopes::of(&surface);
-        let heights = slopes.integrate(&surface, opts);
+        let heights = slopes.integrate(&surface, opts, &|| polled.halted());
         (slopes, heights)
     });
+    not_halted(polled)?;
     Ok(surface.finish(slopes.curl, heights, opts, timings))
 }
 
@@ -165,7 +201,7 @@ struct Prepared {
 fn prepare(
     mut set: Cow<'_, ImageSet>,
     opts: &Options,
-    progress: Progress,
+    progress: &mut dyn Progress,
     timings: &mut Timings,
 ) -> Result<Prepared, RunError> {
     let condition = lights::check_solvable(&set.lights, opts.max_condition)?;
@@ -174,7 +210,11 @@ fn prepare(
     }
 
     step(progress, Stage::Solve)?;
-    let surface = timings.time(Stage::Solve, || solve::solve(&set, opts.solver));
+    let polled: &dyn Progress = progress;
+    let surface = timings.time(Stage::Solve, || {
+        solve::solve(&set, opts.solver, &|| polled.halted())
+    });
+    not_halted(polled)?;
     if let Cow::Owned(owned) = &mut set {
         owned.planes = Vec::new();
     }
@@ -255,9 +295,10 @@ impl Slopes {
         Self { p, q, curl }
     }
 
-    fn integrate(&self, surface: &Prepared, opts: &Options) -> Array2<f32> {
+    fn integrate(&self, surface: &Prepared, opts: &Options, halt: Halt) -> Array2<f32> {
         let (p, q, mask) = (&self.p, &self.q, &surface.mask);
-        integrate::integrate_with_confidence(p, q, mask, opts.integration, &surface.confidence)
+        let confidence = &surface.confidence;
+        integrate::integrate_with_confidence(p, q, mask, opts.integration, confidence, halt)
     }
 }
 
@@ -426,7 +467,7 @@ pub fn run(
     set: ImageSet,
     opts: &Options,
     dir: &Path,
-    progress: Progress,
+    progress: &mut dyn Progress,
 ) -> Result<Report, RunError> {
     let wanted = |name: &str| outputs::wanted(opts.outputs.as_deref(), name);
     let (late, early): (Vec<&str>, Vec<&str>) = outputs::ARTIFACTS
@@ -446,30 +487,37 @@ pub fn run(
     // shows their curl. Progress reports the overlap as `integrate`, the branch the job
     // waits for; the pictures written alongside it get their own timing below.
     step(progress, Stage::Integrate)?;
+    let polled: &dyn Progress = progress;
+    let halt = || polled.halted();
     let start = Instant::now();
     let slopes = Slopes::of(&surface);
     let (heights, pictures) = rayon::join(
         || {
-            let heights = slopes.integrate(&surface, opts);
+            let heights = slopes.integrate(&surface, opts, &halt);
             (heights, Timing::new(Stage::Integrate, start))
         },
         || {
             let maps = surface.maps(&slopes.curl);
-            let written = outputs::write_pictures(&maps, &early, opts.shading_light, dir);
+            let light = opts.shading_light;
+            let written = outputs::write_pictures(&maps, &early, light, dir, &halt);
             (written, Timing::new(Stage::Outputs, start))
         },
     );
     timings.0.extend([heights.1, pictures.1]);
     let mut written = pictures.0?;
+    not_halted(polled)?;
     let mut rec = surface.finish(slopes.curl, heights.0, opts, timings);
 
     step(progress, Stage::Mesh)?;
+    let polled: &dyn Progress = progress;
+    let halt = || polled.halted();
     let start = Instant::now();
     let (pictures, meshes) = rayon::join(
-        || outputs::write_pictures(&Maps::of(&rec), &late, opts.shading_light, dir),
-        || write_meshes(&rec, opts, dir, &wanted),
+        || outputs::write_pictures(&Maps::of(&rec), &late, opts.shading_light, dir, &halt),
+        || write_meshes(&rec, opts, dir, &wanted, &halt),
     );
     written.extend(pictures?.into_iter().chain(meshes?));
+    not_halted(polled)?;
     rec.report.timings_ms.push(Timing::new(Stage::Mesh, start));
 
     // In the order of ARTIFACTS, whichever batch wrote them.
@@ -489,6 +537,7 @@ fn write_meshes(
     opts: &Options,
     dir: &Path,
     wanted: &(dyn Fn(&str) -> bool + Sync),
+    halt: Halt,
 ) -> Result<Vec<String>, RunError> {
     use super::mesh::{Document, MeshError};
     let save = |name: &str, made: Result<Vec<u8>, MeshError>| match made {
@@ -521,7 +570,10 @@ fn write_meshes(
             None => written.map(|_| Some(name.to_string())),
         }
     };
-    let (glb, gltf) = (wanted("mesh.glb"), wanted("mesh.gltf"));
+    let (glb, gltf) = (
+        wanted("mesh.glb") && !halt(),
+        wanted("mesh.gltf") && !halt(),
+    );
     let (meshes, preview) = rayon::join(
         || -> Vec<Result<Option<String>, RunError>> {
             if !(glb || gltf) {
@@ -538,7 +590,7 @@ fn write_meshes(
             a.into_iter().chain(b).collect()
         },
         || {
-            wanted("preview.png").then(|| {
+            (wanted("preview.png") && !halt()).then(|| {
                 let img = super::preview::preview(rec, PREVIEW_SIZE.0, PREVIEW_SIZE.1);
                 save("preview.png", Ok(outputs::png_bytes(&img)))
             })
@@ -554,11 +606,21 @@ fn write_meshes(
 /// Size of `preview.png`.
 pub const PREVIEW_SIZE: (u32, u32) = (800, 600);
 
-fn step(progress: Progress, stage: Stage) -> Result<(), RunError> {
-    if progress(stage) {
+fn step(progress: &mut dyn Progress, stage: Stage) -> Result<(), RunError> {
+    if progress.enter(stage) {
         Ok(())
     } else {
         Err(RunError::Cancelled)
+    }
+}
+
+/// After work that polled `halted` and may have cut itself short: its results are only
+/// kept when the run was not stopped meanwhile.
+fn not_halted(progress: &dyn Progress) -> Result<(), RunError> {
+    if progress.halted() {
+        Err(RunError::Cancelled)
+    } else {
+        Ok(())
     }
 }
 

@@ -17,6 +17,7 @@ use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 
 use super::intake::ImageSet;
+use super::pipeline::Halt;
 use super::solve::{invert3, render_observation};
 
 const SCALE: f32 = 1.0 / 65535.0;
@@ -405,8 +406,8 @@ fn median(v: &mut [f32]) -> f32 {
     *v.select_nth_unstable_by(k, f32::total_cmp).1
 }
 
-/// Solve every pixel robustly.
-pub fn solve(set: &ImageSet) -> RobustSurface {
+/// Solve every pixel robustly; once `halt` says stop, the rows not yet started stay zero.
+pub fn solve(set: &ImageSet, halt: Halt) -> RobustSurface {
     let estimate = estimate(set);
     let lights: Vec<[f32; 3]> = set
         .lights
@@ -440,6 +441,9 @@ pub fn solve(set: &ImageSet) -> RobustSurface {
                 r,
                 (((((mut a_row, mut n_row), mut res_row), mut conf_row), mut in_row), mut bad_row),
             )| {
+                if halt() {
+                    return;
+                }
                 let (mut obs, mut y) = (vec![0f32; n], vec![0f32; n]);
                 let (mut out, mut next) = (vec![false; n], vec![false; n]);
                 let mut scratch = Vec::with_capacity(n);

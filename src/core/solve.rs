@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use super::intake::ImageSet;
 use super::options::Solver;
+use super::pipeline::Halt;
 use super::robust::{self, CaptureEstimate};
 
 /// The raw per-pixel solution, before masking and clamping.
@@ -31,10 +32,11 @@ pub struct Surface {
 
 const SCALE: f32 = 1.0 / 65535.0;
 
-/// Solve every pixel of `set` with the chosen solver.
-pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
+/// Solve every pixel of `set` with the chosen solver. Once `halt` says stop, the rows not
+/// yet started are left at zero.
+pub fn solve(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
     if solver == Solver::Robust {
-        let r = robust::solve(set);
+        let r = robust::solve(set, halt);
         return Surface {
             albedo: r.albedo,
             normals: r.normals,
@@ -45,7 +47,7 @@ pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
             estimate: Some(r.estimate),
         };
     }
-    linear(set, solver)
+    linear(set, solver, halt)
 }
 
 /// Every observation counts: plain or intensity-weighted least squares.
@@ -54,7 +56,7 @@ pub fn solve(set: &ImageSet, solver: Solver) -> Surface {
 /// the L2 solve is a streaming accumulation g += pinv_k · I_k over the images, and the
 /// residual a second pass over the same rows while they are still in cache. The inner
 /// loops run over columns and vectorise.
-fn linear(set: &ImageSet, solver: Solver) -> Surface {
+fn linear(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
     let (rows, cols) = (set.height, set.width);
     let lights: Vec<[f32; 3]> = set
         .lights
@@ -96,6 +98,9 @@ fn linear(set: &ImageSet, solver: Solver) -> Surface {
         .for_each_init(
             || RowScratch::new(cols, n),
             |s, (r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
+                if halt() {
+                    return;
+                }
                 let row = |k: usize| &planes[k][r * cols..(r + 1) * cols];
                 let RowScratch {
                     gx,
@@ -317,6 +322,7 @@ pub fn sym3_eigenvalues(m: &[[f64; 3]; 3]) -> [f64; 3] {
 mod tests {
     use super::*;
     use crate::core::lights::Light;
+    use crate::core::pipeline::NEVER;
 
     fn set_from(lights: &[[f64; 3]], pixels: &[[f32; 3]], albedo: f32) -> ImageSet {
         let lights: Vec<Light> = lights
@@ -369,7 +375,7 @@ mod tests {
             &pixels,
             0.7,
         );
-        let surf = solve(&set, Solver::L2);
+        let surf = solve(&set, Solver::L2, NEVER);
         for (c, n) in pixels.iter().enumerate() {
             assert!(
                 (surf.albedo[[0, c]] - 0.7).abs() < 1e-3,
@@ -391,7 +397,7 @@ mod tests {
             0.0,
         );
         for solver in [Solver::L2, Solver::Weighted] {
-            let surf = solve(&set, solver);
+            let surf = solve(&set, solver, NEVER);
             assert_eq!(surf.albedo[[0, 0]], 0.0);
             assert_eq!(surf.normals.sum(), 0.0);
         }

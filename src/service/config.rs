@@ -67,7 +67,8 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_RETENTION", default_value = "7d", value_parser = parse_duration)]
     pub retention: Duration,
 
-    /// Longest a reconstruction may run; past it the job fails (checked between stages).
+    /// Longest a reconstruction may run; past it the job fails (checked as each stage
+    /// starts and inside the long ones).
     #[arg(long, env = "PHOTOSTEREO_JOB_TIMEOUT", default_value = "30m", value_parser = parse_duration)]
     pub job_timeout: Duration,
 
@@ -97,7 +98,7 @@ pub struct ServeArgs {
     pub api_keys: Vec<String>,
 
     /// On SIGTERM or Ctrl-C, how long running jobs may go on finishing; jobs still running
-    /// then are stopped at their next stage and run again at the next start.
+    /// then are stopped within one step of work and run again at the next start.
     #[arg(long, env = "PHOTOSTEREO_SHUTDOWN_GRACE", default_value = "30s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
 

@@ -19,7 +19,7 @@ use crate::core::Options;
 use crate::core::intake::{self, NamedFile};
 use crate::core::lights;
 use crate::core::outputs::ARTIFACTS;
-use crate::core::pipeline::{self, Report, RunError, Stage};
+use crate::core::pipeline::{self, Progress, Report, RunError, Stage};
 
 use super::Inner;
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest};
@@ -178,7 +178,7 @@ impl JobQueue {
         lock(&self.running).keys().copied().collect()
     }
 
-    /// Ask a running job to stop at its next stage. False when no worker has it.
+    /// Ask a running job to stop (within one step of work). False when no worker has it.
     pub fn cancel_running(&self, id: Uuid) -> bool {
         match lock(&self.running).get(&id) {
             Some(ctl) => {
@@ -194,7 +194,7 @@ impl JobQueue {
         lock(&self.running).contains_key(&id)
     }
 
-    /// Ask every running job to stop at its next stage and go back to the queue.
+    /// Ask every running job to stop and go back to the queue.
     pub fn interrupt_all(&self) {
         for ctl in lock(&self.running).values() {
             ctl.interrupt.store(true, Ordering::SeqCst);
@@ -292,7 +292,7 @@ fn process(inner: &Inner, id: Uuid) {
         ctl: &ctl,
         deadline: started + inner.config.job_timeout,
         current: None,
-        timed_out: false,
+        timed_out: AtomicBool::new(false),
     };
     let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| execute(inner, id, &mut clock)))
         .unwrap_or_else(|panic| {
@@ -307,7 +307,7 @@ fn process(inner: &Inner, id: Uuid) {
             )))
         });
     clock.close();
-    let timed_out = clock.timed_out;
+    let timed_out = clock.timed_out.load(Ordering::SeqCst);
     settle(inner, id, &ctl, outcome, timed_out, started.elapsed());
     drop(running);
     inner.jobs.unregister(id);
@@ -397,17 +397,17 @@ struct StageClock<'a> {
     ctl: &'a RunControl,
     deadline: Instant,
     current: Option<(Stage, Instant)>,
-    timed_out: bool,
+    /// Set by whichever thread first sees the deadline passed.
+    timed_out: AtomicBool,
 }
 
 impl StageClock<'_> {
-    fn should_stop(&mut self) -> bool {
+    fn should_stop(&self) -> bool {
         if Instant::now() >= self.deadline {
-            self.timed_out = true;
+            self.timed_out.store(true, Ordering::SeqCst);
+            return true;
         }
-        self.timed_out
-            || self.ctl.cancel.load(Ordering::SeqCst)
-            || self.ctl.interrupt.load(Ordering::SeqCst)
+        self.ctl.cancel.load(Ordering::SeqCst) || self.ctl.interrupt.load(Ordering::SeqCst)
     }
 
     fn close(&mut self) {
@@ -417,7 +417,9 @@ impl StageClock<'_> {
                 .observe_stage(stage.as_str(), at.elapsed());
         }
     }
+}
 
+impl Progress for StageClock<'_> {
     /// A stage starts: false means stop.
     fn enter(&mut self, stage: Stage) -> bool {
         if self.current.map(|(s, _)| s) == Some(stage) {
@@ -446,6 +448,11 @@ impl StageClock<'_> {
             }
         }
         !self.should_stop()
+    }
+
+    /// Polled inside the long stages, from the pool's threads.
+    fn halted(&self) -> bool {
+        self.should_stop()
     }
 }
 
@@ -490,7 +497,7 @@ fn execute(
     let set = load_inputs(inner, id, lights, &files, mask.as_ref(), &manifest)?;
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
-    let report = pipeline::run(set, &options, &out, &mut |stage| clock.enter(stage));
+    let report = pipeline::run(set, &options, &out, clock);
     clock.close();
     let report = match report {
         Ok(r) => r,

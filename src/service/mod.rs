@@ -211,8 +211,8 @@ impl AppState {
     }
 
     /// [`begin_shutdown`](Self::begin_shutdown), then let running jobs finish for up to
-    /// the shutdown grace; jobs still running then are interrupted at their next stage and
-    /// run again at the next start.
+    /// the shutdown grace; jobs still running then are interrupted within one step of work
+    /// and run again at the next start.
     pub async fn shutdown(&self) {
         self.begin_shutdown();
         let jobs = &self.inner.jobs;

@@ -482,8 +482,8 @@ fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
 
 /// Cancel a queued or running job, or delete a finished one and its files.
 ///
-/// A queued job is cancelled at once; a running one stops at its next stage (its status is
-/// `cancelled` from now on). Either way the answer is 200 with the job. A finished job
+/// A queued job is cancelled at once; a running one stops within one step of work (its
+/// status is `cancelled` from now on). Either way the answer is 200 with the job. A finished job
 /// (succeeded, failed or cancelled) is deleted with its files: 204.
 #[utoipa::path(
     delete,
@@ -511,7 +511,7 @@ pub async fn delete_job(
         }
         Some(_) => {
             state.jobs().cancel_running(id);
-            tracing::info!(job = %id, "running job cancelled; it stops at its next stage");
+            tracing::info!(job = %id, "running job cancelled; it stops within one step of work");
         }
         None => {
             load_job(&state, id).await?;

@@ -58,6 +58,7 @@ use std::borrow::Cow;
 use self::components::Components;
 use self::multigrid::{MaskStencil, WeightStencil};
 use super::options::Integration;
+use super::pipeline::{Halt, NEVER};
 
 /// Smallest `nz` used when forming gradients. Grazing (or back-facing) normals would give
 /// unbounded slopes; clamping `nz ≥ 0.05` bounds `|p|, |q| ≤ √(1 − 0.05²)/0.05 ≈ 20`
@@ -172,6 +173,17 @@ pub fn integrate(
     mask: &Array2<bool>,
     method: Integration,
 ) -> Array2<f32> {
+    integrate_until(p, q, mask, method, NEVER)
+}
+
+/// [`integrate`], stopping early (with meaningless heights) once `halt` says stop.
+fn integrate_until(
+    p: &Array2<f32>,
+    q: &Array2<f32>,
+    mask: &Array2<bool>,
+    method: Integration,
+    halt: Halt,
+) -> Array2<f32> {
     let (h, w) = mask.dim();
     assert_eq!(p.dim(), (h, w));
     assert_eq!(q.dim(), (h, w));
@@ -182,13 +194,13 @@ pub fn integrate(
     let z = match method {
         Integration::RobustPoisson => {
             let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
-            robust_poisson(&ps, &qs, &m, h, w, None)
+            robust_poisson(&ps, &qs, &m, h, w, None, halt)
         }
         // Without a confidence map every pixel weighs the same: plain `poisson`.
         Integration::Poisson | Integration::WeightedPoisson => {
             // Only gradients between mask pixels are read.
             let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
-            poisson_heights(&ps, &qs, &m, h, w, None)
+            poisson_heights(&ps, &qs, &m, h, w, None, halt)
         }
         Integration::Path | Integration::FrankotChellappa => {
             // Gradients off the mask (and non-finite ones) count as 0.
@@ -212,20 +224,23 @@ pub fn integrate(
     finish(z, &m, h, w)
 }
 
-/// Heights by `method`, where `weighted-poisson` takes its weights from `confidence` (the
-/// solver's per-pixel reliability) and every other method ignores them.
+/// Heights by `method`, where `weighted-poisson` and `robust-poisson` take their weights
+/// from `confidence` (the solver's per-pixel reliability) and every other method ignores
+/// them. The iterative solvers stop early (with meaningless heights) once `halt` says stop.
 pub fn integrate_with_confidence(
     p: &Array2<f32>,
     q: &Array2<f32>,
     mask: &Array2<bool>,
     method: Integration,
     confidence: &Array2<f32>,
+    halt: Halt,
 ) -> Array2<f32> {
-    match method {
-        Integration::WeightedPoisson => integrate_weighted(p, q, mask, confidence),
-        Integration::RobustPoisson => weighted_on_mask(p, q, mask, confidence, robust_poisson),
-        _ => integrate(p, q, mask, method),
-    }
+    let solver: WeightedSolver = match method {
+        Integration::WeightedPoisson => poisson_heights,
+        Integration::RobustPoisson => robust_poisson,
+        _ => return integrate_until(p, q, mask, method, halt),
+    };
+    weighted_on_mask(p, q, mask, confidence, solver, halt)
 }
 
 /// Re-weighting rounds of `robust-poisson` after its first (weighted) solve.
@@ -246,6 +261,7 @@ fn robust_poisson(
     h: usize,
     w: usize,
     weights: Option<&[f32]>,
+    halt: Halt,
 ) -> Vec<f32> {
     use self::poisson::{edge_slope, finite};
     let comps = Components::new(mask, h, w);
@@ -266,8 +282,8 @@ fn robust_poisson(
     let mut round = 0;
     loop {
         let st = WeightStencil::new(h, w, wx.clone(), wy.clone());
-        let mut z = solve_masked(&st, p, q, &comps);
-        if round == IRLS_ROUNDS {
+        let mut z = solve_masked(&st, p, q, &comps, halt);
+        if round == IRLS_ROUNDS || halt() {
             comps.remove_means(&mut z);
             return z;
         }
@@ -326,11 +342,11 @@ pub fn integrate_weighted(
     mask: &Array2<bool>,
     weights: &Array2<f32>,
 ) -> Array2<f32> {
-    weighted_on_mask(p, q, mask, weights, poisson_heights)
+    weighted_on_mask(p, q, mask, weights, poisson_heights, NEVER)
 }
 
 /// A weighted mask-aware solver over row-major slices, behind the arrays' checks.
-type WeightedSolver = fn(&[f32], &[f32], &[bool], usize, usize, Option<&[f32]>) -> Vec<f32>;
+type WeightedSolver = fn(&[f32], &[f32], &[bool], usize, usize, Option<&[f32]>, Halt) -> Vec<f32>;
 
 fn weighted_on_mask(
     p: &Array2<f32>,
@@ -338,6 +354,7 @@ fn weighted_on_mask(
     mask: &Array2<bool>,
     weights: &Array2<f32>,
     solve: WeightedSolver,
+    halt: Halt,
 ) -> Array2<f32> {
     let (h, w) = mask.dim();
     assert_eq!(p.dim(), (h, w));
@@ -349,7 +366,7 @@ fn weighted_on_mask(
     }
     let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
     let wt = contiguous(weights.view());
-    let z = solve(&ps, &qs, &m, h, w, Some(&wt));
+    let z = solve(&ps, &qs, &m, h, w, Some(&wt), halt);
     finish(z, &m, h, w)
 }
 
@@ -369,6 +386,7 @@ fn poisson_heights(
     h: usize,
     w: usize,
     weights: Option<&[f32]>,
+    halt: Halt,
 ) -> Vec<f32> {
     let comps = Components::new(mask, h, w);
     let mut z = match weights {
@@ -376,12 +394,13 @@ fn poisson_heights(
             let st = MaskStencil::new(mask, h, w);
             poisson::solve_dct(poisson::rhs(&st, p, q), h, w)
         }
-        None => solve_masked(&MaskStencil::new(mask, h, w), p, q, &comps),
+        None => solve_masked(&MaskStencil::new(mask, h, w), p, q, &comps, halt),
         Some(wt) => solve_masked(
             &WeightStencil::from_pixel_weights(mask, wt, h, w, MIN_EDGE_WEIGHT),
             p,
             q,
             &comps,
+            halt,
         ),
     };
     comps.remove_means(&mut z);
@@ -393,13 +412,14 @@ fn solve_masked<S: multigrid::Stencil>(
     p: &[f32],
     q: &[f32],
     comps: &Components,
+    halt: Halt,
 ) -> Vec<f32> {
     let mut b = poisson::rhs(st, p, q);
     // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
     // singular system is consistent.
     comps.remove_means(&mut b);
-    let (z, stats) = poisson::solve_pcg(st, b);
-    if stats.rel_residual > poisson::TOL {
+    let (z, stats) = poisson::solve_pcg(st, b, halt);
+    if stats.rel_residual > poisson::TOL && !halt() {
         tracing::warn!(
             iterations = stats.iterations,
             rel_residual = stats.rel_residual,

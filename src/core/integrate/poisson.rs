@@ -19,6 +19,7 @@
 
 use super::fourier::transpose;
 use super::multigrid::{self, Hierarchy, Stencil};
+use crate::core::pipeline::Halt;
 use rayon::prelude::*;
 use rustdct::TransformType2And3;
 use rustdct::algorithm::Type2And3ConvertToFft;
@@ -308,9 +309,10 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 
 /// Conjugate gradients on `A z = b` (b already orthogonal to the null space), preconditioned
 /// by a multigrid V-cycle. Storage: the solution, the residual, the search direction and one
-/// shared vector for `M r` / `A p`, all f32; dot products in f64.
-pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>) -> (Vec<f32>, PcgStats) {
-    solve_pcg_until(st, b, TOL, MAX_ITER)
+/// shared vector for `M r` / `A p`, all f32; dot products in f64. Stops early, with the
+/// iterate it has, once `halt` says stop.
+pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>, halt: Halt) -> (Vec<f32>, PcgStats) {
+    solve_pcg_until(st, b, TOL, MAX_ITER, halt)
 }
 
 /// [`solve_pcg`] with an explicit stopping rule: `‖r‖ ≤ tol ‖b‖` or `max_iter` iterations.
@@ -319,6 +321,7 @@ pub(super) fn solve_pcg_until<S: Stencil>(
     b: Vec<f32>,
     tol: f64,
     max_iter: usize,
+    halt: Halt,
 ) -> (Vec<f32>, PcgStats) {
     let n = b.len();
     let mut r = b;
@@ -342,7 +345,7 @@ pub(super) fn solve_pcg_until<S: Stencil>(
     // (which reads p anyway), or after the loop.
     let (mut alpha, mut beta) = (0.0f32, 0.0f32);
     let stop_sq = (tol * bnorm).powi(2);
-    while stats.iterations < max_iter {
+    while stats.iterations < max_iter && !halt() {
         if !(rz > 0.0 && rz.is_finite()) {
             break;
         }

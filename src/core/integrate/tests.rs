@@ -145,7 +145,7 @@ fn masked_pcg_matches_dct_on_full_mask() {
     comps.remove_means(&mut direct);
     let mut bb = b;
     comps.remove_means(&mut bb);
-    let (mut iter, stats) = poisson::solve_pcg(&st, bb);
+    let (mut iter, stats) = poisson::solve_pcg(&st, bb, NEVER);
     comps.remove_means(&mut iter);
     let diff = direct
         .iter()
@@ -169,10 +169,33 @@ fn pcg_converges_fast_on_disc() {
     let comps = Components::new(&m, n, n);
     let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
     comps.remove_means(&mut b);
-    let (_, stats) = poisson::solve_pcg(&st, b);
+    let (_, stats) = poisson::solve_pcg(&st, b, NEVER);
     eprintln!("disc 256²: {stats:?}");
     assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
     assert!(stats.iterations <= 20, "{stats:?}");
+}
+
+#[test]
+fn pcg_stops_as_soon_as_it_is_halted() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let (n, rad) = (256, 100.0);
+    let s = hemisphere(128.0, 120.0, rad);
+    let mask = disc(n, n, 128.0, 120.0, 0.95 * rad);
+    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
+    let m: Vec<bool> = mask.iter().copied().collect();
+    let st = MaskStencil::new(&m, n, n);
+    let comps = Components::new(&m, n, n);
+    let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
+    comps.remove_means(&mut b);
+    // Halted from the start: no iteration at all.
+    let (z, stats) = poisson::solve_pcg(&st, b.clone(), &|| true);
+    assert_eq!(stats.iterations, 0, "{stats:?}");
+    assert!(z.iter().all(|&v| v == 0.0));
+    // Halted at the third poll: two iterations, short of the tolerance a full solve meets.
+    let polls = AtomicUsize::new(0);
+    let (_, stats) = poisson::solve_pcg(&st, b, &|| polls.fetch_add(1, Ordering::SeqCst) >= 2);
+    assert_eq!(stats.iterations, 2, "{stats:?}");
+    assert!(stats.rel_residual > poisson::TOL, "{stats:?}");
 }
 
 #[test]
@@ -406,7 +429,7 @@ fn weighted_poisson_matches_and_down_weights() {
     let st = WeightStencil::from_pixel_weights(&m, conf.as_slice().unwrap(), n, n, MIN_EDGE_WEIGHT);
     let mut b = poisson::rhs(&st, pc.as_slice().unwrap(), qc.as_slice().unwrap());
     Components::new(&m, n, n).remove_means(&mut b);
-    let (_, stats) = poisson::solve_pcg(&st, b);
+    let (_, stats) = poisson::solve_pcg(&st, b, NEVER);
     eprintln!("corrupted patch: poisson {plain:.3} px, weighted {weighted:.3} px; {stats:?}");
     assert!(weighted < 0.5 * plain, "{weighted} vs {plain}");
     assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
@@ -501,7 +524,7 @@ fn timings_2048() {
     let st = MaskStencil::new(&m, n, n);
     let mut b = poisson::rhs(&st, pd.as_slice().unwrap(), qd.as_slice().unwrap());
     Components::new(&m, n, n).remove_means(&mut b);
-    let (_, stats) = poisson::solve_pcg(&st, b);
+    let (_, stats) = poisson::solve_pcg(&st, b, NEVER);
     eprintln!(
         "2048² on {} rayon threads, best of 7:",
         rayon::current_num_threads()
@@ -546,7 +569,7 @@ fn timings_4096() {
     let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
     Components::new(&m, n, n).remove_means(&mut b);
     let t = Instant::now();
-    let (_, stats) = poisson::solve_pcg(&st, b);
+    let (_, stats) = poisson::solve_pcg(&st, b, NEVER);
     eprintln!(
         "4096² PCG alone: {:.0} ms, {stats:?}",
         t.elapsed().as_secs_f64() * 1e3
@@ -577,7 +600,7 @@ fn ragged_mask_converges() {
     let st = MaskStencil::new(&m, h, w);
     let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
     comps.remove_means(&mut b);
-    let (z, stats) = poisson::solve_pcg(&st, b.clone());
+    let (z, stats) = poisson::solve_pcg(&st, b.clone(), NEVER);
     eprintln!("ragged mask: {} components, {stats:?}", comps.count());
     assert!(comps.count() > 50);
     assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
@@ -620,7 +643,8 @@ fn rendered_set() -> Option<(Array3<f32>, Array2<bool>)> {
     let dir = std::env::var("PHOTOSTEREO_SET").unwrap_or_else(|_| "/tmp/set2048".into());
     let dir = std::path::Path::new(&dir);
     let set = crate::core::intake::load_dir(dir, None, &Default::default()).ok()?;
-    let rec = crate::core::reconstruct(&set, &Default::default(), &mut |_| true).ok()?;
+    let rec =
+        crate::core::reconstruct(&set, &Default::default(), &mut crate::core::RunToEnd).ok()?;
     Some((rec.normals, rec.mask))
 }
 
@@ -665,7 +689,7 @@ fn timings_rendered_set() {
         let mut b = poisson::rhs(&st, ps, qs);
         comps.remove_means(&mut b);
         t(5);
-        let (z, s) = poisson::solve_pcg(&st, b);
+        let (z, s) = poisson::solve_pcg(&st, b, NEVER);
         t(6);
         std::hint::black_box(&z);
         stats = Some(s);
@@ -732,18 +756,18 @@ fn pcg_error_by_iteration() {
         let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
         comps.remove_means(&mut b);
         // Past ~1e-8, f32 round-off makes CG drift away again: stop the reference earlier.
-        let (mut exact, s) = poisson::solve_pcg_until(&st, b.clone(), 3e-7, 60);
+        let (mut exact, s) = poisson::solve_pcg_until(&st, b.clone(), 3e-7, 60, NEVER);
         comps.remove_means(&mut exact);
         let count = m.iter().filter(|&&v| v).count() as f64;
         eprintln!("{name}: reference {s:?}");
-        let (_, at_tol) = poisson::solve_pcg(&st, b.clone());
+        let (_, at_tol) = poisson::solve_pcg(&st, b.clone(), NEVER);
         eprintln!(
             "  stops at TOL = {:.0e} after {} iterations",
             poisson::TOL,
             at_tol.iterations
         );
         for k in 1..=12 {
-            let (mut z, s) = poisson::solve_pcg_until(&st, b.clone(), 0.0, k);
+            let (mut z, s) = poisson::solve_pcg_until(&st, b.clone(), 0.0, k, NEVER);
             comps.remove_means(&mut z);
             let (mut e2, mut emax) = (0.0f64, 0.0f64);
             for i in 0..h * w {
