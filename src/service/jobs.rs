@@ -15,11 +15,11 @@ use std::time::{Duration, Instant};
 
 use uuid::Uuid;
 
-use crate::core::Options;
 use crate::core::intake::{self, NamedFile};
 use crate::core::lights;
 use crate::core::outputs::ARTIFACTS;
 use crate::core::pipeline::{self, Progress, Report, RunError, Stage};
+use crate::core::{InputError, Options};
 
 use super::Inner;
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest};
@@ -494,7 +494,7 @@ fn execute(
         name: m.name.clone(),
         path: input.join(&m.file),
     });
-    let set = load_inputs(inner, id, lights, &files, mask.as_ref(), &manifest)?;
+    let set = load_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, clock)?;
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
     let report = pipeline::run(set, &options, &out, clock);
@@ -513,6 +513,8 @@ fn execute(
 }
 
 /// Decode the job's images, taking those decoded during the upload when there are any.
+/// Once `clock` says stop, the images not yet started are not decoded and the set, which
+/// then holds a placeholder error for them, is dropped.
 fn load_inputs(
     inner: &Inner,
     id: Uuid,
@@ -520,7 +522,8 @@ fn load_inputs(
     files: &[NamedFile],
     mask: Option<&NamedFile>,
     manifest: &Manifest,
-) -> Result<intake::ImageSet, ApiError> {
+    clock: &StageClock<'_>,
+) -> Result<intake::ImageSet, Stop> {
     // Waits for decodes still running (on rayon: this is a worker thread, not a pool one).
     let ready = Mutex::new(
         inner
@@ -531,17 +534,26 @@ fn load_inputs(
     );
     let taken = AtomicUsize::new(0);
     let set = intake::load_with(lights, files, mask, &inner.config.limits(), |i| {
+        if clock.halted() {
+            return Some(Err(InputError::Decode {
+                name: files[i].name.clone(),
+                reason: "not decoded: the job was stopped".into(),
+            }));
+        }
         let found = lock(&ready).remove(&manifest.images[i].file)?;
         taken.fetch_add(1, Ordering::Relaxed);
         Some(found)
     });
+    if clock.halted() {
+        return Err(Stop::Stopped);
+    }
     let taken = taken.into_inner() as u64;
     inner
         .metrics
         .prefetched_images
         .fetch_add(taken, Ordering::Relaxed);
     tracing::debug!(images = taken, "images decoded during the upload");
-    Ok(set?)
+    Ok(set.map_err(ApiError::from)?)
 }
 
 /// Every artifact that exists in `dir`, with its size and a content-hash ETag. The files
