@@ -92,3 +92,29 @@ impl InputError {
         }
     }
 }
+
+/// The message a caught panic carried (`panic!` with a literal or with arguments), for
+/// the errors and logs that report it.
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> &str {
+    payload
+        .downcast_ref::<&str>()
+        .copied()
+        .or_else(|| payload.downcast_ref::<String>().map(String::as_str))
+        .unwrap_or("no message")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::panic_message;
+    use std::panic::catch_unwind;
+
+    #[test]
+    fn panic_messages_of_every_payload_kind() {
+        let literal = catch_unwind(|| panic!("plain")).unwrap_err();
+        assert_eq!(panic_message(&*literal), "plain");
+        let formatted = catch_unwind(|| panic!("n = {}", 3)).unwrap_err();
+        assert_eq!(panic_message(&*formatted), "n = 3");
+        let other = catch_unwind(|| std::panic::panic_any(7u8)).unwrap_err();
+        assert_eq!(panic_message(&*other), "no message");
+    }
+}

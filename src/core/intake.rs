@@ -15,6 +15,7 @@ use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
 use super::InputError;
+use super::error::panic_message;
 use super::lights::{self, Light};
 
 /// Rec. 709 luminance weights for R, G, B.
@@ -352,19 +353,10 @@ pub fn decode(name: &str, bytes: &[u8], limits: &Limits) -> Result<DynamicImage,
             name: name.into(),
             reason: format!(
                 "the {format:?} decoder failed on it ({})",
-                panic_text(&*panic)
+                panic_message(&*panic)
             ),
         })?
         .map_err(undecodable)
-}
-
-/// What a caught panic said.
-fn panic_text(panic: &(dyn std::any::Any + Send)) -> &str {
-    panic
-        .downcast_ref::<&str>()
-        .copied()
-        .or_else(|| panic.downcast_ref::<String>().map(String::as_str))
-        .unwrap_or("no message")
 }
 
 /// A PLTE chunk whose length is not a multiple of 3, which the `png` crate (0.18.1) accepts

@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use uuid::Uuid;
 
+use crate::core::error::panic_message;
 use crate::core::intake::{self, NamedFile};
 use crate::core::lights;
 use crate::core::outputs::ARTIFACTS;
@@ -296,11 +297,7 @@ fn process(inner: &Inner, id: Uuid) {
     };
     let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| execute(inner, id, &mut clock)))
         .unwrap_or_else(|panic| {
-            let what = panic
-                .downcast_ref::<String>()
-                .map(String::as_str)
-                .or_else(|| panic.downcast_ref::<&str>().copied())
-                .unwrap_or("unknown panic");
+            let what = panic_message(&*panic);
             tracing::error!(panic = %what, "the reconstruction panicked");
             Err(Stop::Error(ApiError::job_failed(
                 "internal error: the reconstruction crashed; see the server logs",

@@ -14,6 +14,7 @@ use utoipa::{IntoParams, ToSchema};
 use uuid::Uuid;
 
 use crate::core::Options;
+use crate::core::error::panic_message;
 use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
@@ -795,11 +796,7 @@ pub async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri
 
 /// What the catch-panic layer answers (the panic itself is logged).
 pub fn panic_response(err: Box<dyn std::any::Any + Send + 'static>) -> Response {
-    let what = err
-        .downcast_ref::<String>()
-        .map(String::as_str)
-        .or_else(|| err.downcast_ref::<&str>().copied())
-        .unwrap_or("unknown panic");
+    let what = panic_message(&*err);
     let mut r = ApiError::internal(format!("handler panicked: {what}")).into_response();
     r.headers_mut()
         .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
