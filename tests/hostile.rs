@@ -60,16 +60,20 @@ async fn assert_alive(s: &BinServer, case: &str) {
     );
 }
 
-/// POST a form to /v1/jobs; expect a problem with `status` naming every needle; then the
-/// server must be alive and lean.
-async fn refused(s: &BinServer, case: &str, form: Form, status: u16, needles: &[&str]) -> Value {
-    let r = s
-        .client
+/// POST a form to /v1/jobs.
+async fn submit(s: &BinServer, case: &str, form: Form) -> reqwest::Response {
+    s.client
         .post(s.url("/v1/jobs"))
         .multipart(form)
         .send()
         .await
-        .unwrap_or_else(|e| panic!("{case}: {e}"));
+        .unwrap_or_else(|e| panic!("{case}: {e}"))
+}
+
+/// POST a form to /v1/jobs; expect a problem with `status` naming every needle; then the
+/// server must be alive and lean.
+async fn refused(s: &BinServer, case: &str, form: Form, status: u16, needles: &[&str]) -> Value {
+    let r = submit(s, case, form).await;
     let body = expect_problem(r, status, needles).await;
     assert_alive(s, case).await;
     body
@@ -371,13 +375,7 @@ async fn image_headers_claiming_huge_sizes_are_refused_before_decoding() {
 /// POST a form whose images are only decoded by the job (after the 202): the job must fail
 /// with a 422 problem naming every needle, and the server must be alive and lean.
 async fn job_fails(s: &BinServer, case: &str, form: Form, needles: &[&str]) {
-    let r = s
-        .client
-        .post(s.url("/v1/jobs"))
-        .multipart(form)
-        .send()
-        .await
-        .unwrap_or_else(|e| panic!("{case}: {e}"));
+    let r = submit(s, case, form).await;
     assert_eq!(r.status(), 202, "{case}");
     let id = r.json::<Value>().await.unwrap()["id"]
         .as_str()

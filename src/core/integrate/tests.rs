@@ -158,8 +158,9 @@ fn masked_pcg_matches_dct_on_full_mask() {
     assert!(diff < 1e-3, "max diff {diff}");
 }
 
-#[test]
-fn pcg_converges_fast_on_disc() {
+/// The CG system of a hemisphere seen through a 256² disc mask: its stencil and its
+/// right-hand side (zero mean on the one component).
+fn disc_system() -> (MaskStencil, Vec<f32>) {
     let (n, rad) = (256, 100.0);
     let s = hemisphere(128.0, 120.0, rad);
     let mask = disc(n, n, 128.0, 120.0, 0.95 * rad);
@@ -169,6 +170,12 @@ fn pcg_converges_fast_on_disc() {
     let comps = Components::new(&m, n, n);
     let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
     comps.remove_means(&mut b);
+    (st, b)
+}
+
+#[test]
+fn pcg_converges_fast_on_disc() {
+    let (st, b) = disc_system();
     let (_, stats) = poisson::solve_pcg(&st, b, NEVER);
     eprintln!("disc 256²: {stats:?}");
     assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
@@ -178,15 +185,7 @@ fn pcg_converges_fast_on_disc() {
 #[test]
 fn pcg_stops_as_soon_as_it_is_halted() {
     use std::sync::atomic::{AtomicUsize, Ordering};
-    let (n, rad) = (256, 100.0);
-    let s = hemisphere(128.0, 120.0, rad);
-    let mask = disc(n, n, 128.0, 120.0, 0.95 * rad);
-    let (p, q) = gradients(&normals_of(&s, &mask), &mask);
-    let m: Vec<bool> = mask.iter().copied().collect();
-    let st = MaskStencil::new(&m, n, n);
-    let comps = Components::new(&m, n, n);
-    let mut b = poisson::rhs(&st, p.as_slice().unwrap(), q.as_slice().unwrap());
-    comps.remove_means(&mut b);
+    let (st, b) = disc_system();
     // Halted from the start: no iteration at all.
     let (z, stats) = poisson::solve_pcg(&st, b.clone(), &|| true);
     assert_eq!(stats.iterations, 0, "{stats:?}");
