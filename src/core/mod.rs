@@ -3,6 +3,10 @@
 //! Every stage is a plain function over owned or borrowed arrays; only `intake` and
 //! `outputs` touch files or bytes.
 
+// First: its macro is used by the modules after it.
+#[macro_use]
+mod simd;
+
 pub mod error;
 pub mod intake;
 pub mod integrate;

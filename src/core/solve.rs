@@ -87,6 +87,7 @@ fn linear(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
         })
         .collect();
 
+    let fresh = "a row of a fresh array is contiguous";
     albedo
         .axis_iter_mut(Axis(0))
         .into_par_iter()
@@ -101,75 +102,16 @@ fn linear(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
                 if halt() {
                     return;
                 }
-                let row = |k: usize| &planes[k][r * cols..(r + 1) * cols];
-                let RowScratch {
-                    gx,
-                    gy,
-                    gz,
-                    sq,
-                    obs,
-                } = s;
-                match solver {
-                    Solver::L2 => {
-                        gx.fill(0.0);
-                        gy.fill(0.0);
-                        gz.fill(0.0);
-                        // Separate x, y, z lanes so the column loops vectorise.
-                        for (k, p) in pinv.iter().enumerate() {
-                            let lanes = gx.iter_mut().zip(gy.iter_mut()).zip(gz.iter_mut());
-                            for (((x, y), z), &v) in lanes.zip(row(k)) {
-                                let o = v as f32 * SCALE;
-                                *x += p[0] * o;
-                                *y += p[1] * o;
-                                *z += p[2] * o;
-                            }
-                        }
-                    }
-                    Solver::Weighted => {
-                        for c in 0..cols {
-                            for (k, o) in obs.iter_mut().enumerate() {
-                                *o = row(k)[c] as f32 * SCALE;
-                            }
-                            [gx[c], gy[c], gz[c]] = weighted(&lights, obs);
-                        }
-                    }
-                    Solver::Robust => unreachable!("handled by robust::solve"),
-                }
-                sq.fill(0.0);
-                for (k, l) in lights.iter().enumerate() {
-                    let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
-                    for ((((x, y), z), sq), &v) in lanes.zip(sq.iter_mut()).zip(row(k)) {
-                        let d = v as f32 * SCALE - render_observation([*x, *y, *z], *l, 0.0);
-                        *sq += d * d;
-                    }
-                }
-                let fresh = "a row of a fresh array is contiguous";
-                let normals = n_row.as_slice_mut().expect(fresh);
-                let (a_row, res_row) = (
-                    a_row.as_slice_mut().expect(fresh),
-                    res_row.as_slice_mut().expect(fresh),
-                );
-                // |g| and the RMS residual in lane loops that vectorise; the normals and
-                // the confidence (an `exp` per pixel) after them.
-                let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
-                for (a, ((x, y), z)) in a_row.iter_mut().zip(lanes) {
-                    *a = (x * x + y * y + z * z).sqrt();
-                }
-                for (res, sq) in res_row.iter_mut().zip(sq.iter()) {
-                    *res = (sq / n as f32).sqrt();
-                }
-                for (c, &rho) in a_row.iter().enumerate() {
-                    if rho > 0.0 && rho.is_finite() {
-                        normals[c * 3] = gx[c] / rho;
-                        normals[c * 3 + 1] = gy[c] / rho;
-                        normals[c * 3 + 2] = gz[c] / rho;
-                    }
-                }
-                for ((conf, &res), &rho) in
-                    conf_row.iter_mut().zip(res_row.iter()).zip(a_row.iter())
-                {
-                    *conf = robust::confidence_of(n, res, 3.0 * quantum + 0.02 * rho);
-                }
+                let rows: Vec<&[u16]> = (planes.iter())
+                    .map(|p| &p[r * cols..(r + 1) * cols])
+                    .collect();
+                let out = RowOut {
+                    albedo: a_row.as_slice_mut().expect(fresh),
+                    normals: n_row.as_slice_mut().expect(fresh),
+                    residual: res_row.as_slice_mut().expect(fresh),
+                    confidence: conf_row.as_slice_mut().expect(fresh),
+                };
+                linear_row(solver, &lights, &pinv, quantum, &rows, s, out);
             },
         );
     Surface {
@@ -180,6 +122,105 @@ fn linear(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
         inliers: Array2::from_elem((rows, cols), n as u16),
         unreliable: Array2::from_elem((rows, cols), false),
         estimate: None,
+    }
+}
+
+/// One row's outputs in [`linear`].
+struct RowOut<'a> {
+    albedo: &'a mut [f32],
+    normals: &'a mut [f32],
+    residual: &'a mut [f32],
+    confidence: &'a mut [f32],
+}
+
+multiversion! {
+    fn linear_row(
+        solver: Solver, lights: &[[f32; 3]], pinv: &[[f32; 3]], quantum: f32, rows: &[&[u16]],
+        s: &mut RowScratch, out: RowOut<'_>,
+    ) -> () => linear_row_body
+}
+
+/// One row of [`linear`]; `rows[k]` is the row in image `k`.
+#[inline(always)]
+fn linear_row_body(
+    solver: Solver,
+    lights: &[[f32; 3]],
+    pinv: &[[f32; 3]],
+    quantum: f32,
+    rows: &[&[u16]],
+    s: &mut RowScratch,
+    out: RowOut<'_>,
+) {
+    let n = lights.len();
+    let RowScratch {
+        gx,
+        gy,
+        gz,
+        sq,
+        obs,
+    } = s;
+    match solver {
+        Solver::L2 => {
+            gx.fill(0.0);
+            gy.fill(0.0);
+            gz.fill(0.0);
+            // Separate x, y, z lanes so the column loops vectorise.
+            for (p, row) in pinv.iter().zip(rows) {
+                let lanes = gx.iter_mut().zip(gy.iter_mut()).zip(gz.iter_mut());
+                for (((x, y), z), &v) in lanes.zip(row.iter()) {
+                    let o = v as f32 * SCALE;
+                    *x += p[0] * o;
+                    *y += p[1] * o;
+                    *z += p[2] * o;
+                }
+            }
+        }
+        Solver::Weighted => {
+            for c in 0..gx.len() {
+                for (o, row) in obs.iter_mut().zip(rows) {
+                    *o = row[c] as f32 * SCALE;
+                }
+                [gx[c], gy[c], gz[c]] = weighted(lights, obs);
+            }
+        }
+        Solver::Robust => unreachable!("handled by robust::solve"),
+    }
+    sq.fill(0.0);
+    for (l, row) in lights.iter().zip(rows) {
+        let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
+        for ((((x, y), z), sq), &v) in lanes.zip(sq.iter_mut()).zip(row.iter()) {
+            let d = v as f32 * SCALE - render_observation([*x, *y, *z], *l, 0.0);
+            *sq += d * d;
+        }
+    }
+    let RowOut {
+        albedo,
+        normals,
+        residual,
+        confidence,
+    } = out;
+    // |g| and the RMS residual in lane loops that vectorise; the normals and the
+    // confidence (an `exp` per pixel) after them.
+    let lanes = gx.iter().zip(gy.iter()).zip(gz.iter());
+    for (a, ((x, y), z)) in albedo.iter_mut().zip(lanes) {
+        *a = (x * x + y * y + z * z).sqrt();
+    }
+    for (res, sq) in residual.iter_mut().zip(sq.iter()) {
+        *res = (sq / n as f32).sqrt();
+    }
+    for (c, &rho) in albedo.iter().enumerate() {
+        if rho > 0.0 && rho.is_finite() {
+            normals[c * 3] = gx[c] / rho;
+            normals[c * 3 + 1] = gy[c] / rho;
+            normals[c * 3 + 2] = gz[c] / rho;
+        }
+    }
+    for ((conf, &res), &rho) in confidence
+        .iter_mut()
+        .zip(residual.iter())
+        .zip(albedo.iter())
+    {
+        *conf = robust::confidence_of(n, res, 3.0 * quantum + 0.02 * rho);
     }
 }
 

@@ -19,32 +19,6 @@
 //! | `frankot-chellappa` | full periodic frame, 0 off mask | FFT projection | O(N log N) |
 //! | `poisson` | mask only (Neumann) | DCT on a full mask, else multigrid-PCG | ≈ O(N) |
 
-/// Defines a dispatching function over an `#[inline(always)]` body generic over one type:
-/// on x86-64 CPUs with AVX2 the body is compiled a second time with AVX2 enabled (8-wide f32
-/// instead of the baseline SSE2's 4) and that copy runs. Results are bit-identical: Rust
-/// never contracts `a * b + c` into an FMA, with or without the feature.
-macro_rules! multiversion {
-    ($(#[$m:meta])* fn $name:ident<$g:ident: $bound:path>($($arg:ident: $ty:ty),* $(,)?) -> $ret:ty => $body:ident) => {
-        $(#[$m])*
-        #[allow(clippy::too_many_arguments)]
-        fn $name<$g: $bound>($($arg: $ty),*) -> $ret {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2")]
-                #[allow(clippy::too_many_arguments)]
-                fn avx2<$g: $bound>($($arg: $ty),*) -> $ret {
-                    $body($($arg),*)
-                }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU supports AVX2, checked just above.
-                    return unsafe { avx2($($arg),*) };
-                }
-            }
-            $body($($arg),*)
-        }
-    };
-}
-
 mod components;
 mod fourier;
 mod multigrid;
