@@ -7,6 +7,7 @@
 //! `pixel_size` when given. The albedo travels as an embedded PNG base-colour texture.
 //! The bytes depend only on the input (no hash-map order, no timestamps).
 
+use std::borrow::Cow;
 use std::io::Write;
 
 use base64::Engine as _;
@@ -569,15 +570,22 @@ fn texels(planes: &[ArrayView2<f32>], mask: &Array2<bool>) -> Vec<u8> {
     if out.is_empty() {
         return out;
     }
+    // Rounds to nearest; NaN saturates to 0.
+    let texel = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
     out.par_chunks_mut(w * n).enumerate().for_each(|(r, row)| {
         for (k, plane) in planes.iter().enumerate() {
-            for (t, &v) in row.iter_mut().skip(k).step_by(n).zip(plane.row(r)) {
-                // Rounds to nearest; NaN saturates to 0.
-                *t = (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+            let src = plane.row(r);
+            match src.as_slice() {
+                // Gray albedo: contiguous in and out, a loop that vectorises.
+                Some(src) if n == 1 => row.iter_mut().zip(src).for_each(|(t, &v)| *t = texel(v)),
+                _ => (row.iter_mut().skip(k).step_by(n).zip(src)).for_each(|(t, &v)| *t = texel(v)),
             }
         }
     });
-    let mask: Vec<bool> = mask.iter().copied().collect();
+    let mask: Cow<'_, [bool]> = match mask.as_slice() {
+        Some(m) => Cow::Borrowed(m),
+        None => Cow::Owned(mask.iter().copied().collect()),
+    };
     fill_background(&mut out, n, &mask, w);
     out
 }
@@ -646,6 +654,14 @@ fn fill_background(texels: &mut [u8], n: usize, mask: &[bool], w: usize) {
     let sums = (texels.par_chunks(w * n).zip(mask.par_chunks(w)))
         .map(|(texels, mask)| {
             let mut sums = vec![0u64; n + 1];
+            if n == 1 {
+                // Branch-free, so it vectorises (gray textures are the common case).
+                for (&v, &m) in texels.iter().zip(mask) {
+                    sums[0] += u64::from(v) * u64::from(m);
+                    sums[1] += u64::from(m);
+                }
+                return sums;
+            }
             for (px, _) in texels.chunks_exact(n).zip(mask).filter(|(_, m)| **m) {
                 sums.iter_mut()
                     .zip(px)
@@ -697,6 +713,12 @@ fn fill_background(texels: &mut [u8], n: usize, mask: &[bool], w: usize) {
         }
     }
     (texels.par_chunks_mut(w * n).zip(known.par_chunks(w))).for_each(|(texels, known)| {
+        if n == 1 {
+            for (t, &k) in texels.iter_mut().zip(known) {
+                *t = if k { *t } else { mean[0] };
+            }
+            return;
+        }
         for (px, _) in texels.chunks_exact_mut(n).zip(known).filter(|(_, k)| !**k) {
             px.copy_from_slice(&mean);
         }
