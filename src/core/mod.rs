@@ -7,6 +7,7 @@
 #[macro_use]
 mod simd;
 
+pub mod commit;
 pub mod error;
 pub mod intake;
 pub mod integrate;

@@ -1,7 +1,6 @@
 //! Encoders: the PNG/EXR pictures of a reconstruction and `result.json`, written in
 //! parallel, each under a temporary name and renamed once complete.
 
-use std::fs::File;
 use std::io::{Cursor, Seek, Write};
 use std::path::Path;
 
@@ -13,6 +12,7 @@ use ndarray::{Array2, Array3, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
+use super::commit::Committer;
 use super::pipeline::{Halt, Reconstruction, RunError};
 use super::render;
 
@@ -369,38 +369,6 @@ pub fn encode_to(
     Ok(true)
 }
 
-/// Write `bytes` to `dir/name` through a temporary file, so a reader never sees a
-/// partial artifact.
-pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError> {
-    write_atomic_with(dir, name, &mut |f| f.write_all(bytes))
-}
-
-/// Stream an artifact into `dir/name` through a temporary file (buffered, synced, then
-/// renamed), so large outputs never exist as a whole in memory.
-pub fn write_atomic_with(
-    dir: &Path,
-    name: &str,
-    write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>,
-) -> Result<(), RunError> {
-    let tmp = dir.join(format!(".{name}.tmp"));
-    let path = dir.join(name);
-    let fail = |e: std::io::Error| RunError::Output {
-        path: path.display().to_string(),
-        reason: e.to_string(),
-    };
-    let written = (|| {
-        let mut f = std::io::BufWriter::with_capacity(1 << 20, File::create(&tmp)?);
-        write(&mut f)?;
-        f.into_inner().map_err(|e| e.into_error())?.sync_all()?;
-        std::fs::rename(&tmp, &path)
-    })();
-    if written.is_err() {
-        // A failed artifact leaves nothing behind, not even its temporary file.
-        let _ = std::fs::remove_file(&tmp);
-    }
-    written.map_err(fail)
-}
-
 /// Write the picture artifacts `names` in parallel; returns the names written (an
 /// artifact that does not apply, such as `albedo_rgb.png` for gray inputs, is skipped, and
 /// so is every picture not yet started once `halt` says stop).
@@ -409,6 +377,7 @@ pub fn write_pictures(
     names: &[&str],
     shading_light: [f64; 3],
     dir: &Path,
+    commits: &Committer,
     halt: Halt,
 ) -> Result<Vec<String>, RunError> {
     let written: Vec<Option<String>> = names
@@ -417,7 +386,7 @@ pub fn write_pictures(
             if !applies(maps, name) || halt() {
                 return Ok(None);
             }
-            write_atomic_with(dir, name, &mut |f| {
+            commits.write(dir, name, &mut |f| {
                 encode_to(f, maps, name, shading_light).map(|_| ())
             })?;
 
@@ -581,7 +550,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let light = [-1.0, 0.5, 2.0];
         let names = ["albedo.png", "normal.png", "shaded.png"];
-        write_pictures(&maps, &names, light, dir.path(), NEVER).unwrap();
+        write_pictures(&maps, &names, light, dir.path(), &Committer::new(), NEVER).unwrap();
         let direct = image::open(dir.path().join("shaded.png"))
             .unwrap()
             .into_luma16();

@@ -12,6 +12,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::InputError;
+use super::commit::{self, Committer};
 use super::intake::ImageSet;
 use super::lights::{self, Light};
 use super::options::Options;
@@ -480,6 +481,7 @@ pub fn run(
 
     let mut timings = Timings::default();
     let surface = prepare(Cow::Owned(set), opts, progress, &mut timings)?;
+    let commits = Committer::new();
     std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
         path: dir.display().to_string(),
         reason: e.to_string(),
@@ -500,7 +502,7 @@ pub fn run(
         || {
             let maps = surface.maps(&slopes.curl);
             let light = opts.shading_light;
-            let written = outputs::write_pictures(&maps, &early, light, dir, &halt);
+            let written = outputs::write_pictures(&maps, &early, light, dir, &commits, &halt);
             (written, Timing::new(Stage::Outputs, start))
         },
     );
@@ -514,8 +516,11 @@ pub fn run(
     let halt = || polled.halted();
     let start = Instant::now();
     let (pictures, meshes) = rayon::join(
-        || outputs::write_pictures(&Maps::of(&rec), &late, opts.shading_light, dir, &halt),
-        || write_meshes(&rec, opts, dir, &wanted, &halt),
+        || {
+            let maps = Maps::of(&rec);
+            outputs::write_pictures(&maps, &late, opts.shading_light, dir, &commits, &halt)
+        },
+        || write_meshes(&rec, opts, dir, &wanted, &commits, &halt),
     );
     written.extend(pictures?.into_iter().chain(meshes?));
     not_halted(polled)?;
@@ -526,7 +531,9 @@ pub fn run(
     written.push("result.json".into());
     rec.report.artifacts = written;
     let json = serde_json::to_vec_pretty(&rec.report).expect("the report serialises");
-    outputs::write_atomic(dir, "result.json", &json)?;
+    // Every artifact is durable and in place before the report that lists them.
+    commits.finish()?;
+    commit::write_atomic(dir, "result.json", &json)?;
     let report = std::mem::take(&mut rec.report);
     drop_aside(rec);
     Ok(report)
@@ -551,11 +558,14 @@ fn write_meshes(
     opts: &Options,
     dir: &Path,
     wanted: &(dyn Fn(&str) -> bool + Sync),
+    commits: &Committer,
     halt: Halt,
 ) -> Result<Vec<String>, RunError> {
     use super::mesh::{Document, MeshError};
     let save = |name: &str, made: Result<Vec<u8>, MeshError>| match made {
-        Ok(bytes) => outputs::write_atomic(dir, name, &bytes).map(|_| Some(name.to_string())),
+        Ok(bytes) => {
+            (commits.write(dir, name, &mut |f| f.write_all(&bytes))).map(|_| Some(name.to_string()))
+        }
         Err(MeshError::EmptyMask | MeshError::NoTriangles { .. }) => Ok(None),
         Err(e @ (MeshError::Options(_) | MeshError::TooLarge { .. })) => {
             Err(InputError::Options(e.to_string()).into())
@@ -569,7 +579,7 @@ fn write_meshes(
     // are not I/O keep their kind for `save`'s mapping.
     let stream = |name: &str, write: &dyn Fn(&mut dyn Write) -> Result<(), MeshError>| {
         let mut failed = None;
-        let written = outputs::write_atomic_with(dir, name, &mut |out| {
+        let written = commits.write(dir, name, &mut |out| {
             write(out).map_err(|e| match e {
                 MeshError::Write(io) => io,
                 other => {

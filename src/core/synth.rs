@@ -8,8 +8,9 @@ use image::{ImageBuffer, Luma, Rgba, Rgba32FImage};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
+use super::commit::write_atomic;
 use super::intake::LIGHTS_FILE;
-use super::outputs::{png_bytes_filtered, write_atomic};
+use super::outputs::png_bytes_filtered;
 use super::pipeline::RunError;
 use image::codecs::png::FilterType;
 
