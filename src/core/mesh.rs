@@ -371,7 +371,10 @@ fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec
         extensions: None,
         extras: Default::default(),
     });
-    let mut bin = Vec::new();
+    // Sized up front (positions, normals, uvs, u32 indices at most, texture, padding): a
+    // growing buffer of ~10 MB was copied by each reallocation.
+    let (n, t) = (mesh.positions.len(), mesh.triangles.len());
+    let mut bin = Vec::with_capacity(n * (12 + 12 + 8) + t * 12 + texture.len() + 5 * 3);
     let mut view = |root: &mut json::Root, bytes: &[u8], target: Option<Target>| {
         bin.resize(bin.len().next_multiple_of(4), 0);
         let offset = bin.len();
@@ -394,7 +397,6 @@ fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec
     };
 
     let (lo, hi) = bounds(&mesh.positions);
-    let n = mesh.positions.len();
     let v = view(
         &mut root,
         &floats(mesh.positions.as_flattened()),
