@@ -25,7 +25,7 @@ mod multigrid;
 mod path;
 mod poisson;
 
-use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
+use ndarray::{Array2, Array3, ArrayView2, Axis};
 use rayon::prelude::*;
 use std::borrow::Cow;
 
@@ -52,21 +52,57 @@ pub fn gradients(normals: &Array3<f32>, mask: &Array2<bool>) -> (Array2<f32>, Ar
     assert_eq!(normals.dim(), (h, w, 3), "normals must be (rows, cols, 3)");
     let mut p = Array2::zeros((h, w));
     let mut q = Array2::zeros((h, w));
-    Zip::from(&mut p)
-        .and(&mut q)
-        .and(normals.lanes(Axis(2)))
-        .and(mask)
-        .par_for_each(|p, q, n, &m| {
-            let (nx, ny, nz) = (n[0], n[1], n[2]);
-            let len = (nx * nx + ny * ny + nz * nz).sqrt();
-            if !m || !len.is_finite() || len == 0.0 {
-                return;
-            }
-            let nz = (nz / len).max(MIN_NZ);
-            *p = -nx / len / nz;
-            *q = -ny / len / nz;
-        });
+    let mask = contiguous(mask.view());
+    let normals: Cow<'_, [f32]> = match normals.as_slice() {
+        Some(n) => Cow::Borrowed(n),
+        None => Cow::Owned(normals.iter().copied().collect()),
+    };
+    // Row slices, split into x, y, z lanes so the divisions vectorise: through ndarray's
+    // per-pixel lane views this pass cost as much as the curl.
+    (p.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(q.axis_iter_mut(Axis(0)).into_par_iter())
+        .enumerate()
+        .for_each_init(
+            || [vec![0f32; w], vec![0f32; w], vec![0f32; w]],
+            |[nx, ny, nz], (r, (mut p, mut q))| {
+                let fresh = "a row of a fresh array is contiguous";
+                let (p, q) = (
+                    p.as_slice_mut().expect(fresh),
+                    q.as_slice_mut().expect(fresh),
+                );
+                let n = &normals[r * w * 3..(r + 1) * w * 3];
+                for (((x, y), z), n) in nx
+                    .iter_mut()
+                    .zip(ny.iter_mut())
+                    .zip(nz.iter_mut())
+                    .zip(n.chunks_exact(3))
+                {
+                    (*x, *y, *z) = (n[0], n[1], n[2]);
+                }
+                gradient_row(nx, ny, nz, &mask[r * w..(r + 1) * w], p, q);
+            },
+        );
     (p, q)
+}
+
+multiversion! {
+    fn gradient_row(
+        nx: &[f32], ny: &[f32], nz: &[f32], m: &[bool], p: &mut [f32], q: &mut [f32],
+    ) -> () => gradient_row_body
+}
+
+/// One row of [`gradients`]: every pixel is computed and the ones off the mask (or with
+/// an unusable normal) get 0, so the loop has no branch.
+#[inline(always)]
+fn gradient_row_body(nx: &[f32], ny: &[f32], nz: &[f32], m: &[bool], p: &mut [f32], q: &mut [f32]) {
+    let lanes = nx.iter().zip(ny).zip(nz).zip(m);
+    for (((((&nx, &ny), &nz), &m), p), q) in lanes.zip(p.iter_mut()).zip(q.iter_mut()) {
+        let len = (nx * nx + ny * ny + nz * nz).sqrt();
+        let usable = m & len.is_finite() & (len != 0.0);
+        let nz = (nz / len).max(MIN_NZ);
+        *p = if usable { -nx / len / nz } else { 0.0 };
+        *q = if usable { -ny / len / nz } else { 0.0 };
+    }
 }
 
 /// Integrability residual `dp/dy − dq/dx` of the gradient field, discretised exactly as
