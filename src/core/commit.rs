@@ -18,17 +18,7 @@ use super::pipeline::RunError;
 
 /// Write `bytes` to `dir/name` (see the module docs), on this thread.
 pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError> {
-    write_atomic_with(dir, name, &mut |f| f.write_all(bytes))
-}
-
-/// Stream an artifact into `dir/name` (see the module docs), on this thread: large
-/// outputs never exist as a whole in memory.
-pub fn write_atomic_with(
-    dir: &Path,
-    name: &str,
-    write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>,
-) -> Result<(), RunError> {
-    Pending::write(dir, name, write)?.commit()
+    Pending::write(dir, name, &mut |f| f.write_all(bytes))?.commit()
 }
 
 /// An artifact written to its temporary file, not yet durable or visible.

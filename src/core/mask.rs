@@ -1,8 +1,6 @@
 //! Which pixels are the object: a given mask, every pixel, or a threshold on albedo with
 //! holes filled and specks dropped.
 
-use std::borrow::Cow;
-
 use ndarray::Array2;
 use rayon::prelude::*;
 
@@ -46,10 +44,7 @@ pub fn auto(albedo: &Array2<f32>) -> Array2<bool> {
 /// else a tenth of the 99th-percentile albedo (an object filling the frame, or one on
 /// a black background with nothing to split).
 pub fn auto_threshold(albedo: &Array2<f32>) -> f32 {
-    let values: Cow<'_, [f32]> = match albedo.as_slice() {
-        Some(s) => Cow::Borrowed(s),
-        None => Cow::Owned(albedo.iter().copied().collect()),
-    };
+    let values = super::contiguous(albedo.view());
     let Some(p99) = positive_quantile(&values, 0.99) else {
         return MIN_THRESHOLD;
     };

@@ -7,7 +7,6 @@
 //! `pixel_size` when given. The albedo travels as an embedded PNG base-colour texture.
 //! The bytes depend only on the input (no hash-map order, no timestamps).
 
-use std::borrow::Cow;
 use std::io::Write;
 
 use base64::Engine as _;
@@ -584,10 +583,7 @@ fn texels(planes: &[ArrayView2<f32>], mask: &Array2<bool>) -> Vec<u8> {
             }
         }
     });
-    let mask: Cow<'_, [bool]> = match mask.as_slice() {
-        Some(m) => Cow::Borrowed(m),
-        None => Cow::Owned(mask.iter().copied().collect()),
-    };
+    let mask = super::contiguous(mask.view());
     fill_background(&mut out, n, &mask, w);
     out
 }

@@ -1,7 +1,7 @@
 //! The reconstruction core: intake → solve → mask → integrate → outputs / mesh.
 //!
-//! Every stage is a plain function over owned or borrowed arrays; only `intake` and
-//! `outputs` touch files or bytes.
+//! Every stage is a plain function over owned or borrowed arrays; only `intake`,
+//! `outputs` and `commit` (and `synth`, which writes the rendered sets) touch files or bytes.
 
 // First: its macro is used by the modules after it.
 #[macro_use]
@@ -27,3 +27,14 @@ pub mod synth;
 pub use error::InputError;
 pub use options::Options;
 pub use pipeline::{Reconstruction, RunToEnd, reconstruct};
+
+/// The elements of `a` as one slice in logical (row-major) order: borrowed when the array
+/// is in standard layout, copied once otherwise, so hot loops can run over plain slices.
+pub(crate) fn contiguous<'a, T: Clone, D: ndarray::Dimension>(
+    a: ndarray::ArrayView<'a, T, D>,
+) -> std::borrow::Cow<'a, [T]> {
+    match a.to_slice() {
+        Some(s) => std::borrow::Cow::Borrowed(s),
+        None => std::borrow::Cow::Owned(a.iter().cloned().collect()),
+    }
+}

@@ -25,12 +25,12 @@ mod multigrid;
 mod path;
 mod poisson;
 
-use ndarray::{Array2, Array3, ArrayView2, Axis};
+use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
-use std::borrow::Cow;
 
 use self::components::Components;
 use self::multigrid::{MaskStencil, WeightStencil};
+use super::contiguous;
 use super::options::Integration;
 use super::pipeline::{Halt, NEVER};
 
@@ -52,11 +52,7 @@ pub fn gradients(normals: &Array3<f32>, mask: &Array2<bool>) -> (Array2<f32>, Ar
     assert_eq!(normals.dim(), (h, w, 3), "normals must be (rows, cols, 3)");
     let mut p = Array2::zeros((h, w));
     let mut q = Array2::zeros((h, w));
-    let mask = contiguous(mask.view());
-    let normals: Cow<'_, [f32]> = match normals.as_slice() {
-        Some(n) => Cow::Borrowed(n),
-        None => Cow::Owned(normals.iter().copied().collect()),
-    };
+    let (mask, normals) = (contiguous(mask.view()), contiguous(normals.view()));
     // Row slices, split into x, y, z lanes so the divisions vectorise: through ndarray's
     // per-pixel lane views this pass cost as much as the curl.
     (p.axis_iter_mut(Axis(0)).into_par_iter())
@@ -378,14 +374,6 @@ fn weighted_on_mask(
     let wt = contiguous(weights.view());
     let z = solve(&ps, &qs, &m, h, w, Some(&wt), halt);
     finish(z, &m, h, w)
-}
-
-/// Row-major data of a 2-D view (borrowed when already contiguous).
-fn contiguous<T: Clone>(a: ArrayView2<'_, T>) -> Cow<'_, [T]> {
-    match a.to_slice() {
-        Some(s) => Cow::Borrowed(s),
-        None => Cow::Owned(a.iter().cloned().collect()),
-    }
 }
 
 /// Poisson heights, each mask component shifted to zero mean.
