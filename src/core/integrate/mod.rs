@@ -274,49 +274,47 @@ fn robust_poisson(
     let (bx, by) = multigrid::edge_weights(mask, weights, h, w, MIN_EDGE_WEIGHT);
     let g = |i: usize| [finite(p[i]), finite(q[i])];
     let n = h * w;
-    let (mut gx, mut gy) = (vec![0f32; n], vec![0f32; n]);
-    for i in 0..n {
-        // An edge's weight is positive exactly when it joins two mask pixels.
-        if bx[i] > 0.0 {
-            gx[i] = edge_slope(g(i), g(i + 1), 0);
-        }
-        if by[i] > 0.0 {
-            gy[i] = edge_slope(g(i), g(i + w), 1);
-        }
-    }
+    // An edge's weight is positive exactly when it joins two mask pixels. East edges step
+    // one pixel (x slopes, component 0), south edges one row (y slopes, component 1).
+    let slopes = |base: &[f32], step: usize, k: usize| -> Vec<f32> {
+        (0..n)
+            .into_par_iter()
+            .map(|i| match base[i] > 0.0 {
+                true => edge_slope(g(i), g(i + step), k),
+                false => 0.0,
+            })
+            .collect()
+    };
+    let (gx, gy) = (slopes(&bx, 1, 0), slopes(&by, w, 1));
     let (mut wx, mut wy) = (bx.clone(), by.clone());
+    // Each round's solve starts from the previous heights: the weights move little from
+    // one round to the next, so CG has little left to do.
+    let mut start = None;
     let mut round = 0;
     loop {
-        let st = WeightStencil::new(h, w, wx.clone(), wy.clone());
-        let mut z = solve_masked(&st, p, q, &comps, halt);
+        let st = WeightStencil::new(h, w, wx, wy);
+        let mut z = solve_masked(&st, p, q, &comps, start.take(), halt);
         if round == IRLS_ROUNDS || halt() {
             comps.remove_means(&mut z);
             return z;
         }
         round += 1;
-        let rx: Vec<f32> = (0..n)
-            .map(|i| {
-                if bx[i] > 0.0 {
-                    z[i + 1] - z[i] - gx[i]
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        let ry: Vec<f32> = (0..n)
-            .map(|i| {
-                if by[i] > 0.0 {
-                    z[i + w] - z[i] - gy[i]
-                } else {
-                    0.0
-                }
-            })
-            .collect();
+        // The residual `z_j − z_i − g_ij` of edge `i` (0 where there is none).
+        let residual = |base: &[f32], g: &[f32], step: usize, i: usize| match base[i] > 0.0 {
+            true => z[i + step] - z[i] - g[i],
+            false => 0.0,
+        };
         let mut abs: Vec<f32> = (0..n)
+            .into_par_iter()
             .filter(|&i| bx[i] > 0.0)
-            .map(|i| rx[i].abs())
-            .chain((0..n).filter(|&i| by[i] > 0.0).map(|i| ry[i].abs()))
+            .map(|i| residual(&bx, &gx, 1, i).abs())
             .collect();
+        abs.par_extend(
+            (0..n)
+                .into_par_iter()
+                .filter(|&i| by[i] > 0.0)
+                .map(|i| residual(&by, &gy, w, i).abs()),
+        );
         let tau = if abs.is_empty() {
             MIN_BREAK
         } else {
@@ -324,17 +322,21 @@ fn robust_poisson(
             let mad = *abs.select_nth_unstable_by(k, f32::total_cmp).1;
             (3.0 * 1.4826 * mad).max(MIN_BREAK)
         };
-        let cauchy = |b: f32, r: f32| {
-            if b > 0.0 {
-                (b / (1.0 + (r / tau) * (r / tau))).max(MIN_EDGE_WEIGHT)
-            } else {
-                0.0
-            }
+        drop(abs);
+        let reweight = |base: &[f32], g: &[f32], step: usize| -> Vec<f32> {
+            (0..n)
+                .into_par_iter()
+                .map(|i| match base[i] > 0.0 {
+                    true => {
+                        let r = residual(base, g, step, i) / tau;
+                        (base[i] / (1.0 + r * r)).max(MIN_EDGE_WEIGHT)
+                    }
+                    false => 0.0,
+                })
+                .collect()
         };
-        for i in 0..n {
-            wx[i] = cauchy(bx[i], rx[i]);
-            wy[i] = cauchy(by[i], ry[i]);
-        }
+        (wx, wy) = (reweight(&bx, &gx, 1), reweight(&by, &gy, w));
+        start = Some(z);
     }
 }
 
@@ -392,12 +394,13 @@ fn poisson_heights(
             let st = MaskStencil::new(mask, h, w);
             poisson::solve_dct(poisson::rhs(&st, p, q), h, w)
         }
-        None => solve_masked(&MaskStencil::new(mask, h, w), p, q, &comps, halt),
+        None => solve_masked(&MaskStencil::new(mask, h, w), p, q, &comps, None, halt),
         Some(wt) => solve_masked(
             &WeightStencil::from_pixel_weights(mask, wt, h, w, MIN_EDGE_WEIGHT),
             p,
             q,
             &comps,
+            None,
             halt,
         ),
     };
@@ -405,18 +408,23 @@ fn poisson_heights(
     z
 }
 
+/// The masked solve, from 0 or from `start` (a previous solution on the same mask).
 fn solve_masked<S: multigrid::Stencil>(
     st: &S,
     p: &[f32],
     q: &[f32],
     comps: &Components,
+    start: Option<Vec<f32>>,
     halt: Halt,
 ) -> Vec<f32> {
     let mut b = poisson::rhs(st, p, q);
     // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
     // singular system is consistent.
     comps.remove_means(&mut b);
-    let (z, stats) = poisson::solve_pcg(st, b, halt);
+    let (z, stats) = match start {
+        None => poisson::solve_pcg(st, b, halt),
+        Some(x0) => poisson::solve_pcg_from(st, b, x0, halt),
+    };
     if stats.rel_residual > poisson::TOL && !halt() {
         tracing::warn!(
             iterations = stats.iterations,

@@ -323,6 +323,35 @@ pub(super) fn solve_pcg_until<S: Stencil>(
     max_iter: usize,
     halt: Halt,
 ) -> (Vec<f32>, PcgStats) {
+    pcg(st, b, None, tol, max_iter, halt)
+}
+
+/// [`solve_pcg`] from an initial guess `x0` (0 on inactive cells), e.g. the previous
+/// round's heights in a re-weighting loop. CG runs on the residual `b − A x0` with the
+/// same stopping rule, relative to `‖b‖`: the answer is as accurate as from 0, and a
+/// guess already within the tolerance costs one operator application.
+pub(super) fn solve_pcg_from<S: Stencil>(
+    st: &S,
+    b: Vec<f32>,
+    x0: Vec<f32>,
+    halt: Halt,
+) -> (Vec<f32>, PcgStats) {
+    assert_eq!(
+        x0.len(),
+        b.len(),
+        "initial guess and right-hand side differ in size"
+    );
+    pcg(st, b, Some(x0), TOL, MAX_ITER, halt)
+}
+
+fn pcg<S: Stencil>(
+    st: &S,
+    b: Vec<f32>,
+    x0: Option<Vec<f32>>,
+    tol: f64,
+    max_iter: usize,
+    halt: Halt,
+) -> (Vec<f32>, PcgStats) {
     let n = b.len();
     let mut r = b;
     let bnorm = dot(&r, &r).sqrt();
@@ -338,8 +367,26 @@ pub(super) fn solve_pcg_until<S: Stencil>(
     stats.levels = hier.depth();
     stats.rel_residual = 1.0;
     // x and p are read before they are written: zero them by writing, not with calloc.
-    let (mut x, mut p) = (written_zeros(n), written_zeros(n));
+    let mut p = written_zeros(n);
     let mut zq = vec![0f32; n]; // M r, then A p: written first
+    let mut x = match x0 {
+        None => written_zeros(n),
+        Some(mut x) => {
+            // r = b − A x0, with A x0 from the fused direction kernel (α = β = 0: p ← x0,
+            // zq ← A p, x untouched); p is zeroed again for the first direction.
+            zq.copy_from_slice(&x);
+            hier.direction_apply(st, &mut zq, &mut p, &mut x, 0.0, 0.0);
+            p.par_chunks_mut(CHUNK).for_each(|p| p.fill(0.0));
+            r.par_chunks_mut(CHUNK)
+                .zip(zq.par_chunks(CHUNK))
+                .for_each(|(r, ax)| r.iter_mut().zip(ax).for_each(|(r, &ax)| *r -= ax));
+            stats.rel_residual = dot(&r, &r).sqrt() / bnorm;
+            if stats.rel_residual <= tol {
+                return (x, stats);
+            }
+            x
+        }
+    };
     let mut rz = hier.apply(st, &r, &mut zq);
     // The update x += α p of each step is applied lazily, by the next direction update
     // (which reads p anyway), or after the loop.

@@ -183,6 +183,46 @@ fn pcg_converges_fast_on_disc() {
 }
 
 #[test]
+fn warm_started_pcg_meets_the_same_tolerance_in_fewer_iterations() {
+    let (st, b) = disc_system();
+    let (n, m) = (256, disc(256, 256, 128.0, 120.0, 95.0));
+    let m: Vec<bool> = m.iter().copied().collect();
+    let comps = Components::new(&m, n, n);
+    let (mut cold, cold_stats) = poisson::solve_pcg(&st, b.clone(), NEVER);
+    // From its own answer there is nothing left to do.
+    let (same, stats) = poisson::solve_pcg_from(&st, b.clone(), cold.clone(), NEVER);
+    assert_eq!(stats.iterations, 0, "{stats:?}");
+    assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
+    assert_eq!(same, cold);
+    // From the answer plus a smooth 0.5 px error (what a re-weighting round leaves): the
+    // same tolerance and heights, in fewer iterations than from 0.
+    let start: Vec<f32> = (0..n * n)
+        .map(|i| {
+            let (r, c) = ((i / n) as f32, (i % n) as f32);
+            let bump = 0.5 * (r / 20.0).sin() * (c / 30.0).cos();
+            if m[i] { cold[i] + bump } else { 0.0 }
+        })
+        .collect();
+    let (mut warm, stats) = poisson::solve_pcg_from(&st, b, start, NEVER);
+    eprintln!("disc 256², cold {cold_stats:?}, warm {stats:?}");
+    assert!(stats.rel_residual <= poisson::TOL, "{stats:?}");
+    assert!(
+        stats.iterations < cold_stats.iterations,
+        "{stats:?} vs {cold_stats:?}"
+    );
+    comps.remove_means(&mut cold);
+    comps.remove_means(&mut warm);
+    let diff = (cold.iter().zip(&warm))
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    eprintln!("max |Δz| {diff:.2e} px");
+    assert!(
+        diff < 0.01,
+        "warm and cold solves differ by up to {diff} px"
+    );
+}
+
+#[test]
 fn pcg_stops_as_soon_as_it_is_halted() {
     use std::sync::atomic::{AtomicUsize, Ordering};
     let (st, b) = disc_system();
