@@ -2,9 +2,9 @@
 //! holes filled and specks dropped.
 
 use ndarray::Array2;
-use rayon::prelude::*;
 
 use super::InputError;
+use super::histogram::{histogram, nth_nonnegative};
 use super::options::MaskMode;
 
 /// Lowest auto-mask threshold: below one 8-bit step, albedo is indistinguishable from 0.
@@ -55,65 +55,11 @@ pub fn auto_threshold(albedo: &Array2<f32>) -> f32 {
     }
 }
 
-/// Values per rayon task in the histogram passes.
-const CHUNK: usize = 1 << 16;
-
-/// Histogram of `key` over `values` (keys < `bins`; `None` skips a value), in parallel.
-fn histogram(values: &[f32], bins: usize, key: impl Fn(f32) -> Option<usize> + Sync) -> Vec<u64> {
-    values
-        .par_chunks(CHUNK)
-        .fold(
-            || vec![0u64; bins],
-            |mut h, chunk| {
-                for k in chunk.iter().filter_map(|&v| key(v)) {
-                    h[k] += 1;
-                }
-                h
-            },
-        )
-        .reduce(
-            || vec![0u64; bins],
-            |mut a, b| {
-                a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
-                a
-            },
-        )
-}
-
 /// The `q`-quantile of the positive finite values: the element of rank
-/// `⌊(n − 1)·q⌋` in sorted order, exactly, `None` when there are none. For positive
-/// floats the order of the bit patterns is the order of the values, so two parallel
-/// histogram passes (high 16 bits, then the low 16 within the chosen bin) find it
-/// without copying or sorting the 4M albedos of a 2048² job.
+/// `⌊(n − 1)·q⌋` in sorted order, exactly, `None` when there are none.
 fn positive_quantile(values: &[f32], q: f64) -> Option<f32> {
-    let bits = |v: f32| (v.is_finite() && v > 0.0).then(|| v.to_bits());
-    let high = histogram(values, 1 << 16, |v| bits(v).map(|b| (b >> 16) as usize));
-    let n: u64 = high.iter().sum();
-    if n == 0 {
-        return None;
-    }
-    let mut rank = ((n - 1) as f64 * q) as u64;
-    let (bin, below) = select_bin(&high, rank);
-    rank -= below;
-    let low = histogram(values, 1 << 16, |v| {
-        bits(v)
-            .filter(|b| (b >> 16) as usize == bin)
-            .map(|b| (b & 0xffff) as usize)
-    });
-    let (lo, _) = select_bin(&low, rank);
-    Some(f32::from_bits(((bin as u32) << 16) | lo as u32))
-}
-
-/// The bin holding the element of 0-based `rank`, and how many elements lie below it.
-fn select_bin(hist: &[u64], rank: u64) -> (usize, u64) {
-    let mut below = 0;
-    for (i, &h) in hist.iter().enumerate() {
-        if below + h > rank {
-            return (i, below);
-        }
-        below += h;
-    }
-    unreachable!("rank {rank} is below the histogram's total")
+    let positive = |i: usize| Some(values[i]).filter(|v| v.is_finite() && *v > 0.0);
+    nth_nonnegative(values.len(), positive, |n| ((n - 1) as f64 * q) as u64)
 }
 
 /// Otsu's threshold over [0, top] in 256 bins: (threshold, low-class mean, high-class mean).
@@ -122,7 +68,8 @@ fn otsu(values: &[f32], top: f32) -> Option<(f32, f64, f64)> {
     if top <= 0.0 {
         return None;
     }
-    let hist = histogram(values, BINS, |v| {
+    let hist = histogram(values.len(), BINS, |i| {
+        let v = values[i];
         v.is_finite()
             .then(|| ((v / top).clamp(0.0, 1.0) * (BINS - 1) as f32) as usize)
     });

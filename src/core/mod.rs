@@ -9,6 +9,7 @@ mod simd;
 
 pub mod commit;
 pub mod error;
+mod histogram;
 pub mod intake;
 pub mod integrate;
 pub mod lights;

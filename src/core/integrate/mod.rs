@@ -31,6 +31,7 @@ use rayon::prelude::*;
 use self::components::Components;
 use self::multigrid::{MaskStencil, WeightStencil};
 use super::contiguous;
+use super::histogram::nth_nonnegative;
 use super::options::Integration;
 use super::pipeline::{Halt, NEVER};
 
@@ -304,25 +305,16 @@ fn robust_poisson(
             true => z[i + step] - z[i] - g[i],
             false => 0.0,
         };
-        let mut abs: Vec<f32> = (0..n)
-            .into_par_iter()
-            .filter(|&i| bx[i] > 0.0)
-            .map(|i| residual(&bx, &gx, 1, i).abs())
-            .collect();
-        abs.par_extend(
-            (0..n)
-                .into_par_iter()
-                .filter(|&i| by[i] > 0.0)
-                .map(|i| residual(&by, &gy, w, i).abs()),
-        );
-        let tau = if abs.is_empty() {
-            MIN_BREAK
-        } else {
-            let k = abs.len() / 2;
-            let mad = *abs.select_nth_unstable_by(k, f32::total_cmp).1;
-            (3.0 * 1.4826 * mad).max(MIN_BREAK)
+        // τ from the median absolute residual over the edges (east ones, then south).
+        let edge_abs = |j: usize| {
+            let (base, g, step, i) = match j < n {
+                true => (&bx, &gx, 1, j),
+                false => (&by, &gy, w, j - n),
+            };
+            (base[i] > 0.0).then(|| residual(base, g, step, i).abs())
         };
-        drop(abs);
+        let tau = nth_nonnegative(2 * n, edge_abs, |edges| edges / 2)
+            .map_or(MIN_BREAK, |mad| (3.0 * 1.4826 * mad).max(MIN_BREAK));
         let reweight = |base: &[f32], g: &[f32], step: usize| -> Vec<f32> {
             (0..n)
                 .into_par_iter()
