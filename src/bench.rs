@@ -17,7 +17,7 @@ use clap::Args;
 use photostereo::core::intake::{self, LIGHTS_FILE, Limits};
 use photostereo::core::options::Integration;
 use photostereo::core::{Options, integrate, outputs, pipeline, synth};
-use photostereo::service::{AppState, Config, serve_with};
+use photostereo::service::{AppState, Config, release_free_heap, serve_with};
 use serde_json::Value;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpListener, TcpStream};
@@ -257,9 +257,10 @@ struct SizeResult {
     upload_ms: Vec<f64>,
     /// Process VmHWM over each HTTP job (server and client together).
     http_peak_bytes: Vec<f64>,
-    /// `integrate` alone with `poisson`, then with `frankot-chellappa`, per run.
+    /// `integrate` alone with `poisson`, `frankot-chellappa` and `robust-poisson`, per run.
     poisson_ms: Vec<f64>,
     fc_ms: Vec<f64>,
+    robust_ms: Vec<f64>,
 }
 
 impl SizeResult {
@@ -282,6 +283,7 @@ impl SizeResult {
             http_peak_bytes: Vec::new(),
             poisson_ms: Vec::new(),
             fc_ms: Vec::new(),
+            robust_ms: Vec::new(),
         }
     }
 
@@ -330,11 +332,13 @@ impl Gradients {
     }
 }
 
-/// Time mask-aware Poisson against Frankot–Chellappa (issue 7: at most 3 × at 2048²).
+/// Time mask-aware Poisson against Frankot–Chellappa (issue 7: at most 3 × at 2048²), and
+/// the re-weighted `robust-poisson` (five Poisson solves, each after the first warm-started).
 fn integration_run(set: &mut SizeResult, g: &Gradients) {
     for (method, times) in [
         (Integration::Poisson, &mut set.poisson_ms),
         (Integration::FrankotChellappa, &mut set.fc_ms),
+        (Integration::RobustPoisson, &mut set.robust_ms),
     ] {
         let start = Instant::now();
         let z = integrate::integrate(&g.p, &g.q, &g.mask, method);
@@ -345,7 +349,7 @@ fn integration_run(set: &mut SizeResult, g: &Gradients) {
 
 fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow::Result<()> {
     let limits = Limits::default();
-    trim_heap();
+    release_free_heap();
     let start = Instant::now();
     let decoded = intake::load_dir(&set.dir, None, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
@@ -421,7 +425,7 @@ struct Job {
 
 fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job> {
     let limits = Limits::default();
-    trim_heap();
+    release_free_heap();
     let base = status_bytes("VmRSS");
     let reset = reset_peak();
     let start = Instant::now();
@@ -441,19 +445,6 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
         base: base.filter(|_| reset),
     })
 }
-
-/// Give freed heap back to the system so each job's peak starts from a clean baseline.
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn trim_heap() {
-    // SAFETY: malloc_trim only returns free allocator memory to the system; no live
-    // allocation moves or changes.
-    unsafe {
-        libc::malloc_trim(0);
-    }
-}
-
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-fn trim_heap() {}
 
 /// Reset the process's peak resident size (VmHWM) to its current size (Linux only).
 fn reset_peak() -> bool {
@@ -620,7 +611,7 @@ async fn http_run(
     runs: usize,
     addr: SocketAddr,
 ) -> anyhow::Result<()> {
-    trim_heap();
+    release_free_heap();
     let reset = reset_peak();
     let (id, upload, total) = submit_and_wait(addr, set).await?;
     let peak = status_bytes("VmHWM");
@@ -1286,20 +1277,26 @@ fn tables(
     );
     let _ = writeln!(
         o,
-        "| size | poisson (mask-aware) | frankot-chellappa (full frame) | poisson / FC (≤ {TARGET_POISSON_OVER_FC} at 2048²) |"
+        "| size | poisson (mask-aware) | frankot-chellappa (full frame) | poisson / FC (≤ {TARGET_POISSON_OVER_FC} at 2048²) | robust-poisson | robust / poisson |"
     );
-    let _ = writeln!(o, "|---|---:|---:|---:|");
+    let _ = writeln!(o, "|---|---:|---:|---:|---:|---:|");
     for s in sets {
-        let (p, f) = (median(&s.poisson_ms), median(&s.fc_ms));
+        let (p, f, r) = (
+            median(&s.poisson_ms),
+            median(&s.fc_ms),
+            median(&s.robust_ms),
+        );
         let _ = writeln!(
             o,
-            "| {}² | {} | {} | {} |",
+            "| {}² | {} | {} | {} | {} | {} |",
             s.size,
             num(p, 0),
             num(f, 0),
             with_mark(zip2(p, f, |p, f| p / f), 2, s.size == TARGET_SIZE, |r| {
                 r <= TARGET_POISSON_OVER_FC
-            })
+            }),
+            num(r, 0),
+            num(zip2(r, p, |r, p| r / p), 2),
         );
     }
 

@@ -248,6 +248,7 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
     while let Some(id) = inner.jobs.pop() {
         process(&inner, id);
         inner.jobs.busy.fetch_sub(1, Ordering::SeqCst);
+        super::util::release_free_heap();
     }
 }
 

@@ -53,6 +53,7 @@ pub use config::{Config, LogFormat, ServeArgs};
 pub use error::{ApiError, Problem};
 pub use health::{HealthcheckArgs, healthcheck};
 pub use upload::{parse_options, unpack_archive};
+pub use util::release_free_heap;
 
 use blobs::{BlobStore, LocalStore, MANIFEST_FILE};
 use jobs::JobQueue;
