@@ -562,6 +562,8 @@ impl Server {
         config.max_images = config.max_images.max(args.lights);
         let largest = sets.iter().map(|s| s.size).max().unwrap_or(0) as u64;
         config.max_pixels = config.max_pixels.max(largest * largest);
+        config.max_job_pixels = (config.max_job_pixels).max(largest * largest * args.lights as u64);
+        config.max_body_bytes = u64::MAX;
         let workers = config.workers;
         let (addr, stop, task) = rt.block_on(async {
             let state = AppState::open(config)

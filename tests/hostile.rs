@@ -372,6 +372,49 @@ async fn image_headers_claiming_huge_sizes_are_refused_before_decoding() {
     nothing_accepted(&s).await;
 }
 
+/// The job's pixels, all images together, are bounded as well as each image's: the image
+/// that crosses the bound is refused by name before the rest of the body is read.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sets_over_the_job_pixel_limit_are_refused_at_the_image_that_crosses_it() {
+    let dir = tempfile::tempdir().unwrap();
+    // Three 16×16 images are 768 pixels; two are 512.
+    let flags: Vec<&str> = (FLAGS.iter().copied())
+        .chain(["--max-job-pixels", "700"])
+        .collect();
+    let s = BinServer::start(dir.path(), &flags);
+    let detail = [
+        "\"c.png\"",
+        "3 images",
+        "768 pixels",
+        "limit of 700 pixels per job",
+    ];
+    refused(
+        &s,
+        "three images",
+        three_pngs(Part::text(TABLE3)),
+        413,
+        &detail,
+    )
+    .await;
+    let zip = common::zip_entries(&[
+        ("a.png", &png(16, 16, 1)),
+        ("b.png", &png(16, 16, 2)),
+        ("c.png", &png(16, 16, 3)),
+        ("light_directions.csv", TABLE3.as_bytes()),
+    ]);
+    refused(&s, "three images in a zip", archive_form(zip), 413, &detail).await;
+    nothing_accepted(&s).await;
+
+    // 600 pixels in all: accepted, and the job runs.
+    let small = Form::new()
+        .text("lights", TABLE3)
+        .part("images", Part::bytes(png(10, 20, 60)).file_name("a.png"))
+        .part("images", Part::bytes(png(10, 20, 100)).file_name("b.png"))
+        .part("images", Part::bytes(png(10, 20, 140)).file_name("c.png"));
+    let r = submit(&s, "600 pixels", small).await;
+    assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
+}
+
 /// POST a form whose images are only decoded by the job (after the 202): the job must fail
 /// with a 422 problem naming every needle, and the server must be alive and lean.
 async fn job_fails(s: &BinServer, case: &str, form: Form, needles: &[&str]) {

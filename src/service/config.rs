@@ -43,7 +43,7 @@ pub struct ServeArgs {
     pub queue_length: usize,
 
     /// Largest request body accepted (413 past it).
-    #[arg(long, env = "PHOTOSTEREO_MAX_BODY_BYTES", default_value = "1GiB", value_parser = parse_size)]
+    #[arg(long, env = "PHOTOSTEREO_MAX_BODY_BYTES", default_value = "2GiB", value_parser = parse_size)]
     pub max_body_bytes: u64,
 
     /// Most images in one job (413 past it).
@@ -51,8 +51,17 @@ pub struct ServeArgs {
     pub max_images: usize,
 
     /// Most pixels in one image, width × height (413 past it).
-    #[arg(long, env = "PHOTOSTEREO_MAX_PIXELS", default_value_t = 16_777_216)]
+    #[arg(long, env = "PHOTOSTEREO_MAX_PIXELS", default_value_t = 33_554_432)]
     pub max_pixels: u64,
+
+    /// Most pixels in one job, all its images together (413 past it): a job holds its
+    /// images as 16-bit planes, so this bounds that memory at 2 bytes per pixel.
+    #[arg(
+        long,
+        env = "PHOTOSTEREO_MAX_JOB_PIXELS",
+        default_value_t = 1_073_741_824
+    )]
+    pub max_job_pixels: u64,
 
     /// Most parts in one multipart upload, and most entries in one zip archive (413 past
     /// it).
@@ -122,6 +131,7 @@ pub struct Config {
     pub max_body_bytes: u64,
     pub max_images: usize,
     pub max_pixels: u64,
+    pub max_job_pixels: u64,
     pub max_parts: usize,
     pub max_unpacked_bytes: u64,
     pub retention: Duration,
@@ -154,9 +164,10 @@ impl Config {
             data_dir: data_dir.into(),
             workers,
             queue_length: 64,
-            max_body_bytes: 1 << 30,
+            max_body_bytes: 2 << 30,
             max_images: 64,
-            max_pixels: 16_777_216,
+            max_pixels: 33_554_432,
+            max_job_pixels: 1 << 30,
             max_parts: 256,
             max_unpacked_bytes: 2 << 30,
             retention: Duration::from_secs(7 * 86_400),
@@ -198,6 +209,7 @@ impl From<&ServeArgs> for Config {
         c.max_body_bytes = a.max_body_bytes;
         c.max_images = a.max_images;
         c.max_pixels = a.max_pixels;
+        c.max_job_pixels = a.max_job_pixels;
         c.max_parts = a.max_parts;
         c.max_unpacked_bytes = a.max_unpacked_bytes;
         c.retention = a.retention;
@@ -239,6 +251,7 @@ mod tests {
         assert_eq!(c.data_dir, d.data_dir);
         assert_eq!(c.max_body_bytes, d.max_body_bytes);
         assert_eq!(c.max_pixels, d.max_pixels);
+        assert_eq!(c.max_job_pixels, d.max_job_pixels);
         assert_eq!(c.retention, d.retention);
         assert_eq!(c.job_timeout, d.job_timeout);
         assert_eq!(c.upload_timeout, d.upload_timeout);

@@ -265,7 +265,7 @@ async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
         (status = 400, description = "Not multipart, or parts missing, repeated or unknown", body = Problem, content_type = "application/problem+json"),
         (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
         (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
-        (status = 413, description = "Body, image, part count, image count or archive over a limit", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body, image, part count, image count, the set's pixels or archive over a limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "An image (or archive) in an unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid light table, options, names, sizes or archive layout", body = Problem, content_type = "application/problem+json"),
         (status = 503, description = "The queue is full, the most uploads at once are under way, or the service is stopping: retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",

@@ -211,6 +211,7 @@ pub async fn receive(
                     stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
+                check_job_pixels(&parts.images, &name, width, height, config.max_job_pixels)?;
                 if let Some(p) = prefetch {
                     p.start(file.clone(), name.clone(), written);
                 }
@@ -611,6 +612,31 @@ fn probe_image(
     Ok((w, h, depth))
 }
 
+/// Refuse image `name`, of `width`×`height`, when it would take the job past `limit` pixels, with
+/// the images already received. Checked as each image arrives, so an oversized set is
+/// refused before the rest of its body is read.
+fn check_job_pixels(
+    received: &[StoredImage],
+    name: &str,
+    width: u32,
+    height: u32,
+    limit: u64,
+) -> Result<(), InputError> {
+    let area = |w: u32, h: u32| u64::from(w) * u64::from(h);
+    let pixels = (received.iter())
+        .map(|i| area(i.width, i.height))
+        .fold(area(width, height), u64::saturating_add);
+    if pixels > limit {
+        return Err(InputError::TooManyPixels {
+            name: name.into(),
+            count: received.len() + 1,
+            pixels,
+            limit,
+        });
+    }
+    Ok(())
+}
+
 /// Pair the table's rows with the uploaded images, in table order.
 fn check_names<'a>(
     lights: &[Light],
@@ -693,6 +719,7 @@ struct ArchiveLimits {
     max_unpacked: u64,
     max_images: usize,
     max_pixels: u64,
+    max_job_pixels: u64,
 }
 
 impl From<&Config> for ArchiveLimits {
@@ -702,6 +729,7 @@ impl From<&Config> for ArchiveLimits {
             max_unpacked: c.max_unpacked_bytes,
             max_images: c.max_images,
             max_pixels: c.max_pixels,
+            max_job_pixels: c.max_job_pixels,
         }
     }
 }
@@ -873,6 +901,7 @@ fn extract_archive(
         out.flush()?;
         drop(out);
         let (width, height, depth) = probe_image(&target, &name, &head, limits.max_pixels)?;
+        check_job_pixels(&images, &name, width, height, limits.max_job_pixels)?;
         images.push(StoredImage {
             name,
             file,
@@ -930,6 +959,7 @@ mod tests {
             max_unpacked: 1 << 20,
             max_images: 8,
             max_pixels: 1 << 20,
+            max_job_pixels: 1 << 22,
         }
     }
 
