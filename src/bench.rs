@@ -25,7 +25,7 @@ use tokio::net::{TcpListener, TcpStream};
 /// Time, memory and HTTP figures on synthetic data sets (see the README's Performance).
 #[derive(Debug, Args)]
 pub struct BenchArgs {
-    /// Square image sizes in pixels, comma-separated (up to 4096).
+    /// Square image sizes in pixels, comma-separated (up to 8192; 5120² is a 26-megapixel camera).
     #[arg(long, value_delimiter = ',', default_value = "512,1024,2048")]
     pub sizes: Vec<usize>,
     /// Lights (= 16-bit PNG images) per data set.
@@ -174,8 +174,8 @@ fn check_args(args: &BenchArgs) -> anyhow::Result<()> {
     ensure!(!args.sizes.is_empty(), "--sizes needs at least one size");
     for &s in &args.sizes {
         ensure!(
-            (32..=4096).contains(&s),
-            "--sizes: {s} is outside 32..=4096"
+            (32..=8192).contains(&s),
+            "--sizes: {s} is outside 32..=8192"
         );
     }
     let mut seen = args.sizes.clone();
