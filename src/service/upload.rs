@@ -612,9 +612,9 @@ fn probe_image(
     Ok((w, h, depth))
 }
 
-/// Refuse image `name`, of `width`×`height`, when it would take the job past `limit` pixels, with
-/// the images already received. Checked as each image arrives, so an oversized set is
-/// refused before the rest of its body is read.
+/// Refuse image `name`, of `width`×`height`, when with the images already received it
+/// would take the job past `limit` pixels. Checked as each image arrives, so an oversized
+/// set is refused before the rest of its body is read.
 fn check_job_pixels(
     received: &[StoredImage],
     name: &str,
