@@ -825,3 +825,38 @@ fn pcg_error_by_iteration() {
         }
     }
 }
+
+#[test]
+fn robust_poisson_stops_re_weighting_once_heights_settle() {
+    let (n, rad) = (128, 40.0);
+    let s = hemisphere(63.5, 63.5, rad);
+    let mask = disc(n, n, 63.5, 63.5, 0.95 * rad);
+    let (p, mut q) = gradients(&normals_of(&s, &mask), &mask);
+    let m = contiguous(mask.view());
+    let solve = |p: &Array2<f32>, q: &Array2<f32>, settled: f32| {
+        let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+        irls(&ps, &qs, &m, n, n, None, settled, NEVER)
+    };
+    // A smooth surface: the first rounds settle it, and stopping there leaves the heights
+    // of all rounds to within the bound.
+    let (early, rounds) = solve(&p, &q, SETTLED);
+    let (all, every) = solve(&p, &q, -1.0);
+    assert_eq!(every, IRLS_ROUNDS);
+    assert!(
+        rounds < IRLS_ROUNDS,
+        "smooth surface ran all {rounds} rounds"
+    );
+    let apart = largest_change(&early, &all, &m);
+    eprintln!("hemisphere: stopped after {rounds} rounds, {apart:.5} px from all rounds");
+    assert!(apart <= SETTLED, "{apart} px from running every round");
+
+    // A band of wrong normals (a ridge the gradients invent): its edges are let go round
+    // after round, and the heights keep moving, so every round runs.
+    for r in 50..78 {
+        for c in 60..64 {
+            q[[r, c]] += 3.0;
+        }
+    }
+    let (_, rounds) = solve(&p, &q, SETTLED);
+    assert_eq!(rounds, IRLS_ROUNDS, "a surface still moving stopped early");
+}
