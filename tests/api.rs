@@ -885,6 +885,17 @@ async fn delete_cancels_running_and_queued_jobs_then_removes_them() {
     })
     .await;
 
+    // The queued job first: once the running one is cancelled, the worker is free to start
+    // whatever is still queued (a CI run once saw it start in between the two requests).
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/jobs/{queued}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.json::<Value>().await.unwrap()["status"], "cancelled");
+
     let r = s
         .client
         .delete(s.url(&format!("/v1/jobs/{running}")))
@@ -895,15 +906,6 @@ async fn delete_cancels_running_and_queued_jobs_then_removes_them() {
     let job: Value = r.json().await.unwrap();
     assert_eq!(job["status"], "cancelled");
     assert!(job["finished_at"].is_string());
-
-    let r = s
-        .client
-        .delete(s.url(&format!("/v1/jobs/{queued}")))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
-    assert_eq!(r.json::<Value>().await.unwrap()["status"], "cancelled");
 
     // The worker lets go of the running job at its next stage; nothing runs afterwards.
     let start = std::time::Instant::now();
