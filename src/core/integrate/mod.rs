@@ -365,9 +365,7 @@ fn irls(
                 .collect()
         };
         (wx, wy) = (reweight(&bx, &gx, 1), reweight(&by, &gy, w));
-        previous.resize(z.len(), 0.0);
-        (previous.par_chunks_mut(CHUNK).zip(z.par_chunks(CHUNK)))
-            .for_each(|(p, z)| p.copy_from_slice(z));
+        previous.clone_from(&z);
         start = Some(z);
     }
 }
