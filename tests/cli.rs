@@ -167,6 +167,43 @@ fn render_reproduces_the_committed_res_sets() {
     }
 }
 
+/// The bench end to end on tiny sets: every table, a row per size, the HTTP columns, the
+/// job in its own process (a child `photostereo reconstruct`, which must succeed), and
+/// nothing left in its temporary directory.
+#[test]
+fn bench_prints_its_tables_and_cleans_up() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = bin()
+        .args([
+            "bench", "--sizes", "32,64", "--lights", "4", "--runs", "1", "--http",
+        ])
+        .arg("--tmp-dir")
+        .arg(tmp.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for needle in [
+        "### Time (medians)",
+        "### Memory (largest over the runs)",
+        "own process: peak RSS MB",
+        "### Where the full job's time goes",
+        "### Integration alone",
+        "### Targets",
+        "| 32² × 4 |",
+        "| 64² × 4 |",
+        "HTTP / core",
+    ] {
+        assert!(stdout.contains(needle), "no {needle:?} in\n{stdout}");
+    }
+    let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}
+
 #[test]
 fn bad_input_fails_with_a_message_naming_the_problem() {
     let dir = tempfile::tempdir().unwrap();
