@@ -1448,28 +1448,28 @@ fn tables(
         " ×",
         t_ratio.is_some_and(|r| r <= TARGET_FULL_OVER_DECODE),
     );
-    let t_peak = target
-        .filter(|s| s.lights == 24)
-        .and_then(|s| max_of(&s.peak_bytes))
-        .map(|b| b / MB);
-    line(
-        &format!("peak RSS ≤ {TARGET_PEAK_MB:.0} MB at 2048² × 24"),
-        t_peak,
-        0,
-        " MB",
-        t_peak.is_some_and(|p| p <= TARGET_PEAK_MB),
-    );
-    let t_alone = target
-        .filter(|s| s.lights == 24)
-        .and_then(|s| max_of(&s.alone_peak_bytes))
-        .map(|b| b / MB);
-    line(
-        &format!("peak RSS ≤ {TARGET_PEAK_MB:.0} MB at 2048² × 24, the job in its own process"),
-        t_alone,
-        0,
-        " MB",
-        t_alone.is_some_and(|p| p <= TARGET_PEAK_MB),
-    );
+    for (peaks, whose) in [
+        (
+            (|s: &SizeResult| &s.peak_bytes) as fn(&SizeResult) -> &Vec<f64>,
+            "",
+        ),
+        (
+            |s: &SizeResult| &s.alone_peak_bytes,
+            ", the job in its own process",
+        ),
+    ] {
+        let peak = target
+            .filter(|s| s.lights == 24)
+            .and_then(|s| max_of(peaks(s)))
+            .map(|b| b / MB);
+        line(
+            &format!("peak RSS ≤ {TARGET_PEAK_MB:.0} MB at 2048² × 24{whose}"),
+            peak,
+            0,
+            " MB",
+            peak.is_some_and(|p| p <= TARGET_PEAK_MB),
+        );
+    }
     for s in sets.iter().filter(|_| args.http) {
         let r = zip2(median(&s.http_ms), median(&s.full_ms), |h, c| h / c);
         line(
