@@ -1177,6 +1177,20 @@ async fn served_openapi_document_is_the_checked_in_one() {
             "{schema} missing"
         );
     }
+    // Artifact names are enums from the code's one list, so clients generated from the
+    // spec know them all (the download route's description once missed two).
+    let names: Vec<&str> = ARTIFACTS.iter().map(|(n, _)| *n).collect();
+    let download = &doc["paths"]["/v1/jobs/{id}/artifacts/{name}"]["get"]["parameters"];
+    let name = (download.as_array().unwrap().iter())
+        .find(|p| p["name"] == "name")
+        .unwrap();
+    assert_eq!(name["schema"]["enum"], serde_json::json!(names));
+    let mut selectable = names.clone();
+    selectable.push(outputs::ALL);
+    assert_eq!(
+        doc["components"]["schemas"]["Options"]["properties"]["outputs"]["items"]["enum"],
+        serde_json::json!(selectable)
+    );
     let file = repo_root().join("openapi/openapi.json");
     if std::env::var_os("UPDATE_OPENAPI").is_some_and(|v| v == "1") {
         std::fs::create_dir_all(file.parent().unwrap()).unwrap();

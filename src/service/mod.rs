@@ -484,7 +484,8 @@ fn operations_routes() -> OpenApiRouter<AppState> {
 pub fn openapi_json() -> String {
     static DOC: OnceLock<String> = OnceLock::new();
     DOC.get_or_init(|| {
-        let doc = api_routes().merge(operations_routes()).into_openapi();
+        let mut doc = api_routes().merge(operations_routes()).into_openapi();
+        openapi::name_artifacts(&mut doc);
         let mut text = doc
             .to_pretty_json()
             .expect("the OpenAPI document serialises");

@@ -1,8 +1,13 @@
 //! The OpenAPI document: paths come from the handlers' `#[utoipa::path]`, collected by
-//! `utoipa_axum`'s router; this adds the info, tags, shared schemas and the bearer scheme.
+//! `utoipa_axum`'s router; this adds the info, tags, shared schemas, the bearer scheme and
+//! the artifact names.
 
+use utoipa::openapi::schema::{ArrayItems, Object, Schema, Type};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+use utoipa::openapi::{ObjectBuilder, RefOr};
 use utoipa::{Modify, OpenApi};
+
+use crate::core::outputs::{ALL, ARTIFACTS};
 
 use super::error::Problem;
 use super::repo::JobStatus;
@@ -42,5 +47,40 @@ impl Modify for BearerScheme {
                 ),
             );
         }
+    }
+}
+
+/// Artifact names as enums, from [`ARTIFACTS`] (one list for the code and the spec): the
+/// download route's `name` and the items of `Options.outputs` (which also take `"all"`).
+/// Applied to the whole document, after the routes' paths are merged into it.
+pub(super) fn name_artifacts(doc: &mut utoipa::openapi::OpenApi) {
+    let names = || ARTIFACTS.iter().map(|(n, _)| *n);
+    let strings = |names: Vec<&str>| -> RefOr<Schema> {
+        ObjectBuilder::new()
+            .schema_type(Type::String)
+            .enum_values(Some(names))
+            .into()
+    };
+    let download = doc
+        .paths
+        .paths
+        .get_mut("/v1/jobs/{id}/artifacts/{name}")
+        .and_then(|p| p.get.as_mut())
+        .and_then(|op| op.parameters.as_mut());
+    for p in download.into_iter().flatten() {
+        if let RefOr::T(p) = p
+            && p.name == "name"
+        {
+            p.schema = Some(strings(names().collect()));
+        }
+    }
+    let options = doc
+        .components
+        .as_mut()
+        .and_then(|c| c.schemas.get_mut("Options"));
+    if let Some(RefOr::T(Schema::Object(Object { properties, .. }))) = options
+        && let Some(RefOr::T(Schema::Array(outputs))) = properties.get_mut("outputs")
+    {
+        outputs.items = ArrayItems::RefOrSchema(Box::new(strings(names().chain([ALL]).collect())));
     }
 }

@@ -539,7 +539,7 @@ pub async fn delete_job(
     tag = "jobs",
     params(
         ("id" = Uuid, Path, description = "Job id"),
-        ("name" = String, Path, description = "Artifact name: albedo.png, albedo_rgb.png, mask.png, normal.png, normal_x.png, normal_y.png, normal_z.png, height.png, normal.exr, height.exr, needle.png, curl.png, shaded.png, preview.png, mesh.glb, mesh.gltf or result.json"),
+        ("name" = String, Path, description = "Artifact name (the job's `artifacts` list those it produced)"),
         ArtifactQuery,
         ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
     ),
