@@ -79,13 +79,8 @@ struct ReconstructArgs {
     #[arg(long, value_parser = kebab::<Integration>)]
     integration: Option<Integration>,
     /// Light for shaded.png, as x,y,z (default 1,2,3).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        num_args = 3,
-        allow_negative_numbers = true
-    )]
-    light: Option<Vec<f64>>,
+    #[arg(long, value_parser = xyz, allow_hyphen_values = true)]
+    light: Option<[f64; 3]>,
     /// Write these artifacts (comma-separated names, e.g. albedo.png,mesh.glb, or `all`)
     /// instead of the default set (albedo, mask, normal, height, confidence and shaded
     /// PNGs, mesh.glb, result.json).
@@ -116,6 +111,16 @@ fn kebab<T: DeserializeOwned>(s: &str) -> Result<T, String> {
     serde_json::from_value(serde_json::Value::String(s.to_string())).map_err(|e| e.to_string())
 }
 
+/// `x,y,z`: three numbers separated by commas.
+fn xyz(s: &str) -> Result<[f64; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts[..] else {
+        return Err(format!("expected x,y,z (three numbers), got {s:?}"));
+    };
+    let num = |v: &str| v.parse::<f64>().map_err(|e| format!("{v:?}: {e}"));
+    Ok([num(x)?, num(y)?, num(z)?])
+}
+
 impl ReconstructArgs {
     fn options(&self) -> anyhow::Result<Options> {
         let mut o: Options = match &self.options {
@@ -132,8 +137,8 @@ impl ReconstructArgs {
         }
         set!(solver => solver, mask => mask, integration => integration, max_condition => max_condition,
              height_scale => mesh.height_scale, mesh_max_vertices => mesh.max_vertices, mesh_normals => mesh.normals);
-        if let Some(l) = &self.light {
-            o.shading_light = [l[0], l[1], l[2]];
+        if let Some(l) = self.light {
+            o.shading_light = l;
         }
         if self.outputs.is_some() {
             o.outputs = self.outputs.clone();
@@ -144,6 +149,7 @@ impl ReconstructArgs {
         if self.pixel_size.is_some() {
             o.mesh.pixel_size = self.pixel_size;
         }
+        o.check_values()?;
         Ok(o)
     }
 }

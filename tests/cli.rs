@@ -204,6 +204,40 @@ fn bench_prints_its_tables_and_cleans_up() {
     assert!(left.is_empty(), "left behind: {left:?}");
 }
 
+/// `--light x,y,z` as the help and README write it: the default light gives the default
+/// picture, another light (negative components too) another one, and lights that cannot
+/// shade are refused by name.
+#[test]
+fn light_flag_takes_x_y_z() {
+    let bump = Path::new(env!("CARGO_MANIFEST_DIR")).join("res/bump");
+    let shaded = |extra: &[&str]| {
+        let mut args = vec!["--outputs", "shaded.png"];
+        args.extend_from_slice(extra);
+        let (out, _) = reconstruct(&bump, &args);
+        std::fs::read(out.path().join("shaded.png")).unwrap()
+    };
+    let default = shaded(&[]);
+    assert_eq!(shaded(&["--light", "1,2,3"]), default);
+    assert_ne!(shaded(&["--light", "-1,0.5,2"]), default);
+    for (light, said) in [
+        ("0,0,0", "shading_light"),
+        ("1,2", "x,y,z"),
+        ("1,2,z", "\"z\""),
+    ] {
+        let out = bin()
+            .arg("reconstruct")
+            .arg(&bump)
+            .args(["--out", "/tmp/never", "--light", light])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(said),
+            "{light}: {err}"
+        );
+    }
+}
+
 #[test]
 fn bad_input_fails_with_a_message_naming_the_problem() {
     let dir = tempfile::tempdir().unwrap();

@@ -44,7 +44,9 @@ pub enum InputError {
     },
     #[error("image {name:?} cannot be decoded: {reason}")]
     Decode { name: String, reason: String },
-    #[error("image {name:?} is not a supported image format (PNG, BMP, JPEG, TIFF): {reason}")]
+    #[error(
+        "image {name:?} is not a supported image format (PNG, BMP, JPEG, TIFF, OpenEXR): {reason}"
+    )]
     UnsupportedFormat { name: String, reason: String },
     #[error(
         "image {name:?} is {width}×{height} = {pixels} pixels, over the limit of {limit} pixels per image"

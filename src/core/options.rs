@@ -3,6 +3,8 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use super::InputError;
+
 /// How albedo·normal is solved per pixel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
 #[serde(rename_all = "kebab-case")]
@@ -25,7 +27,7 @@ pub enum MaskMode {
     /// Threshold the albedo at a level chosen from its histogram, then fill holes.
     #[default]
     Auto,
-    /// Every pixel is object.
+    /// Every pixel of non-zero albedo is object.
     None,
     /// The caller's mask image (non-zero = object); an error if none was supplied.
     Given,
@@ -119,6 +121,33 @@ impl Default for Options {
             max_condition: DEFAULT_MAX_CONDITION,
             outputs: None,
         }
+    }
+}
+
+impl Options {
+    /// Values JSON (or a flag) can carry but a reconstruction cannot use, refused before a
+    /// job starts: a zero or non-finite shading light would shade with NaN, a
+    /// `height_scale` past the f32 range would even be stored as `null`.
+    pub fn check_values(&self) -> Result<(), InputError> {
+        let bad = |why: String| Err(InputError::Options(why));
+        let l = self.shading_light;
+        let norm = l.iter().map(|c| c * c).sum::<f64>().sqrt();
+        if !(norm.is_finite() && norm > 0.0) {
+            return bad(format!(
+                "field `shading_light` must be three finite numbers, not all zero (and not huge), got {l:?}"
+            ));
+        }
+        if !self.mesh.height_scale.is_finite() {
+            return bad("field `mesh`: height_scale must be a finite number within ±3.4e38".into());
+        }
+        if let Some(p) = self.mesh.pixel_size
+            && !(p.is_finite() && p > 0.0)
+        {
+            return bad(format!(
+                "field `mesh`: pixel_size must be a positive number of metres, got {p}"
+            ));
+        }
+        Ok(())
     }
 }
 

@@ -136,7 +136,7 @@ pub struct JobUpload {
     archive: Option<Vec<u8>>,
 }
 
-/// An image file: PNG, BMP, JPEG, TIFF or OpenEXR, 8 or 16 bits, gray or colour.
+/// An image file: PNG, BMP, JPEG or TIFF (8 or 16 bits) or OpenEXR (32-bit float), gray or colour.
 #[derive(ToSchema)]
 #[schema(value_type = String, content_media_type = "application/octet-stream")]
 #[allow(dead_code)]

@@ -405,34 +405,8 @@ pub fn parse_options(bytes: &[u8]) -> Result<Options, ApiError> {
     if let Some(names) = &options.outputs {
         outputs::check_selection(names)?;
     }
-    check_option_values(&options)?;
+    options.check_values()?;
     Ok(options)
-}
-
-/// Values JSON can carry but a reconstruction cannot use: refused now rather than in the
-/// job (a `height_scale` past the f32 range would even be stored as `null`).
-fn check_option_values(o: &Options) -> Result<(), ApiError> {
-    let bad = |why: String| ApiError::from(InputError::Options(why));
-    let l = o.shading_light;
-    let norm = l.iter().map(|c| c * c).sum::<f64>().sqrt();
-    if !(norm.is_finite() && norm > 0.0) {
-        return Err(bad(format!(
-            "field `shading_light` must be three finite numbers, not all zero (and not huge), got {l:?}"
-        )));
-    }
-    if !o.mesh.height_scale.is_finite() {
-        return Err(bad(
-            "field `mesh`: height_scale must be a finite number within ±3.4e38".into(),
-        ));
-    }
-    if let Some(p) = o.mesh.pixel_size
-        && !(p.is_finite() && p > 0.0)
-    {
-        return Err(bad(format!(
-            "field `mesh`: pixel_size must be a positive number of metres, got {p}"
-        )));
-    }
-    Ok(())
 }
 
 /// serde's message, prefixed with the top-level field that fails on its own.
