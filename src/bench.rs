@@ -1448,20 +1448,15 @@ fn tables(
         " ×",
         t_ratio.is_some_and(|r| r <= TARGET_FULL_OVER_DECODE),
     );
+    let at_target = target.filter(|s| s.lights == 24);
     for (peaks, whose) in [
+        (at_target.map(|s| &s.peak_bytes), ""),
         (
-            (|s: &SizeResult| &s.peak_bytes) as fn(&SizeResult) -> &Vec<f64>,
-            "",
-        ),
-        (
-            |s: &SizeResult| &s.alone_peak_bytes,
+            at_target.map(|s| &s.alone_peak_bytes),
             ", the job in its own process",
         ),
     ] {
-        let peak = target
-            .filter(|s| s.lights == 24)
-            .and_then(|s| max_of(peaks(s)))
-            .map(|b| b / MB);
+        let peak = peaks.and_then(|p| max_of(p)).map(|b| b / MB);
         line(
             &format!("peak RSS ≤ {TARGET_PEAK_MB:.0} MB at 2048² × 24{whose}"),
             peak,
