@@ -422,7 +422,7 @@ fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow
 struct Job {
     decode_ms: f64,
     full_ms: f64,
-    report: pipeline::Report,
+    report: photostereo::core::reconstruction::Report,
     /// VmHWM over the job and VmRSS before it (bytes), when the peak could be reset.
     peak: Option<f64>,
     base: Option<f64>,
@@ -437,7 +437,7 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
     let decoded = intake::load_dir(&set.dir, None, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_ms = ms(start.elapsed());
-    let report = pipeline::run(decoded, opts, out, &mut pipeline::RunToEnd)
+    let report = pipeline::run(decoded, opts, out, &mut photostereo::core::RunToEnd)
         .with_context(|| format!("reconstructing the {}² set", set.size))?;
     let full_ms = ms(start.elapsed());
     let peak = status_bytes("VmHWM").filter(|_| reset);

@@ -159,10 +159,15 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let start = std::time::Instant::now();
     let set = intake::load_dir(&args.dir, args.mask_file.as_deref(), &Limits::default())?;
     let decoded = start.elapsed();
-    let report = pipeline::run(set, &opts, &args.out, &mut |stage: pipeline::Stage| {
-        eprintln!("  {}", stage.as_str());
-        true
-    })?;
+    let report = pipeline::run(
+        set,
+        &opts,
+        &args.out,
+        &mut |stage: photostereo::core::progress::Stage| {
+            eprintln!("  {}", stage.as_str());
+            true
+        },
+    )?;
     eprintln!(
         "{}×{} from {} images: decode {:.0} ms, total {:.0} ms; heights {:.2}..{:.2} px, reprojection RMS {:.4}, integrability RMS {:.4}",
         report.width,
@@ -209,7 +214,7 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
                 integration,
                 ..Options::default()
             };
-            let rec = pipeline::reconstruct(&set, &opts, &mut pipeline::RunToEnd)?;
+            let rec = pipeline::reconstruct(&set, &opts, &mut photostereo::core::RunToEnd)?;
             let acc = metrics::accuracy(&rec, &truth, &truth.mask);
             let solve_ms = rec
                 .report

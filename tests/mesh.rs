@@ -8,8 +8,8 @@ use std::process::Command;
 use ndarray::{Array2, Array3};
 use photostereo::core::mesh::{self, MeshError};
 use photostereo::core::options::{MeshNormals, MeshOptions};
-use photostereo::core::pipeline::{Reconstruction, Report};
 use photostereo::core::preview::preview;
+use photostereo::core::reconstruction::{Reconstruction, Report};
 use serde_json::Value;
 
 /// A reconstruction from a per-pixel surface: `Some((height, normal))` on the mask, the

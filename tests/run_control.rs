@@ -7,8 +7,10 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use photostereo::core::Options;
+use photostereo::core::RunError;
 use photostereo::core::intake::{self, ImageSet, Limits};
-use photostereo::core::pipeline::{self, Progress, RunError, Stage};
+use photostereo::core::pipeline;
+use photostereo::core::progress::{Progress, Stage};
 
 fn bump() -> ImageSet {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR"))

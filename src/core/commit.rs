@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::thread::JoinHandle;
 
+use super::error::RunError;
 use super::outputs::WriteSeek;
-use super::pipeline::RunError;
 
 /// Write `bytes` to `dir/name` (see the module docs), on this thread.
 pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError> {

@@ -132,3 +132,17 @@ mod tests {
         assert_eq!(panic_message(&*other), "no message");
     }
 }
+
+/// Why a run stopped without a result.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The inputs or options cannot be reconstructed (the caller's fault).
+    #[error(transparent)]
+    Input(#[from] InputError),
+    /// The progress callback asked to stop.
+    #[error("cancelled")]
+    Cancelled,
+    /// Writing an output failed (the machine's fault: disk full, permissions).
+    #[error("writing {path}: {reason}")]
+    Output { path: String, reason: String },
+}

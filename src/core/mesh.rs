@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use serde_json::Value;
 
 use super::options::{MeshNormals, MeshOptions};
-use super::pipeline::Reconstruction;
+use super::reconstruction::Reconstruction;
 
 /// Largest texture side; larger albedo maps are downscaled (many GPUs stop at 4096).
 const MAX_TEXTURE_SIDE: usize = 4096;

@@ -3,7 +3,7 @@
 use ndarray::Array2;
 use serde::Serialize;
 
-use super::pipeline::Reconstruction;
+use super::reconstruction::Reconstruction;
 use super::synth::Truth;
 
 /// Errors of one reconstruction over a region.

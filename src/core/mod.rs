@@ -20,14 +20,18 @@ pub mod options;
 pub mod outputs;
 pub mod pipeline;
 pub mod preview;
+pub mod progress;
+pub mod reconstruction;
 pub mod render;
 pub mod robust;
 pub mod solve;
 pub mod synth;
 
-pub use error::InputError;
+pub use error::{InputError, RunError};
 pub use options::Options;
-pub use pipeline::{Reconstruction, RunToEnd, reconstruct};
+pub use pipeline::reconstruct;
+pub use progress::RunToEnd;
+pub use reconstruction::Reconstruction;
 
 /// The elements of `a` as one slice in logical (row-major) order: borrowed when the array
 /// is in standard layout, copied once otherwise, so hot loops can run over plain slices.

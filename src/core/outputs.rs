@@ -13,7 +13,9 @@ use rayon::prelude::*;
 
 use super::InputError;
 use super::commit::Committer;
-use super::pipeline::{Halt, Reconstruction, RunError};
+use super::error::RunError;
+use super::progress::Halt;
+use super::reconstruction::Reconstruction;
 use super::render;
 
 /// Every artifact a job can produce: file name and Content-Type.
@@ -466,7 +468,7 @@ pub fn decode_height_exr(bytes: &[u8]) -> exr::error::Result<Array2<f32>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::pipeline::NEVER;
+    use crate::core::progress::NEVER;
 
     #[test]
     fn unit16_rounds_like_f32_round() {

@@ -9,158 +9,18 @@ use std::time::Instant;
 
 use ndarray::{Array2, Array3, Zip};
 use rayon::prelude::*;
-use serde::Serialize;
 
 use super::InputError;
 use super::commit::{self, Committer};
+use super::error::RunError;
 use super::intake::ImageSet;
 use super::lights::{self, Light};
 use super::options::Options;
 use super::outputs::{self, Maps};
+use super::progress::{Halt, Progress, Stage};
+use super::reconstruction::{LightSummary, Reconstruction, Report, Timing};
 use super::solve::{self, Surface};
 use super::{integrate, mask, robust};
-
-/// Named stages, reported to a progress callback as they start.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Stage {
-    Decode,
-    Solve,
-    Mask,
-    Integrate,
-    Outputs,
-    Mesh,
-}
-
-impl Stage {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Stage::Decode => "decode",
-            Stage::Solve => "solve",
-            Stage::Mask => "mask",
-            Stage::Integrate => "integrate",
-            Stage::Outputs => "outputs",
-            Stage::Mesh => "mesh",
-        }
-    }
-}
-
-/// Everything recovered from one image set. Arrays are indexed `[row, col]`; the frame is
-/// the seed's: x = column (right), y = row (down), z towards the camera.
-#[derive(Debug, Clone)]
-pub struct Reconstruction {
-    pub width: usize,
-    pub height: usize,
-    pub lights: Vec<Light>,
-    /// Albedo in [0, 1] (clamped), 0 off the mask.
-    pub albedo: Array2<f32>,
-    /// Per-channel albedo `(rows, cols, 3)` when the inputs were colour.
-    pub albedo_rgb: Option<Array3<f32>>,
-    /// Unit normals `(rows, cols, 3)`, all zero off the mask.
-    pub normals: Array3<f32>,
-    pub mask: Array2<bool>,
-    /// Heights in pixel units; off the mask they equal the lowest height on it.
-    pub heights: Array2<f32>,
-    /// Integrability residual dp/dy − dq/dx, 0 off the mask.
-    pub curl: Array2<f32>,
-    /// Per-pixel RMS of (observed − re-rendered) intensity, 0 off the mask.
-    pub residual: Array2<f32>,
-    /// Per-pixel reliability in [0, 1], 0 off the mask.
-    pub confidence: Array2<f32>,
-    /// Mask pixels with fewer than 3 usable observations (their normals are a fallback).
-    pub unreliable: Array2<bool>,
-    pub report: Report,
-}
-
-/// The numbers that go into `result.json`.
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Report {
-    pub width: usize,
-    pub height: usize,
-    pub light_count: usize,
-    pub lights: Vec<LightSummary>,
-    pub options: Options,
-    pub light_condition_number: f64,
-    pub timings_ms: Vec<Timing>,
-    pub height_min: f32,
-    pub height_max: f32,
-    pub integrability_rms: f64,
-    pub reprojection_rms: f64,
-    pub clamped_albedo_pixels: usize,
-    pub background_pixels: usize,
-    pub object_pixels: usize,
-    /// Mean confidence over the mask.
-    pub confidence_mean: f64,
-    /// Mean number of observations kept per mask pixel.
-    pub inliers_mean: f64,
-    /// Mask pixels with fewer than 3 usable observations.
-    pub unreliable_pixels: usize,
-    /// Camera black level the robust solver estimated and removed.
-    pub black_level: Option<f32>,
-    /// Image noise σ the robust solver estimated.
-    pub noise_sigma: Option<f32>,
-    /// Names of the files written (filled in by [`run`]).
-    pub artifacts: Vec<String>,
-}
-
-#[derive(Debug, Clone, Serialize)]
-pub struct LightSummary {
-    pub name: String,
-    pub direction: [f64; 3],
-    pub intensity: f64,
-}
-
-/// Why a run stopped without a result.
-#[derive(Debug, thiserror::Error)]
-pub enum RunError {
-    /// The inputs or options cannot be reconstructed (the caller's fault).
-    #[error(transparent)]
-    Input(#[from] InputError),
-    /// The progress callback asked to stop.
-    #[error("cancelled")]
-    Cancelled,
-    /// Writing an output failed (the machine's fault: disk full, permissions).
-    #[error("writing {path}: {reason}")]
-    Output { path: String, reason: String },
-}
-
-/// How a run reports its stages and learns that it must stop.
-///
-/// `enter` is called as each stage starts; `halted` is polled inside the long stages
-/// (each row of the solve, each CG iteration and re-weighting round of the integration,
-/// each picture and mesh file), so that a cancelled or timed-out job frees its worker
-/// within one step of work instead of one stage. Work cut short is discarded: the run
-/// then ends `Cancelled`. Any `FnMut(Stage) -> bool + Sync`
-/// closure is a `Progress` that is only asked at stage starts.
-pub trait Progress: Sync {
-    /// A stage starts; `false` stops the run.
-    fn enter(&mut self, stage: Stage) -> bool;
-    /// Whether the run must stop now (from any thread).
-    fn halted(&self) -> bool {
-        false
-    }
-}
-
-impl<F: FnMut(Stage) -> bool + Sync> Progress for F {
-    fn enter(&mut self, stage: Stage) -> bool {
-        self(stage)
-    }
-}
-
-/// A [`Progress`] that reports nothing and never stops the run.
-pub struct RunToEnd;
-
-impl Progress for RunToEnd {
-    fn enter(&mut self, _: Stage) -> bool {
-        true
-    }
-}
-
-/// A polled stop request for the numeric stages below the pipeline.
-pub type Halt<'a> = &'a (dyn Fn() -> bool + Sync);
-
-/// A [`Halt`] that never stops.
-pub const NEVER: Halt<'static> = &|| false;
 
 /// Reconstruct albedo, normals, mask and heights from a decoded image set.
 pub fn reconstruct(
@@ -687,22 +547,6 @@ fn colour_albedo(
             }
         });
     out
-}
-
-/// Wall-clock time of one stage.
-#[derive(Debug, Clone, Serialize)]
-pub struct Timing {
-    pub stage: &'static str,
-    pub ms: f64,
-}
-
-impl Timing {
-    fn new(stage: Stage, start: Instant) -> Self {
-        Self {
-            stage: stage.as_str(),
-            ms: start.elapsed().as_secs_f64() * 1e3,
-        }
-    }
 }
 
 #[derive(Default)]

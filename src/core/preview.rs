@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::mesh;
 use super::options::{MeshNormals, MeshOptions};
-use super::pipeline::Reconstruction;
+use super::reconstruction::Reconstruction;
 
 /// Camera elevation above the image plane and turn about its normal, in degrees.
 const ELEVATION_DEG: f64 = 40.0;

@@ -17,7 +17,7 @@ use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 
 use super::intake::ImageSet;
-use super::pipeline::Halt;
+use super::progress::Halt;
 use super::solve::{invert3, render_observation};
 
 const SCALE: f32 = 1.0 / 65535.0;

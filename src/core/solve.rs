@@ -8,7 +8,7 @@ use rayon::prelude::*;
 
 use super::intake::ImageSet;
 use super::options::Solver;
-use super::pipeline::Halt;
+use super::progress::Halt;
 use super::robust::{self, CaptureEstimate};
 
 /// The raw per-pixel solution, before masking and clamping.
@@ -363,7 +363,7 @@ pub fn sym3_eigenvalues(m: &[[f64; 3]; 3]) -> [f64; 3] {
 mod tests {
     use super::*;
     use crate::core::lights::Light;
-    use crate::core::pipeline::NEVER;
+    use crate::core::progress::NEVER;
 
     fn set_from(lights: &[[f64; 3]], pixels: &[[f32; 3]], albedo: f32) -> ImageSet {
         let lights: Vec<Light> = lights

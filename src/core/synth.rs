@@ -9,9 +9,9 @@ use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
 use super::commit::write_atomic;
+use super::error::RunError;
 use super::intake::LIGHTS_FILE;
 use super::outputs::png_bytes_filtered;
-use super::pipeline::RunError;
 use image::codecs::png::FilterType;
 
 /// A surface with ground truth, sampled at pixel centres (x = column, y = row down).

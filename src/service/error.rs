@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use crate::core::InputError;
-use crate::core::pipeline::RunError;
+use crate::core::RunError;
 
 /// The media type of every error body.
 pub const PROBLEM_JSON: &str = "application/problem+json";

@@ -15,11 +15,14 @@ use std::time::{Duration, Instant};
 
 use uuid::Uuid;
 
+use crate::core::RunError;
 use crate::core::error::panic_message;
 use crate::core::intake::{self, NamedFile};
 use crate::core::lights;
 use crate::core::outputs::ARTIFACTS;
-use crate::core::pipeline::{self, Progress, Report, RunError, Stage};
+use crate::core::pipeline;
+use crate::core::progress::{Progress, Stage};
+use crate::core::reconstruction::Report;
 use crate::core::{InputError, Options};
 
 use super::Inner;

@@ -33,7 +33,7 @@ use self::multigrid::{MaskStencil, WeightStencil};
 use super::contiguous;
 use super::histogram::nth_nonnegative;
 use super::options::Integration;
-use super::pipeline::{Halt, NEVER};
+use super::progress::{Halt, NEVER};
 
 /// Smallest `nz` used when forming gradients. Grazing (or back-facing) normals would give
 /// unbounded slopes; clamping `nz ≥ 0.05` bounds `|p|, |q| ≤ √(1 − 0.05²)/0.05 ≈ 20`

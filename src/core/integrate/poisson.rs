@@ -19,7 +19,7 @@
 
 use super::fourier::transpose;
 use super::multigrid::{self, Hierarchy, Stencil};
-use crate::core::pipeline::Halt;
+use crate::core::progress::Halt;
 use rayon::prelude::*;
 use rustdct::TransformType2And3;
 use rustdct::algorithm::Type2And3ConvertToFft;

@@ -1,0 +1,91 @@
+//! What a run produces: the recovered maps and the numbers that go into `result.json`.
+
+use std::time::Instant;
+
+use ndarray::{Array2, Array3};
+use serde::Serialize;
+
+use super::lights::Light;
+use super::options::Options;
+use super::progress::Stage;
+
+/// Everything recovered from one image set. Arrays are indexed `[row, col]`; the frame is
+/// the seed's: x = column (right), y = row (down), z towards the camera.
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    pub width: usize,
+    pub height: usize,
+    pub lights: Vec<Light>,
+    /// Albedo in [0, 1] (clamped), 0 off the mask.
+    pub albedo: Array2<f32>,
+    /// Per-channel albedo `(rows, cols, 3)` when the inputs were colour.
+    pub albedo_rgb: Option<Array3<f32>>,
+    /// Unit normals `(rows, cols, 3)`, all zero off the mask.
+    pub normals: Array3<f32>,
+    pub mask: Array2<bool>,
+    /// Heights in pixel units; off the mask they equal the lowest height on it.
+    pub heights: Array2<f32>,
+    /// Integrability residual dp/dy − dq/dx, 0 off the mask.
+    pub curl: Array2<f32>,
+    /// Per-pixel RMS of (observed − re-rendered) intensity, 0 off the mask.
+    pub residual: Array2<f32>,
+    /// Per-pixel reliability in [0, 1], 0 off the mask.
+    pub confidence: Array2<f32>,
+    /// Mask pixels with fewer than 3 usable observations (their normals are a fallback).
+    pub unreliable: Array2<bool>,
+    pub report: Report,
+}
+
+/// The numbers that go into `result.json`.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Report {
+    pub width: usize,
+    pub height: usize,
+    pub light_count: usize,
+    pub lights: Vec<LightSummary>,
+    pub options: Options,
+    pub light_condition_number: f64,
+    pub timings_ms: Vec<Timing>,
+    pub height_min: f32,
+    pub height_max: f32,
+    pub integrability_rms: f64,
+    pub reprojection_rms: f64,
+    pub clamped_albedo_pixels: usize,
+    pub background_pixels: usize,
+    pub object_pixels: usize,
+    /// Mean confidence over the mask.
+    pub confidence_mean: f64,
+    /// Mean number of observations kept per mask pixel.
+    pub inliers_mean: f64,
+    /// Mask pixels with fewer than 3 usable observations.
+    pub unreliable_pixels: usize,
+    /// Camera black level the robust solver estimated and removed.
+    pub black_level: Option<f32>,
+    /// Image noise σ the robust solver estimated.
+    pub noise_sigma: Option<f32>,
+    /// Names of the files written (filled in by [`run`]).
+    pub artifacts: Vec<String>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LightSummary {
+    pub name: String,
+    pub direction: [f64; 3],
+    pub intensity: f64,
+}
+
+/// Wall-clock time of one stage.
+#[derive(Debug, Clone, Serialize)]
+pub struct Timing {
+    pub stage: &'static str,
+    pub ms: f64,
+}
+
+impl Timing {
+    pub(crate) fn new(stage: Stage, start: Instant) -> Self {
+        Self {
+            stage: stage.as_str(),
+            ms: start.elapsed().as_secs_f64() * 1e3,
+        }
+    }
+}
