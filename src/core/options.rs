@@ -9,11 +9,13 @@ use super::InputError;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum Solver {
-    /// Least squares over the observations a Lambertian model explains: shadows,
-    /// highlights and saturated values set aside per pixel, black level removed.
+    /// The default. Least squares over the observations a Lambertian model explains:
+    /// shadows, highlights and saturated values set aside per pixel, black level
+    /// removed; pixels where that model cannot be trusted fall back to `l2` and are
+    /// flagged.
+    #[default]
     Robust,
     /// Plain least squares over every observation (the seed's "solution 2").
-    #[default]
     L2,
     /// Least squares weighted by the intensities themselves, T = diag(i) (the seed's
     /// "solution 1"): down-weights dark observations but biases normals; less accurate.

@@ -195,7 +195,9 @@ impl Prepared {
         } else {
             (0.0, 0.0)
         };
+        let warnings = robust::warnings(self.estimate.as_ref(), sums.unreliable, object);
         let report = Report {
+            warnings,
             black_level: self.estimate.map(|e| e.black_level),
             noise_sigma: self.estimate.map(|e| e.noise_sigma),
             confidence_mean: per_object(sums.confidence),

@@ -63,6 +63,9 @@ pub struct Report {
     pub black_level: Option<f32>,
     /// Image noise σ the robust solver estimated.
     pub noise_sigma: Option<f32>,
+    /// What the caller should know about how far to trust this result (e.g. most pixels
+    /// fell back to least squares); empty when nothing stood out.
+    pub warnings: Vec<String>,
     /// Names of the files written (filled in by [`run`]).
     pub artifacts: Vec<String>,
 }

@@ -35,6 +35,9 @@ pub struct CaptureEstimate {
     pub black_level: f32,
     /// Standard deviation of the noise, in [0, 1] units.
     pub noise_sigma: f32,
+    /// Median lit observation, black level removed: the scale the two above are judged
+    /// against.
+    pub lit_median: f32,
 }
 
 /// The robust solve's products.
@@ -64,6 +67,8 @@ struct Model {
     black: f32,
     dark: f32,
     tolerance: f32,
+    /// Mean |lᵢ|: turns |g| into the image units the observations are in.
+    light_scale: f32,
 }
 
 struct Fit {
@@ -85,7 +90,9 @@ impl Model {
             }
         }
         let floor = sigma.max(quantum);
+        let light_scale = lights.iter().map(|l| norm(*l)).sum::<f32>() / lights.len().max(1) as f32;
         Self {
+            light_scale,
             full_inverse: invert3(&unpack(&full)),
             lights,
             outer,
@@ -132,6 +139,13 @@ impl Model {
         )
     }
 
+    /// The inlier tolerance for a fit `g`: the noise part, plus the model-error
+    /// allowance relative to the pixel's brightness under a typical light (in image
+    /// units, so neither exposure nor the light table's intensity scale moves it).
+    fn tol(&self, g: [f32; 3]) -> f32 {
+        self.tolerance + RELATIVE_TOLERANCE * norm(g) * self.light_scale
+    }
+
     fn fit(
         &self,
         obs: &[f32],
@@ -152,32 +166,36 @@ impl Model {
             self.residuals(g, obs, scratch);
             return self.finish(g, false, out, scratch);
         };
-        // Highlights are only ever too bright and drag the first fit towards them: when
-        // it leaves an observation far too bright, fit again without the brightest sixth,
-        // and let the re-fits take back what fits.
-        let tol = self.tolerance + RELATIVE_TOLERANCE * norm(g);
-        let too_bright = || {
-            self.lights
-                .iter()
-                .zip(y.iter())
-                .zip(out.iter())
-                .any(|((l, &v), &o)| !o && v - dot(g, *l) > tol)
-        };
-        if lit >= 8 && too_bright() {
-            scratch.clear();
-            scratch.extend(
-                y.iter()
-                    .zip(out.iter())
-                    .filter(|(_, o)| !**o)
-                    .map(|(v, _)| *v),
-            );
-            let k = lit.div_ceil(6);
-            let cut = *scratch.select_nth_unstable_by(lit - k, f32::total_cmp).1;
-            for (x, &v) in out.iter_mut().zip(y.iter()) {
-                *x |= v >= cut;
-            }
-            if let Some(g2) = self.solve(y, out) {
-                g = g2;
+        // Backward elimination: while the kept observation the fit explains worst misses
+        // by more than the tolerance, set it aside and fit again. Highlights, penumbrae
+        // and interreflections go first because they miss the most; one at a time, so a
+        // fit dragged by a strong highlight never passes judgement on the good
+        // observations. At most half of the lit observations go: past that the set has
+        // no majority the model explains, and the re-fits below decide.
+        let identifiable = lit > 4;
+        if identifiable {
+            for _ in 0..lit / 2 {
+                let tol = self.tol(g);
+                let mut worst = (tol, usize::MAX);
+                for (i, l) in self.lights.iter().enumerate() {
+                    if !out[i] {
+                        let miss = (y[i] - dot(g, *l).max(0.0)).abs();
+                        if miss > worst.0 {
+                            worst = (miss, i);
+                        }
+                    }
+                }
+                if worst.1 == usize::MAX {
+                    break;
+                }
+                out[worst.1] = true;
+                match self.solve(y, out) {
+                    Some(g2) => g = g2,
+                    None => {
+                        out[worst.1] = false;
+                        break;
+                    }
+                }
             }
         }
         // Re-fit on the observations the model explains: in the fit where it predicts
@@ -187,10 +205,8 @@ impl Model {
         // With 4 observations or fewer the residual of a least-squares fit has at most
         // one degree of freedom and points the same way whichever one is wrong, so only
         // the shadow model and saturation decide.
-        let identifiable = lit > 4;
         for _ in 0..MAX_ROUNDS {
-            let rho = norm(g);
-            let tol = self.tolerance + RELATIVE_TOLERANCE * rho;
+            let tol = self.tol(g);
             let mut changed = false;
             for (i, l) in self.lights.iter().enumerate() {
                 let pred = dot(g, *l);
@@ -215,7 +231,7 @@ impl Model {
         // always the best one: plain least squares over the same non-outlier
         // observations is the other candidate, and the lower objective wins.
         // The objective renders like the camera: shadows black, saturation clipped.
-        let tol = self.tolerance + RELATIVE_TOLERANCE * norm(g);
+        let tol = self.tol(g);
         self.residuals(g, obs, scratch);
         for (x, r) in next.iter_mut().zip(scratch.iter()) {
             *x = identifiable && r.abs() > tol;
@@ -240,6 +256,37 @@ impl Model {
             }
         }
         self.finish(g, true, out, scratch)
+    }
+
+    /// [`Model::fit`], then judged: a fit no visible surface can have, or one that
+    /// misses most observations by more than the tolerance and explains the pixel's
+    /// typical observation worse than plain least squares over all of them (median
+    /// absolute residual, shadows rendered black), is replaced by that least-squares fit
+    /// and flagged. This is what keeps the robust solve from ever
+    /// doing worse than `l2` where its model does not hold.
+    fn judged(&self, obs: &[f32], b: &mut Buffers) -> Fit {
+        let fit = self.fit(obs, &mut b.y, &mut b.out, &mut b.next, &mut b.r);
+        if !fit.reliable {
+            return fit;
+        }
+        if implausible(fit.g, fit.inliers) {
+            return self.fallback(obs, &b.y, &mut b.out, &mut b.r);
+        }
+        if fit.inliers == obs.len() {
+            return fit; // nothing set aside: already least squares
+        }
+        let robust = median_abs(&mut b.r);
+        if robust <= self.tol(fit.g) {
+            return fit; // most observations fit within the tolerance: trusted
+        }
+        let plain = self
+            .solve(&b.y, &vec_false(&mut b.next))
+            .unwrap_or([0.0; 3]);
+        self.residuals(plain, obs, &mut b.spare);
+        if median_abs(&mut b.spare) < robust {
+            return self.fallback(obs, &b.y, &mut b.out, &mut b.r);
+        }
+        fit
     }
 
     /// Plain least squares over every observation (black level removed), flagged
@@ -295,6 +342,42 @@ fn implausible(g: [f32; 3], inliers: usize) -> bool {
     nz <= 0.0 || (inliers <= 3 && nz < super::integrate::MIN_NZ)
 }
 
+/// Set-level warnings for `result.json`: estimates that the capture makes implausible,
+/// and a solve where most of the object fell back to least squares.
+pub fn warnings(
+    estimate: Option<&CaptureEstimate>,
+    unreliable: usize,
+    object: usize,
+) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(e) = estimate {
+        if e.noise_sigma > 0.25 * e.lit_median {
+            out.push(format!(
+                "estimated noise sigma {:.5} is over a quarter of the median lit observation {:.5} \
+                 (fractions of full scale): the images are very dark or very noisy, so shadows \
+                 and highlights are hard to tell from noise",
+                e.noise_sigma, e.lit_median
+            ));
+        }
+        if e.black_level > 0.5 * e.lit_median {
+            out.push(format!(
+                "estimated black level {:.5} is over half the median lit observation {:.5}: \
+                 check the exposure, or subtract a dark frame before uploading",
+                e.black_level, e.lit_median
+            ));
+        }
+    }
+    if object > 0 && 2 * unreliable > object {
+        out.push(format!(
+            "{unreliable} of {object} object pixels ({:.0} %) fell back to least squares over all \
+             their observations (see unreliable.png): too few observations fit the Lambertian \
+             model there (too few lights reach them, or shadows and highlights dominate)",
+            100.0 * unreliable as f64 / object as f64
+        ));
+    }
+    out
+}
+
 /// Confidence in [0, 1]: support grows from 3 kept observations (0.25) to 6 or more (1),
 /// times a Gaussian fall-off of the kept observations' RMS against the tolerance.
 pub fn confidence_of(kept: usize, rms: f32, tolerance: f32) -> f32 {
@@ -317,6 +400,40 @@ fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
 
 fn norm(a: [f32; 3]) -> f32 {
     dot(a, a).sqrt()
+}
+
+/// Per-thread buffers of one pixel's solve, `n` lights long.
+struct Buffers {
+    y: Vec<f32>,
+    out: Vec<bool>,
+    next: Vec<bool>,
+    r: Vec<f32>,
+    spare: Vec<f32>,
+}
+
+impl Buffers {
+    fn new(n: usize) -> Self {
+        Self {
+            y: vec![0.0; n],
+            out: vec![false; n],
+            next: vec![false; n],
+            r: Vec::with_capacity(n),
+            spare: Vec::with_capacity(n),
+        }
+    }
+}
+
+fn vec_false(v: &mut [bool]) -> &[bool] {
+    v.fill(false);
+    v
+}
+
+/// Median of |v| (reorders `v`).
+fn median_abs(v: &mut [f32]) -> f32 {
+    for x in v.iter_mut() {
+        *x = x.abs();
+    }
+    median(v)
 }
 
 /// Row `r` of every plane, for fast per-pixel gathering along the row.
@@ -348,38 +465,41 @@ pub fn estimate(set: &ImageSet) -> CaptureEstimate {
         .max(1);
     let mut black = 0.0f32;
     let mut sigma = quantum;
+    let mut lit_median = 0.0f32;
     // Two rounds: the first fit is biased by the unknown black level, the second is not.
     for _ in 0..2 {
         let model = Model::new(lights.clone(), black, sigma, quantum);
-        let (mut shadow, mut resid) = (Vec::new(), Vec::new());
-        let (mut obs, mut y, mut out) = (vec![0f32; n], vec![0f32; n], vec![false; n]);
+        let (mut shadow, mut resid, mut lit) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
         for r in (stride / 2..set.height).step_by(stride) {
             let rows = plane_rows(set, r);
             for c in (stride / 2..set.width).step_by(stride) {
                 gather(&rows, c, &mut obs);
-                for ((yi, &o), x) in y.iter_mut().zip(&obs).zip(out.iter_mut()) {
-                    *yi = o - model.black;
-                    *x = *yi <= model.dark || o >= SATURATED;
-                }
-                let Some(g) = model.solve(&y, &out) else {
+                // The same robust fit as the solve: a plain fit here would let highlights
+                // drag g, and with it every residual and every "shadowed" observation.
+                let fit = model.judged(&obs, &mut b);
+                if !fit.reliable {
                     continue;
-                };
-                let rho = norm(g);
-                if rho < 0.02 {
-                    continue; // background
                 }
+                let y = &b.y;
+                let g = fit.g;
+                let rho = norm(g) * model.light_scale;
                 for (i, l) in lights.iter().enumerate() {
                     let pred = dot(g, *l);
                     if pred < -0.1 * rho {
                         shadow.push(obs[i]);
-                    } else if !out[i] && pred > 0.1 * rho {
+                    } else if pred > 0.1 * rho && obs[i] < SATURATED {
                         resid.push((y[i] - pred).abs());
+                        lit.push(y[i]);
                     }
                 }
             }
         }
         if shadow.len() >= 50 {
             black = median(&mut shadow);
+        }
+        if !lit.is_empty() {
+            lit_median = median(&mut lit);
         }
         if resid.len() >= 50 {
             // MAD → σ, corrected for the 3 fitted parameters.
@@ -390,15 +510,19 @@ pub fn estimate(set: &ImageSet) -> CaptureEstimate {
     CaptureEstimate {
         black_level: black,
         noise_sigma: sigma,
+        lit_median,
     }
 }
 
+/// The standard deviation of rounding to the set's integer levels (one level / √12): the
+/// noise no capture can be below, and the only intensity-unit constant in this solver.
 fn quantum(set: &ImageSet) -> f32 {
-    if set.bit_depth <= 8 {
+    let level = if set.bit_depth <= 8 {
         1.0 / 255.0
     } else {
         1.0 / 65535.0
-    }
+    };
+    level / 12f32.sqrt()
 }
 
 fn median(v: &mut [f32]) -> f32 {
@@ -444,16 +568,11 @@ pub fn solve(set: &ImageSet, halt: Halt) -> RobustSurface {
                 if halt() {
                     return;
                 }
-                let (mut obs, mut y) = (vec![0f32; n], vec![0f32; n]);
-                let (mut out, mut next) = (vec![false; n], vec![false; n]);
-                let mut scratch = Vec::with_capacity(n);
+                let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
                 let rows = plane_rows(set, r);
                 for c in 0..cols {
                     gather(&rows, c, &mut obs);
-                    let mut fit = model.fit(&obs, &mut y, &mut out, &mut next, &mut scratch);
-                    if fit.reliable && implausible(fit.g, fit.inliers) {
-                        fit = model.fallback(&obs, &y, &mut out, &mut scratch);
-                    }
+                    let fit = model.judged(&obs, &mut b);
                     let rho = norm(fit.g);
                     a_row[c] = rho;
                     if rho > 0.0 && rho.is_finite() {
@@ -467,11 +586,7 @@ pub fn solve(set: &ImageSet, halt: Halt) -> RobustSurface {
                     res_row[c] = (fit.sse_all / n as f32).sqrt();
                     if fit.reliable && fit.inliers >= 3 {
                         let rms = (fit.sse_inliers / fit.inliers as f32).sqrt();
-                        conf_row[c] = confidence_of(
-                            fit.inliers,
-                            rms,
-                            model.tolerance + RELATIVE_TOLERANCE * rho,
-                        );
+                        conf_row[c] = confidence_of(fit.inliers, rms, model.tol(fit.g));
                     }
                 }
             },
