@@ -103,8 +103,9 @@ fn load_average() -> String {
         .unwrap_or_else(|_| "?".into())
 }
 
-/// Core and HTTP runs alternate (core, HTTP, core, HTTP, …) so that a change in the
-/// machine's background load hits both alike; then the load test.
+/// Per set: integration alone; core and HTTP runs alternating (core, HTTP, core, HTTP, …)
+/// so that a change in the machine's background load hits both alike; the l2 and default
+/// jobs alternating the same way. Then the load test.
 fn measure(
     args: &BenchArgs,
     sets: &mut [SizeResult],
@@ -125,6 +126,9 @@ fn measure(
                     .rt
                     .block_on(http::http_run(set, run, args.runs, server.addr))?;
             }
+        }
+        for run in 0..args.runs {
+            timing::default_against_l2_run(set, run, args.runs, tmp)?;
         }
     }
     match (args.load, server, sets.iter().max_by_key(|s| s.size)) {

@@ -74,6 +74,9 @@ pub(super) struct SizeResult {
     pub(super) poisson_ms: Vec<f64>,
     pub(super) fc_ms: Vec<f64>,
     pub(super) robust_ms: Vec<f64>,
+    /// The l2 job and the default job (decode + `pipeline::run`), run alternately.
+    pub(super) l2_job_ms: Vec<f64>,
+    pub(super) default_job_ms: Vec<f64>,
 }
 
 impl SizeResult {
@@ -98,6 +101,8 @@ impl SizeResult {
             poisson_ms: Vec::new(),
             fc_ms: Vec::new(),
             robust_ms: Vec::new(),
+            l2_job_ms: Vec::new(),
+            default_job_ms: Vec::new(),
         }
     }
 

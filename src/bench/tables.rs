@@ -16,6 +16,9 @@ const TARGET_LINEARITY: f64 = 0.25;
 const TARGET_STATUS_P99_MS: f64 = 50.0;
 const TARGET_POISSON_OVER_FC: f64 = 3.0;
 const TARGET_SIZE: usize = 2048;
+// The target of issue 18, judged at TARGET_SIZE × TARGET_LIGHTS.
+const TARGET_DEFAULT_OVER_L2: f64 = 1.25;
+const TARGET_LIGHTS: usize = 24;
 
 /// Every table, in the order printed.
 pub(super) fn tables(
@@ -231,6 +234,54 @@ pub(super) fn tables(
         );
     }
 
+    // The default job against the l2 job.
+    let _ = writeln!(
+        o,
+        "\n### The default job against the l2 job (ms, medians)\n"
+    );
+    let _ = writeln!(
+        o,
+        "| size × lights | l2 job ms | default job ms | default / l2 (≤ {TARGET_DEFAULT_OVER_L2} at {TARGET_SIZE}² × {TARGET_LIGHTS}) |"
+    );
+    let _ = writeln!(o, "|---|---:|---:|---:|");
+    for s in sets {
+        let (l2, default) = (median(&s.l2_job_ms), median(&s.default_job_ms));
+        let _ = writeln!(
+            o,
+            "| {}² × {} | {} | {} | {} |",
+            s.size,
+            s.lights,
+            num(l2, 0),
+            num(default, 0),
+            with_mark(
+                zip2(default, l2, |d, l| d / l),
+                2,
+                s.size == TARGET_SIZE && s.lights == TARGET_LIGHTS,
+                |r| r <= TARGET_DEFAULT_OVER_L2
+            ),
+        );
+    }
+    let _ = writeln!(
+        o,
+        "\n(l2 job = `Options {{ solver: l2, integration: poisson, ..default }}`, the default \
+         job before issue 18; default job = `Options::default()`; each is decode + \
+         `pipeline::run` with the default artifacts; {} round(s), the two jobs one after \
+         the other, l2 first in odd rounds and default first in even ones)",
+        args.runs
+    );
+    let default_over_l2 = default_over_l2(sets);
+    let (measured, met) = match default_over_l2 {
+        Some(r) => (format!("{r:.2} ×"), mark(r <= TARGET_DEFAULT_OVER_L2)),
+        None => (
+            format!("not measured (no {TARGET_SIZE}² × {TARGET_LIGHTS} set)"),
+            "–",
+        ),
+    };
+    let _ = writeln!(
+        o,
+        "\ndefault ≤ {TARGET_DEFAULT_OVER_L2} × l2 at {TARGET_SIZE}² × {TARGET_LIGHTS}: {measured} {met}"
+    );
+
     // Load.
     if let Some(l) = load {
         let _ = writeln!(
@@ -330,6 +381,15 @@ pub(super) fn tables(
         " ×",
         t_lin.is_some_and(linear_enough),
     );
+    line(
+        &format!(
+            "default job ≤ {TARGET_DEFAULT_OVER_L2} × the l2 job at {TARGET_SIZE}² × {TARGET_LIGHTS}"
+        ),
+        default_over_l2,
+        2,
+        " ×",
+        default_over_l2.is_some_and(|r| r <= TARGET_DEFAULT_OVER_L2),
+    );
     if let Some(l) = load {
         let p99 = percentile(&l.latencies_ms, 99.0);
         line(
@@ -350,6 +410,15 @@ pub(super) fn tables(
         line("status p99 < 50 ms under load", None, 0, "", false);
     }
     o
+}
+
+/// The default job's median time over the l2 job's at the size and light count issue 18
+/// judges.
+fn default_over_l2(sets: &[SizeResult]) -> Option<f64> {
+    let s = (sets.iter()).find(|s| s.size == TARGET_SIZE && s.lights == TARGET_LIGHTS)?;
+    zip2(median(&s.default_job_ms), median(&s.l2_job_ms), |d, l| {
+        d / l
+    })
 }
 
 /// Per-pixel-image time within ±25 % of the reference (faster by more also passes: the

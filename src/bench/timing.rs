@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail, ensure};
 use photostereo::core::intake::{self, Limits};
-use photostereo::core::options::Integration;
+use photostereo::core::options::{Integration, Solver};
 use photostereo::core::{Options, integrate, outputs, pipeline, synth};
 use photostereo::service::release_free_heap;
 
@@ -121,6 +121,47 @@ pub(super) fn core_run(
         peak(&all),
     );
     Ok(())
+}
+
+/// Issue 18's speed check: the l2 job and the default job on the same set, one after the
+/// other so that a change in the machine's load hits both alike. Which goes first swaps
+/// every round, so that neither always runs on the heap the other left.
+pub(super) fn default_against_l2_run(
+    set: &mut SizeResult,
+    run: usize,
+    runs: usize,
+    tmp: &Path,
+) -> anyhow::Result<()> {
+    let job = |set: &SizeResult, opts: &Options, name: &str| {
+        timed_job(set, opts, &tmp.join(format!("{name}-{}-{run}", set.size)))
+    };
+    let (l2, default) = if run % 2 == 0 {
+        let l2 = job(set, &l2_job(), "l2")?;
+        (l2, job(set, &Options::default(), "default")?)
+    } else {
+        let default = job(set, &Options::default(), "default")?;
+        (job(set, &l2_job(), "l2")?, default)
+    };
+    set.l2_job_ms.push(l2.full_ms);
+    set.default_job_ms.push(default.full_ms);
+    eprintln!(
+        "bench: {}² run {}/{runs}: the l2 job {:.0} ms, the default job {:.0} ms",
+        set.size,
+        run + 1,
+        l2.full_ms,
+        default.full_ms
+    );
+    Ok(())
+}
+
+/// The l2 job: plain least squares and Poisson integration, the default job before issue
+/// 18, spelled out so that it stays the yardstick when `Options::default()` changes.
+fn l2_job() -> Options {
+    Options {
+        solver: Solver::L2,
+        integration: Integration::Poisson,
+        ..Options::default()
+    }
 }
 
 /// One timed core job: decode and `pipeline::run` into `out` (removed afterwards).
