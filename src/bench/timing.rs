@@ -135,7 +135,7 @@ pub(super) fn default_against_l2_run(
     let job = |set: &SizeResult, opts: &Options, name: &str| {
         timed_job(set, opts, &tmp.join(format!("{name}-{}-{run}", set.size)))
     };
-    let (l2, default) = if run % 2 == 0 {
+    let (l2, default) = if run.is_multiple_of(2) {
         let l2 = job(set, &l2_job(), "l2")?;
         (l2, job(set, &Options::default(), "default")?)
     } else {
