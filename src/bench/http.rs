@@ -12,7 +12,7 @@ use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 
-use super::BenchArgs;
+use super::args::BenchArgs;
 use super::client::{Conn, REQUEST_TIMEOUT};
 use super::memory::{reset_peak, status_bytes};
 use super::sets::SizeResult;

@@ -7,11 +7,13 @@
 //! (multipart uploads streamed from disk, keep-alive status requests); it only ever talks
 //! to the in-process server on 127.0.0.1, and every network wait has a timeout.
 //!
-//! The module reads downward: [`sets`] renders the image sets, [`timing`] times the core
-//! jobs on them (and measures their memory through [`memory`]), [`http`] drives the
-//! in-process server with the small client in [`client`], and [`tables`] prints what was
-//! measured; [`stats`] holds the medians and percentiles they share.
+//! The module reads downward: [`args`] holds the flags, [`sets`] renders the image sets,
+//! [`timing`] times the core jobs on them (and measures their memory through [`memory`]),
+//! [`http`] drives the in-process server with the small client in [`client`], and
+//! [`tables`] prints what was measured; [`stats`] holds the medians and percentiles they
+//! share.
 
+mod args;
 mod client;
 mod http;
 mod memory;
@@ -23,43 +25,15 @@ mod timing;
 use std::path::{Path, PathBuf};
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use anyhow::{Context, ensure};
-use clap::Args;
+use anyhow::Context;
 
+pub use args::BenchArgs;
 use http::{LoadResult, Server};
 use sets::SizeResult;
 
-/// Time, memory and HTTP figures on synthetic data sets (see the README's Performance).
-#[derive(Debug, Args)]
-pub struct BenchArgs {
-    /// Square image sizes in pixels, comma-separated (up to 8192; 5120² is a 26-megapixel camera).
-    #[arg(long, value_delimiter = ',', default_value = "512,1024,2048")]
-    pub sizes: Vec<usize>,
-    /// Lights (= 16-bit PNG images) per data set.
-    #[arg(long, default_value_t = 24)]
-    pub lights: usize,
-    /// Runs of each measurement; the tables show medians (peak memory: the largest).
-    #[arg(long, default_value_t = 3)]
-    pub runs: usize,
-    /// Also submit every set to an in-process server over HTTP and time it.
-    #[arg(long)]
-    pub http: bool,
-    /// Also time status requests while every server worker is busy with a big job.
-    #[arg(long)]
-    pub load: bool,
-    /// Status requests sent by --load.
-    #[arg(long, default_value_t = 1000)]
-    pub requests: usize,
-    /// Keep-alive connections the --load status requests are spread over.
-    #[arg(long, default_value_t = 4)]
-    pub connections: usize,
-    /// Where to create the temporary directory [default: the system's temp dir].
-    #[arg(long)]
-    pub tmp_dir: Option<PathBuf>,
-}
-
+/// Render the sets, measure them, print the tables; the temporary directory goes either way.
 pub fn run(args: BenchArgs) -> anyhow::Result<()> {
-    check_args(&args)?;
+    args.check()?;
     let parent = match &args.tmp_dir {
         Some(p) => p.clone(),
         None => std::env::temp_dir(),
@@ -105,7 +79,7 @@ fn load_average() -> String {
 
 /// Per set: integration alone; core and HTTP runs alternating (core, HTTP, core, HTTP, …)
 /// so that a change in the machine's background load hits both alike; the l2 and default
-/// jobs alternating the same way. Then the load test.
+/// jobs, one after the other in each round. Then the load test.
 fn measure(
     args: &BenchArgs,
     sets: &mut [SizeResult],
@@ -138,37 +112,6 @@ fn measure(
             .map(Some),
         _ => Ok(None),
     }
-}
-
-fn check_args(args: &BenchArgs) -> anyhow::Result<()> {
-    ensure!(!args.sizes.is_empty(), "--sizes needs at least one size");
-    for &s in &args.sizes {
-        ensure!(
-            (32..=8192).contains(&s),
-            "--sizes: {s} is outside 32..=8192"
-        );
-    }
-    let mut seen = args.sizes.clone();
-    seen.sort_unstable();
-    seen.dedup();
-    ensure!(
-        seen.len() == args.sizes.len(),
-        "--sizes: a size is repeated"
-    );
-    ensure!(
-        (3..=64).contains(&args.lights),
-        "--lights must be 3..=64 (the service takes at most 64 images)"
-    );
-    ensure!((1..=100).contains(&args.runs), "--runs must be 1..=100");
-    ensure!(
-        (1..=100_000).contains(&args.requests),
-        "--requests must be 1..=100000"
-    );
-    ensure!(
-        (1..=64).contains(&args.connections),
-        "--connections must be 1..=64"
-    );
-    Ok(())
 }
 
 /// A directory removed with everything in it when dropped.

@@ -2,7 +2,7 @@
 
 use std::fmt::Write as _;
 
-use super::BenchArgs;
+use super::args::BenchArgs;
 use super::http::{LoadResult, POLL_EVERY};
 use super::memory::MB;
 use super::sets::SizeResult;
