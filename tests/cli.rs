@@ -168,8 +168,8 @@ fn render_reproduces_the_committed_res_sets() {
 }
 
 /// The bench end to end on tiny sets: every table, a row per size, the HTTP columns, the
-/// job in its own process (a child `photostereo reconstruct`, which must succeed), and
-/// nothing left in its temporary directory.
+/// job in its own process (a child `photostereo reconstruct`, which must succeed), the
+/// default job timed against the l2 job, and nothing left in its temporary directory.
 #[test]
 fn bench_prints_its_tables_and_cleans_up() {
     let tmp = tempfile::tempdir().unwrap();
@@ -197,8 +197,28 @@ fn bench_prints_its_tables_and_cleans_up() {
         "| 32² × 4 |",
         "| 64² × 4 |",
         "HTTP / core",
+        "### The default job against the l2 job",
+        "default ≤ 1.25 × l2 at 2048² × 24: not measured",
     ] {
         assert!(stdout.contains(needle), "no {needle:?} in\n{stdout}");
+    }
+    // Both jobs timed at every size: l2 ms, default ms and their ratio are numbers.
+    let versus = stdout
+        .split("### The default job against the l2 job")
+        .nth(1)
+        .unwrap();
+    for size in ["32", "64"] {
+        let row = versus
+            .lines()
+            .find(|l| l.starts_with(&format!("| {size}² × 4 |")))
+            .unwrap_or_else(|| panic!("no {size}² row in\n{versus}"));
+        let cells: Vec<f64> = row
+            .split('|')
+            .skip(2)
+            .filter(|c| !c.trim().is_empty())
+            .map(|c| c.trim().parse().unwrap_or(f64::NAN))
+            .collect();
+        assert!(cells.len() == 3 && cells.iter().all(|v| *v > 0.0), "{row}");
     }
     let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().collect();
     assert!(left.is_empty(), "left behind: {left:?}");
