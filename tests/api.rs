@@ -7,10 +7,10 @@ use std::collections::{BTreeMap, HashSet};
 use std::time::Duration;
 
 use common::*;
-use seed::{SEED_SETS, seed};
 use photostereo::core::outputs::{self, ARTIFACTS};
 use photostereo::service::{AppState, healthcheck, openapi_json, router};
 use reqwest::multipart::{Form, Part};
+use seed::{SEED_SETS, seed};
 use serde_json::Value;
 
 /// Download every artifact a succeeded job links and check each one: status, Content-Type,

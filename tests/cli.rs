@@ -108,10 +108,7 @@ fn without_a_selection_the_default_set_is_written() {
 #[test]
 fn normal_png_uses_the_opengl_convention() {
     // A sphere: above the centre the normal tilts up the image, so green > half.
-    let (out, _) = reconstruct(
-        &res("sphere"),
-        &["--outputs", "normal.png,mask.png"],
-    );
+    let (out, _) = reconstruct(&res("sphere"), &["--outputs", "normal.png,mask.png"]);
     let n = image::open(out.path().join("normal.png"))
         .unwrap()
         .to_rgb16();

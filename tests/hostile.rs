@@ -18,8 +18,8 @@ use common::{
     archive_form, expect_problem, file_part, folder_form, images_of, palette_png, png, png_chunk,
     repo_root,
 };
-use seed::seed;
 use reqwest::multipart::{Form, Part};
+use seed::seed;
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
