@@ -3,8 +3,12 @@
 # directory, so that no ../shared/seed-data is beside it, and run the suites that read the
 # seed data with CI and PHOTOSTEREO_SEED_DATA unset. They must pass, and every test that
 # takes seed data (calls `seed!`) must print its skip line: a silent pass would hide a test
-# that never ran. The full run in .ci/run covers the other suites. Uses CARGO_TARGET_DIR
-# when set (the clone builds its own copy of the crate there).
+# that never ran. The full run in .ci/run covers the other suites.
+#
+# The clone builds in its own target directory beside CARGO_TARGET_DIR: cargo's
+# fingerprints do not depend on where the crate lies, so a clone building into the
+# caller's target directory leaves test binaries there that cargo then takes as fresh
+# for the checkout, with the clone's (deleted) CARGO_MANIFEST_DIR compiled in.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -22,6 +26,7 @@ args=()
 for s in "${suites[@]}"; do
   args+=(--test "$s")
 done
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$PWD/target}-fresh-clone"
 (
   cd "$work/photostereo"
   env -u CI -u PHOTOSTEREO_SEED_DATA cargo test --release --locked "${args[@]}"
