@@ -1,22 +1,20 @@
-//! The `photostereo` binary end to end: the seed's three sets through `reconstruct`, and
-//! `render` reproducing res/.
+//! The `photostereo` binary end to end: the seed's three sets and res/ through
+//! `reconstruct`, and `render` reproducing res/.
+
+mod seed;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use photostereo::core::outputs;
+use seed::{SEED_SETS, seed};
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_photostereo"))
 }
 
-fn seed(name: &str) -> PathBuf {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
-    let dir = root.join(name);
-    assert!(dir.is_dir(), "seed data missing: {}", dir.display());
-    dir
+fn res(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("res").join(name)
 }
 
 fn reconstruct(dir: &Path, extra: &[&str]) -> (tempfile::TempDir, serde_json::Value) {
@@ -37,8 +35,8 @@ fn reconstruct(dir: &Path, extra: &[&str]) -> (tempfile::TempDir, serde_json::Va
 
 #[test]
 fn seed_sets_reconstruct_with_every_output_decodable() {
-    for name in ["synth-images", "sphere-images", "dog-images"] {
-        let (out, report) = reconstruct(&seed(name), &["--outputs", outputs::ALL]);
+    for name in SEED_SETS {
+        let (out, report) = reconstruct(&seed!(name), &["--outputs", outputs::ALL]);
         let artifacts = report["artifacts"].as_array().unwrap();
         for required in [
             "albedo.png",
@@ -89,7 +87,7 @@ fn seed_sets_reconstruct_with_every_output_decodable() {
 
 #[test]
 fn without_a_selection_the_default_set_is_written() {
-    let (out, report) = reconstruct(&seed("synth-images"), &[]);
+    let (out, report) = reconstruct(&res("bump"), &[]);
     let mut written: Vec<String> = std::fs::read_dir(out.path())
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
@@ -109,11 +107,8 @@ fn without_a_selection_the_default_set_is_written() {
 
 #[test]
 fn normal_png_uses_the_opengl_convention() {
-    // Seed sphere: above the centre the normal tilts up the image, so green > half.
-    let (out, _) = reconstruct(
-        &seed("sphere-images"),
-        &["--outputs", "normal.png,mask.png"],
-    );
+    // A sphere: above the centre the normal tilts up the image, so green > half.
+    let (out, _) = reconstruct(&res("sphere"), &["--outputs", "normal.png,mask.png"]);
     let n = image::open(out.path().join("normal.png"))
         .unwrap()
         .to_rgb16();

@@ -1,5 +1,5 @@
-//! Shared helpers of the HTTP API tests: a real server on 127.0.0.1:0, the seed data,
-//! multipart forms and zips, polling, problem bodies.
+//! Shared helpers of the HTTP API tests: a real server on 127.0.0.1:0, multipart forms and
+//! zips, polling, problem bodies. Finding the seed data: `tests/seed/mod.rs`.
 
 #![allow(dead_code)]
 
@@ -13,24 +13,8 @@ use serde_json::Value;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
-pub const SEED_SETS: [&str; 3] = ["synth-images", "sphere-images", "dog-images"];
-
 pub fn repo_root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-/// A seed data set; the tests fail (not skip) when the seed data is missing.
-pub fn seed(name: &str) -> PathBuf {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("../shared/seed-data"));
-    let dir = root.join(name);
-    assert!(
-        dir.join("light_directions.csv").is_file(),
-        "seed data missing: {} (the API tests need ../shared/seed-data)",
-        dir.display()
-    );
-    dir
 }
 
 /// Test settings: a fresh data directory, two workers, no disk-space floor.
