@@ -354,7 +354,7 @@ fn core_run(set: &mut SizeResult, run: usize, runs: usize, tmp: &Path) -> anyhow
     let limits = Limits::default();
     release_free_heap();
     let start = Instant::now();
-    let decoded = intake::load_dir(&set.dir, None, &limits)
+    let decoded = intake::load_dir(&set.dir, intake::DirMask::Folder, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_only = ms(start.elapsed());
     ensure!(
@@ -434,7 +434,7 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
     let base = status_bytes("VmRSS");
     let reset = reset_peak();
     let start = Instant::now();
-    let decoded = intake::load_dir(&set.dir, None, &limits)
+    let decoded = intake::load_dir(&set.dir, intake::DirMask::Folder, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_ms = ms(start.elapsed());
     let report = pipeline::run(decoded, opts, out, &mut photostereo::core::RunToEnd)
