@@ -294,11 +294,16 @@ fn a_benchmark_layout_folder_reconstructs_in_the_projects_frame() {
     assert!(notes[0].contains("Normal_gt.png"), "{notes:?}");
     assert_eq!(report["lights"][0]["intensity_rgb"][0], 0.6);
     // The balanced colour: albedo_rgb.png follows the tint, not the lights' colour.
-    let albedo = image::open(out.path().join("albedo_rgb.png")).unwrap().to_rgb16();
+    let albedo = image::open(out.path().join("albedo_rgb.png"))
+        .unwrap()
+        .to_rgb16();
     let p = albedo.get_pixel(24, 24).0.map(|v| v as f64 / 65535.0);
     let truth = scene.albedo[[24, 24]];
     for (c, tint) in [0.9, 0.75, 0.6].iter().enumerate() {
-        assert!((p[c] - truth * tint).abs() < 0.01, "channel {c}: {p:?} vs {truth}");
+        assert!(
+            (p[c] - truth * tint).abs() < 0.01,
+            "channel {c}: {p:?} vs {truth}"
+        );
     }
 }
 
@@ -327,7 +332,10 @@ fn a_folder_mask_png_is_the_mask_unless_a_mode_is_chosen() {
     let (_, report) = reconstruct(dir.path(), &["--outputs", "mask.png", "--mask", "none"]);
     assert!(report["mask_file"].is_null(), "{report}");
     assert_eq!(report["object_pixels"], (w * h) as u64);
-    assert!(report["notes"][0].as_str().unwrap().contains("mask.png"), "{report}");
+    assert!(
+        report["notes"][0].as_str().unwrap().contains("mask.png"),
+        "{report}"
+    );
 }
 
 #[test]
@@ -342,7 +350,11 @@ fn a_folder_in_no_layout_is_refused_naming_the_layouts() {
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
-    for name in ["light_directions.csv", "light_directions.txt", "filenames.txt"] {
+    for name in [
+        "light_directions.csv",
+        "light_directions.txt",
+        "filenames.txt",
+    ] {
         assert!(err.contains(name), "{err}");
     }
 }

@@ -57,7 +57,11 @@ fn image_named_but_missing_and_the_reverse() {
     let set = intake::load_dir(d.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     assert_eq!(set.planes.len(), 3);
     assert_eq!(set.notes.len(), 1, "{:?}", set.notes);
-    assert!(set.notes[0].contains("extra.png, more.png"), "{:?}", set.notes);
+    assert!(
+        set.notes[0].contains("extra.png, more.png"),
+        "{:?}",
+        set.notes
+    );
 }
 
 #[test]

@@ -93,7 +93,12 @@ fn four_light_8_bit_noisy_set_is_no_worse_than_least_squares() {
 
 #[test]
 fn black_level_and_noise_are_estimated() {
-    let set = intake::load_dir(&res("sphere-noisy"), intake::DirMask::Folder, &Limits::default()).unwrap();
+    let set = intake::load_dir(
+        &res("sphere-noisy"),
+        intake::DirMask::Folder,
+        &Limits::default(),
+    )
+    .unwrap();
     let est = photostereo::core::robust::estimate(&set);
     assert!((est.black_level - 0.02).abs() < 0.002, "{est:?}");
     assert!((est.noise_sigma - 0.004).abs() < 0.0015, "{est:?}");
@@ -189,7 +194,8 @@ fn low_light_bumps(
     };
     synth::write_set(dir.path(), &Scene::shadows(128), &lights, &capture).unwrap();
     let truth = synth::read_truth(dir.path()).unwrap();
-    let mut set = intake::load_dir(dir.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
+    let mut set =
+        intake::load_dir(dir.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = Some(truth.mask.clone());
     let mut flagged = 0;
     let scores = methods

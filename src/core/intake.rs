@@ -337,7 +337,13 @@ fn decode_bytes(
     };
     let Some(gains) = light_rgb else {
         let plane = to_luma16(img);
-        return Ok((Decoded { plane, depth }, Some(Colour { rgb, balanced: None })));
+        return Ok((
+            Decoded { plane, depth },
+            Some(Colour {
+                rgb,
+                balanced: None,
+            }),
+        ));
     };
     let s = gains.iter().copied().fold(f64::INFINITY, f64::min);
     let factor = gains.map(|g| (s / g) as f32);
@@ -500,7 +506,11 @@ fn colour_content(img: &DynamicImage) -> Option<image::Rgb32FImage> {
 }
 
 /// Add one image's Σ l·I_c, with `scaled` its light as the solve sees it.
-fn accumulate_moments(moments: &Mutex<Option<Array3<f32>>>, rgb: &image::Rgb32FImage, scaled: [f64; 3]) {
+fn accumulate_moments(
+    moments: &Mutex<Option<Array3<f32>>>,
+    rgb: &image::Rgb32FImage,
+    scaled: [f64; 3],
+) {
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
     let s = scaled.map(|v| v as f32);
     let mut guard = moments.lock().unwrap_or_else(|p| p.into_inner());
@@ -551,7 +561,11 @@ mod tests {
         (0..count)
             .map(|i| {
                 let t = i as f64 / count as f64;
-                [0.6 + 0.5 * t, 1.1 - 0.4 * t, 0.8 + 0.3 * (t * 9.0).sin().abs()]
+                [
+                    0.6 + 0.5 * t,
+                    1.1 - 0.4 * t,
+                    0.8 + 0.3 * (t * 9.0).sin().abs(),
+                ]
             })
             .collect()
     }
@@ -614,7 +628,10 @@ mod tests {
         }
         assert!(count > 200, "{count}");
         assert!(worst_deg < 0.1, "normals off by up to {worst_deg}°");
-        assert!(worst_albedo.iter().all(|&e| e < 2e-3), "albedo errors {worst_albedo:?}");
+        assert!(
+            worst_albedo.iter().all(|&e| e < 2e-3),
+            "albedo errors {worst_albedo:?}"
+        );
     }
 
     #[test]
@@ -640,7 +657,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut files = Vec::new();
         let mut lights = Vec::new();
-        for (i, d) in [[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [0.0, 0.5, 1.0]].iter().enumerate() {
+        for (i, d) in [[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [0.0, 0.5, 1.0]]
+            .iter()
+            .enumerate()
+        {
             let name = format!("{i}.png");
             image::GrayImage::from_pixel(4, 4, image::Luma([100]))
                 .save(dir.path().join(&name))

@@ -24,7 +24,13 @@ pub const BENCH_DIRECTIONS: &str = "light_directions.txt";
 pub const BENCH_INTENSITIES: &str = "light_intensities.txt";
 pub const BENCH_NAMES: &str = "filenames.txt";
 /// Every file [`read_table`] may read.
-pub const TABLE_FILES: [&str; 5] = [SEED_CSV, SEED_JSON, BENCH_DIRECTIONS, BENCH_INTENSITIES, BENCH_NAMES];
+pub const TABLE_FILES: [&str; 5] = [
+    SEED_CSV,
+    SEED_JSON,
+    BENCH_DIRECTIONS,
+    BENCH_INTENSITIES,
+    BENCH_NAMES,
+];
 /// A folder's own mask, in either layout.
 pub const MASK: &str = "mask.png";
 
@@ -67,7 +73,9 @@ pub fn read_table(
     let mut notes = Vec::new();
     let lights = if let Some(seed) = [SEED_CSV, SEED_JSON].into_iter().find(|n| has(n)) {
         if has(BENCH_DIRECTIONS) {
-            notes.push(format!("{BENCH_DIRECTIONS} not read: {seed} is the light table"));
+            notes.push(format!(
+                "{BENCH_DIRECTIONS} not read: {seed} is the light table"
+            ));
         }
         lights::parse_bytes(&read(seed)?)?
     } else if has(BENCH_DIRECTIONS) {
@@ -197,7 +205,11 @@ fn numbered_images(names: &[String], count: usize) -> Result<Vec<String>, InputE
              without it the images must be numbered 1..{count} (e.g. 001.png), and {} numbered image(s) \
              were found{}; add {BENCH_NAMES}, one image name per line",
             numbered.len(),
-            if consecutive { "" } else { " with gaps or repeats" },
+            if consecutive {
+                ""
+            } else {
+                " with gaps or repeats"
+            },
         )));
     }
     Ok(numbered.into_iter().map(|(_, n)| n.clone()).collect())
@@ -226,8 +238,8 @@ fn benchmark_lights(
         .map(|(i, (&(line, [x, y, z]), name))| {
             let rgb = intensities.map(|rows| rows[i]);
             // y up in the file, down the rows in the project.
-            lights::make_light(line, name, [x, -y, z], rgb.map(|(_, v)| Intensity::Rgb(v)))
-                .map_err(|e| match e {
+            lights::make_light(line, name, [x, -y, z], rgb.map(|(_, v)| Intensity::Rgb(v))).map_err(
+                |e| match e {
                     InputError::LightRow { reason, .. } => {
                         let (file, line) = match rgb {
                             Some((l, _)) if reason.starts_with("intensity") => {
@@ -238,7 +250,8 @@ fn benchmark_lights(
                         InputError::Lights(format!("{file} row {line}: {reason}"))
                     }
                     other => other,
-                })
+                },
+            )
         })
         .collect::<Result<Vec<_>, _>>()?;
     lights::check_table(&lights)?;
@@ -281,7 +294,14 @@ mod tests {
                 (BENCH_INTENSITIES, "1 2 4\n1 1 1\n0.5 0.5 0.5\n"),
                 (BENCH_NAMES, "a.png\nb.png\nc.png\n\n"),
             ],
-            &["a.png", "b.png", "c.png", "mask.png", "Normal_gt.png", "x.mat"],
+            &[
+                "a.png",
+                "b.png",
+                "c.png",
+                "mask.png",
+                "Normal_gt.png",
+                "x.mat",
+            ],
         )
         .unwrap();
         let l = &t.lights;
@@ -298,8 +318,11 @@ mod tests {
 
     #[test]
     fn numbered_images_stand_in_for_filenames_only_when_unambiguous() {
-        let t = table(&[(BENCH_DIRECTIONS, DIRS)], &["003.png", "001.png", "002.png", "Normal_gt.png"])
-            .unwrap();
+        let t = table(
+            &[(BENCH_DIRECTIONS, DIRS)],
+            &["003.png", "001.png", "002.png", "Normal_gt.png"],
+        )
+        .unwrap();
         let order: Vec<&str> = t.lights.iter().map(|l| l.name.as_str()).collect();
         assert_eq!(order, ["001.png", "002.png", "003.png"]);
         for extra in [
@@ -307,17 +330,28 @@ mod tests {
             &["1.png", "2.png", "4.png"],
             &["1.png", "01.png", "2.png", "3.png"],
         ] {
-            let e = table(&[(BENCH_DIRECTIONS, DIRS)], extra).unwrap_err().to_string();
+            let e = table(&[(BENCH_DIRECTIONS, DIRS)], extra)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains(BENCH_NAMES), "{extra:?}: {e}");
         }
     }
 
     #[test]
     fn errors_name_the_file_and_row() {
-        let e = table(&[(BENCH_DIRECTIONS, "0 0 1\n1 0 x\n0 1 1\n"), (BENCH_NAMES, "a\nb\nc")], &[])
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("light_directions.txt row 2") && e.contains("\"x\""), "{e}");
+        let e = table(
+            &[
+                (BENCH_DIRECTIONS, "0 0 1\n1 0 x\n0 1 1\n"),
+                (BENCH_NAMES, "a\nb\nc"),
+            ],
+            &[],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("light_directions.txt row 2") && e.contains("\"x\""),
+            "{e}"
+        );
         let e = table(
             &[
                 (BENCH_DIRECTIONS, DIRS),
@@ -328,13 +362,27 @@ mod tests {
         )
         .unwrap_err()
         .to_string();
-        assert!(e.contains("light_intensities.txt row 3") && e.contains("intensity g"), "{e}");
+        assert!(
+            e.contains("light_intensities.txt row 3") && e.contains("intensity g"),
+            "{e}"
+        );
         let e = table(&[(BENCH_DIRECTIONS, DIRS), (BENCH_NAMES, "a\nb")], &[])
             .unwrap_err()
             .to_string();
-        assert!(e.contains("3 rows") && e.contains("filenames.txt has 2"), "{e}");
-        let e = table(&[], &["a.png", "b.png", "notes.txt"]).unwrap_err().to_string();
-        for layout in [SEED_CSV, SEED_JSON, BENCH_DIRECTIONS, BENCH_NAMES, BENCH_INTENSITIES] {
+        assert!(
+            e.contains("3 rows") && e.contains("filenames.txt has 2"),
+            "{e}"
+        );
+        let e = table(&[], &["a.png", "b.png", "notes.txt"])
+            .unwrap_err()
+            .to_string();
+        for layout in [
+            SEED_CSV,
+            SEED_JSON,
+            BENCH_DIRECTIONS,
+            BENCH_NAMES,
+            BENCH_INTENSITIES,
+        ] {
             assert!(e.contains(layout), "{e}");
         }
     }

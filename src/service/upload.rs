@@ -872,7 +872,9 @@ fn extract_archive(
         (&mut entry)
             .take(MAX_LIGHTS_BYTES as u64 + 1)
             .read_to_end(&mut bytes)
-            .map_err(|e| ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}")))?;
+            .map_err(|e| {
+                ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}"))
+            })?;
         if bytes.len() > MAX_LIGHTS_BYTES {
             return Err(ApiError::too_large(format!(
                 "the light table file {name:?} is larger than {MAX_LIGHTS_BYTES} bytes"
