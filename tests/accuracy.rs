@@ -18,7 +18,7 @@ fn res(name: &str) -> PathBuf {
 }
 
 fn run(dir: &Path, opts: &Options, mask: Option<&Array2<bool>>) -> Reconstruction {
-    let mut set = intake::load_dir(dir, None, &Limits::default()).unwrap();
+    let mut set = intake::load_dir(dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = mask.cloned();
     reconstruct(&set, opts, &mut RunToEnd).unwrap()
 }
@@ -151,7 +151,7 @@ fn seed_dog_auto_mask_fills_the_eye_holes() {
     let dir = seed!("dog-images");
     let rec = run(&dir, &Options::default(), None);
     // The plain threshold leaves holes (the eyes); the auto mask has none.
-    let set = intake::load_dir(&dir, None, &Limits::default()).unwrap();
+    let set = intake::load_dir(&dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     let raw = reconstruct(
         &set,
         &Options {

@@ -444,14 +444,15 @@ async fn unsupported_formats_get_415() {
     expect_problem(post(form).await.unwrap(), 415, &["not a zip"]).await;
 
     let p = png(8, 8, 50);
+    // A readme beside the images is skipped; an image the table names must be one.
     let zip = zip_entries(&[
-        ("a.png", &p),
+        ("a.png", b"hello"),
         ("b.png", &p),
         ("c.png", &p),
         ("readme.txt", b"hello"),
         ("light_directions.csv", table.as_bytes()),
     ]);
-    expect_problem(post(archive_form(zip)).await.unwrap(), 415, &["readme.txt"]).await;
+    expect_problem(post(archive_form(zip)).await.unwrap(), 415, &["\"a.png\""]).await;
     s.stop().await;
 }
 
@@ -1449,5 +1450,59 @@ async fn a_refused_upload_drops_its_decoded_images() {
     s.wait_succeeded(job["id"].as_str().unwrap()).await;
     assert_eq!(metric(&s, "photostereo_prefetched_images_total").await, 4.0);
     assert_eq!(metric(&s, "photostereo_prefetch_sets").await, 0.0);
+    s.stop().await;
+}
+
+/// A zip of a folder in the field's benchmark layout (y-up `light_directions.txt`, RGB
+/// intensities, `filenames.txt`, `mask.png`, and files that are not part of the set):
+/// accepted, read in the project's frame, its mask used, the unnamed image noted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_benchmark_layout_archive_reconstructs_in_the_projects_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("bench");
+    std::fs::create_dir(&folder).unwrap();
+    let scene = benchmark_folder(&folder);
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default();
+    let mut files: Vec<_> = std::fs::read_dir(&folder)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    for f in files {
+        let name = format!("bench/{}", f.file_name().unwrap().to_string_lossy());
+        w.start_file(name, opts).unwrap();
+        std::io::Write::write_all(&mut w, &std::fs::read(&f).unwrap()).unwrap();
+    }
+    let zip = w.finish().unwrap().into_inner();
+
+    let s = TestServer::start(config(&dir.path().join("data"))).await;
+    let form = archive_form(zip).text("options", r#"{"outputs": ["normal.exr"]}"#);
+    let job = s.submit(form).await;
+    assert_eq!(job["options"]["mask"], "given");
+    let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    let inside = scene.mask.iter().filter(|m| **m).count() as u64;
+    assert_eq!(job["result"]["object_pixels"], inside);
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let mut report = Value::Null;
+    for name in ["normal.exr", "result.json"] {
+        let url = job["artifacts"][name].as_str().unwrap();
+        let r = s.client.get(s.url(url)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{name}");
+        let bytes = r.bytes().await.unwrap();
+        std::fs::write(out.join(name), &bytes).unwrap();
+        if name == "result.json" {
+            report = serde_json::from_slice(&bytes).unwrap();
+        }
+    }
+    let err = mean_normal_error_deg(&out, &scene);
+    assert!(err < 0.5, "mean normal error {err}°");
+    assert_eq!(report["mask_file"], "mask.png");
+    let notes = report["notes"].as_array().unwrap();
+    assert!(
+        notes.len() == 1 && notes[0].as_str().unwrap().contains("Normal_gt.png"),
+        "{notes:?}"
+    );
     s.stop().await;
 }

@@ -6,6 +6,9 @@ mod seed;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+mod common;
+
+use common::{benchmark_folder, mean_normal_error_deg};
 use photostereo::core::outputs;
 use seed::{SEED_SETS, seed};
 
@@ -285,4 +288,88 @@ fn readme_walkthrough_is_the_script_the_api_tests_run() {
         readme.contains(body.trim_end()),
         "README's walk-through differs from tests/walkthrough.sh"
     );
+}
+
+#[test]
+fn a_benchmark_layout_folder_reconstructs_in_the_projects_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = benchmark_folder(dir.path());
+    let (out, report) = reconstruct(dir.path(), &["--outputs", "normal.exr,albedo_rgb.png"]);
+    let err = mean_normal_error_deg(out.path(), &scene);
+    assert!(err < 0.5, "mean normal error {err}°");
+    assert_eq!(report["light_count"], 12);
+    assert_eq!(report["mask_file"], "mask.png");
+    assert_eq!(report["options"]["mask"], "given");
+    let inside = scene.mask.iter().filter(|m| **m).count();
+    assert_eq!(report["object_pixels"].as_u64().unwrap() as usize, inside);
+    let notes: Vec<&str> = (report["notes"].as_array().unwrap().iter())
+        .map(|n| n.as_str().unwrap())
+        .collect();
+    assert_eq!(notes.len(), 1, "{notes:?}");
+    assert!(notes[0].contains("Normal_gt.png"), "{notes:?}");
+    assert_eq!(report["lights"][0]["intensity_rgb"][0], 0.6);
+    // The balanced colour: albedo_rgb.png follows the tint, not the lights' colour.
+    let albedo = image::open(out.path().join("albedo_rgb.png"))
+        .unwrap()
+        .to_rgb16();
+    let p = albedo.get_pixel(24, 24).0.map(|v| v as f64 / 65535.0);
+    let truth = scene.albedo[[24, 24]];
+    for (c, tint) in [0.9, 0.75, 0.6].iter().enumerate() {
+        assert!(
+            (p[c] - truth * tint).abs() < 0.01,
+            "channel {c}: {p:?} vs {truth}"
+        );
+    }
+}
+
+#[test]
+fn a_folder_mask_png_is_the_mask_unless_a_mode_is_chosen() {
+    let dir = tempfile::tempdir().unwrap();
+    let bump = Path::new(env!("CARGO_MANIFEST_DIR")).join("res/bump");
+    for entry in std::fs::read_dir(&bump).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, dir.path().join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let first = image::open(dir.path().join("im1.png")).unwrap();
+    let (w, h) = (first.width(), first.height());
+    // The left half is the object.
+    image::GrayImage::from_fn(w, h, |x, _| image::Luma([if x < w / 2 { 255 } else { 0 }]))
+        .save(dir.path().join("mask.png"))
+        .unwrap();
+    let (_, report) = reconstruct(dir.path(), &["--outputs", "mask.png"]);
+    assert_eq!(report["mask_file"], "mask.png");
+    assert_eq!(report["options"]["mask"], "given");
+    assert_eq!(report["object_pixels"], (w / 2 * h) as u64);
+    assert_eq!(report["notes"].as_array().unwrap().len(), 0, "{report}");
+
+    let (_, report) = reconstruct(dir.path(), &["--outputs", "mask.png", "--mask", "none"]);
+    assert!(report["mask_file"].is_null(), "{report}");
+    assert_eq!(report["object_pixels"], (w * h) as u64);
+    assert!(
+        report["notes"][0].as_str().unwrap().contains("mask.png"),
+        "{report}"
+    );
+}
+
+#[test]
+fn a_folder_in_no_layout_is_refused_naming_the_layouts() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("lights.csv"), "a.png, 0, 0, 1\n").unwrap();
+    let out = bin()
+        .arg("reconstruct")
+        .arg(dir.path())
+        .args(["--out", "/tmp/never"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    for name in [
+        "light_directions.csv",
+        "light_directions.txt",
+        "filenames.txt",
+    ] {
+        assert!(err.contains(name), "{err}");
+    }
 }

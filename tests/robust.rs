@@ -19,7 +19,7 @@ fn res(name: &str) -> PathBuf {
 }
 
 fn solve(dir: &Path, solver: Solver, mask: Option<ndarray::Array2<bool>>) -> Reconstruction {
-    let mut set = intake::load_dir(dir, None, &Limits::default()).unwrap();
+    let mut set = intake::load_dir(dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = mask;
     let opts = Options {
         solver,
@@ -96,7 +96,12 @@ fn four_light_8_bit_noisy_set_is_no_worse_than_least_squares() {
 
 #[test]
 fn black_level_and_noise_are_estimated() {
-    let set = intake::load_dir(&res("sphere-noisy"), None, &Limits::default()).unwrap();
+    let set = intake::load_dir(
+        &res("sphere-noisy"),
+        intake::DirMask::Folder,
+        &Limits::default(),
+    )
+    .unwrap();
     let est = photostereo::core::robust::estimate(&set);
     assert!((est.black_level - 0.02).abs() < 0.002, "{est:?}");
     assert!((est.noise_sigma - 0.004).abs() < 0.0015, "{est:?}");
@@ -108,7 +113,7 @@ fn seed_reprojection_is_no_worse_than_least_squares() {
     for (name, dir, strictly) in [("dog", dog, true), ("sphere", sphere, false)] {
         // One mask for both, so the same pixels are compared.
         let l2 = solve(&dir, Solver::L2, None);
-        let mut set = intake::load_dir(&dir, None, &Limits::default()).unwrap();
+        let mut set = intake::load_dir(&dir, intake::DirMask::Folder, &Limits::default()).unwrap();
         set.mask = Some(l2.mask.clone());
         let opts = Options {
             solver: Solver::Robust,
@@ -188,7 +193,8 @@ fn low_light_bumps(
     };
     synth::write_set(dir.path(), &Scene::shadows(128), &lights, &capture).unwrap();
     let truth = synth::read_truth(dir.path()).unwrap();
-    let mut set = intake::load_dir(dir.path(), None, &Limits::default()).unwrap();
+    let mut set =
+        intake::load_dir(dir.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = Some(truth.mask.clone());
     let mut flagged = 0;
     let scores = methods

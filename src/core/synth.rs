@@ -256,6 +256,47 @@ pub fn render(scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Vec<Arra
         .collect()
 }
 
+/// Render one colour image per light, as a white-balanced camera sees a surface of albedo
+/// `albedo · tint[c]` in channel c under light i of per-channel intensity
+/// `intensities[i][c]`. RGB at the capture's bit depth.
+pub fn render_rgb(
+    scene: &Scene,
+    tint: [f64; 3],
+    lights: &[[f64; 3]],
+    intensities: &[[f64; 3]],
+    capture: &Capture,
+) -> Vec<image::DynamicImage> {
+    let (w, h) = (scene.width as u32, scene.height as u32);
+    lights
+        .iter()
+        .zip(intensities)
+        .enumerate()
+        .map(|(i, (l, rgb))| {
+            let channels: Vec<Array2<u16>> = (0..3)
+                .map(|c| {
+                    let mut lit = scene.clone();
+                    lit.albedo.mapv_inplace(|a| a * tint[c] * rgb[c]);
+                    let seed = capture.seed.wrapping_add((3 * i + c) as u64);
+                    let one = Capture { seed, ..*capture };
+                    render(&lit, &[*l], &one).remove(0)
+                })
+                .collect();
+            let at = |x: u32, y: u32| channels.iter().map(move |ch| ch[[y as usize, x as usize]]);
+            if capture.bit_depth == 8 {
+                image::DynamicImage::ImageRgb8(ImageBuffer::from_fn(w, h, |x, y| {
+                    let mut v = at(x, y).map(|v| v as u8);
+                    image::Rgb([0; 3].map(|_| v.next().unwrap_or(0)))
+                }))
+            } else {
+                image::DynamicImage::ImageRgb16(ImageBuffer::from_fn(w, h, |x, y| {
+                    let mut v = at(x, y);
+                    image::Rgb([0; 3].map(|_| v.next().unwrap_or(0)))
+                }))
+            }
+        })
+        .collect()
+}
+
 /// Write a data set in the seed's layout: images `im1.png`…, `light_directions.csv`, and
 /// ground truth under `truth/` (`normal.exr`: seed-frame normals with the mask in alpha;
 /// `depth.exr`: heights in pixels; `albedo.exr`).
