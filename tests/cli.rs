@@ -313,7 +313,7 @@ fn a_benchmark_layout_folder_reconstructs_in_the_projects_frame() {
         .unwrap()
         .to_rgb16();
     let p = albedo.get_pixel(24, 24).0.map(|v| v as f64 / 65535.0);
-    let truth = scene.albedo[[24, 24]];
+    let truth = scene.albedo[[24, 24, 0]];
     for (c, tint) in [0.9, 0.75, 0.6].iter().enumerate() {
         assert!(
             (p[c] - truth * tint).abs() < 0.01,

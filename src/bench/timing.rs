@@ -59,7 +59,7 @@ pub(super) fn core_run(
     let limits = Limits::default();
     release_free_heap();
     let start = Instant::now();
-    let decoded = intake::load_dir(&set.dir, None, &limits)
+    let decoded = intake::load_dir(&set.dir, intake::DirMask::Folder, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_only = ms(start.elapsed());
     ensure!(
@@ -180,7 +180,7 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
     let base = status_bytes("VmRSS");
     let reset = reset_peak();
     let start = Instant::now();
-    let decoded = intake::load_dir(&set.dir, None, &limits)
+    let decoded = intake::load_dir(&set.dir, intake::DirMask::Folder, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_ms = ms(start.elapsed());
     let report = pipeline::run(decoded, opts, out, &mut photostereo::core::RunToEnd)

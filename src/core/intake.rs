@@ -621,7 +621,7 @@ mod tests {
             let dot: f64 = (0..3).map(|k| n[k] * rec.normals[[r, c, k]] as f64).sum();
             worst_deg = worst_deg.max(dot.clamp(-1.0, 1.0).acos().to_degrees());
             for ch in 0..3 {
-                let truth = scene.albedo[[r, c]] * TINT[ch];
+                let truth = scene.albedo[[r, c, 0]] * TINT[ch];
                 let err = (albedo_rgb[[r, c, ch]] as f64 - truth).abs();
                 worst_albedo[ch] = worst_albedo[ch].max(err);
             }
