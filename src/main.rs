@@ -8,7 +8,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
-use photostereo::core::intake::{self, Limits};
+use photostereo::core::intake::{self, DirMask, Limits};
 use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
 use photostereo::core::{Options, metrics, pipeline, synth};
 use photostereo::service;
@@ -33,7 +33,8 @@ enum Command {
     Openapi,
     /// Exit 0 when the service answers its health URL (for container HEALTHCHECKs).
     Healthcheck(service::HealthcheckArgs),
-    /// Reconstruct a folder holding images and light_directions.csv (or .json).
+    /// Reconstruct a folder: images with light_directions.csv (or .json), or the benchmark
+    /// layout (light_directions.txt, filenames.txt, light_intensities.txt, mask.png).
     Reconstruct(ReconstructArgs),
     /// Render the project's own data sets, with ground truth, into a folder (e.g. res/).
     Render {
@@ -58,7 +59,10 @@ enum Command {
 
 #[derive(Args)]
 struct ReconstructArgs {
-    /// Folder in the seed's layout: images + light_directions.csv.
+    /// Folder in the seed's layout (images + light_directions.csv or .json) or the
+    /// benchmark layout (light_directions.txt with x right, y UP, z to the camera,
+    /// filenames.txt, optional light_intensities.txt); image files the table does not
+    /// name are ignored, and a mask.png in it is the mask (see --mask).
     dir: PathBuf,
     /// Where to write the outputs.
     #[arg(long, short)]
@@ -69,10 +73,13 @@ struct ReconstructArgs {
     /// l2 (default) | robust | weighted
     #[arg(long, value_parser = kebab::<Solver>)]
     solver: Option<Solver>,
-    /// auto (default) | none | given
+    /// auto (default) | none | given. Unless a mode is chosen (here or in --options), a
+    /// mask.png in the folder (or --mask-file) makes it `given`; choosing auto or none
+    /// leaves a folder mask.png unused.
     #[arg(long, value_parser = kebab::<MaskMode>)]
     mask: Option<MaskMode>,
-    /// A mask image (non-zero = object); used unless --mask none.
+    /// A mask image (non-zero = object), instead of the folder's mask.png; used unless
+    /// --mask none.
     #[arg(long)]
     mask_file: Option<PathBuf>,
     /// poisson (default) | weighted-poisson | robust-poisson | frankot-chellappa | path
@@ -122,16 +129,22 @@ fn xyz(s: &str) -> Result<[f64; 3], String> {
 }
 
 impl ReconstructArgs {
-    fn options(&self) -> anyhow::Result<Options> {
-        let mut o: Options = match &self.options {
+    /// The options, and the mask mode if the user chose one (by flag or in the file).
+    fn options(&self) -> anyhow::Result<(Options, Option<MaskMode>)> {
+        let (mut o, mut chosen): (Options, _) = match &self.options {
             Some(p) => {
                 let text = std::fs::read_to_string(p)
                     .with_context(|| format!("reading {}", p.display()))?;
-                serde_json::from_str(&text)
-                    .with_context(|| format!("options in {}", p.display()))?
+                let o: Options = serde_json::from_str(&text)
+                    .with_context(|| format!("options in {}", p.display()))?;
+                let has_mask = serde_json::from_str::<serde_json::Value>(&text)
+                    .is_ok_and(|v| v.get("mask").is_some());
+                let chosen = has_mask.then_some(o.mask);
+                (o, chosen)
             }
-            None => Options::default(),
+            None => (Options::default(), None),
         };
+        chosen = self.mask.or(chosen);
         macro_rules! set {
             ($($flag:ident => $($field:ident).+),*) => { $(if let Some(v) = self.$flag.clone() { o.$($field).+ = v; })* };
         }
@@ -150,14 +163,31 @@ impl ReconstructArgs {
             o.mesh.pixel_size = self.pixel_size;
         }
         o.check_values()?;
-        Ok(o)
+        Ok((o, chosen))
+    }
+
+    /// Which mask the folder's set gets: --mask-file, else the folder's mask.png unless
+    /// the user chose a mode that takes none of its own accord (auto or none).
+    fn dir_mask(&self, chosen: Option<MaskMode>) -> DirMask<'_> {
+        match (&self.mask_file, chosen) {
+            (Some(file), _) => DirMask::File(file),
+            (None, None | Some(MaskMode::Given)) => DirMask::Folder,
+            (None, Some(MaskMode::Auto | MaskMode::None)) => DirMask::Without,
+        }
     }
 }
 
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
-    let opts = args.options()?;
+    let (mut opts, chosen) = args.options()?;
     let start = std::time::Instant::now();
-    let set = intake::load_dir(&args.dir, args.mask_file.as_deref(), &Limits::default())?;
+    let set = intake::load_dir(&args.dir, args.dir_mask(chosen), &Limits::default())?;
+    // A folder's own mask.png stands for `--mask given` unless a mode was chosen.
+    if chosen.is_none() && set.mask.is_some() && args.mask_file.is_none() {
+        opts.mask = MaskMode::Given;
+    }
+    for note in &set.notes {
+        eprintln!("note: {note}");
+    }
     let decoded = start.elapsed();
     let report = pipeline::run(
         set,
@@ -206,7 +236,7 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
     println!("|---|---|---:|---:|---:|---:|");
     for set_dir in sets {
         let truth = synth::read_truth(&set_dir)?;
-        let mut set = intake::load_dir(&set_dir, None, &Limits::default())?;
+        let mut set = intake::load_dir(&set_dir, DirMask::Folder, &Limits::default())?;
         set.mask = Some(truth.mask.clone());
         for solver in [Solver::L2, Solver::Weighted, Solver::Robust] {
             let opts = Options {

@@ -1,6 +1,8 @@
 //! Accuracy against ground truth: the project's rendered sets in res/ and the seed's real
 //! data in ../shared/seed-data.
 
+mod seed;
+
 use std::path::{Path, PathBuf};
 
 use ndarray::Array2;
@@ -9,26 +11,14 @@ use photostereo::core::metrics::{self, Accuracy};
 use photostereo::core::options::{Integration, MaskMode, Solver};
 use photostereo::core::synth::{self, Truth};
 use photostereo::core::{Options, Reconstruction, RunToEnd, mask, reconstruct};
+use seed::seed;
 
 fn res(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("res").join(name)
 }
 
-fn seed(name: &str) -> PathBuf {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
-    let dir = root.join(name);
-    assert!(
-        dir.is_dir(),
-        "seed data missing: {} (set PHOTOSTEREO_SEED_DATA)",
-        dir.display()
-    );
-    dir
-}
-
 fn run(dir: &Path, opts: &Options, mask: Option<&Array2<bool>>) -> Reconstruction {
-    let mut set = intake::load_dir(dir, None, &Limits::default()).unwrap();
+    let mut set = intake::load_dir(dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = mask.cloned();
     reconstruct(&set, opts, &mut RunToEnd).unwrap()
 }
@@ -111,7 +101,7 @@ fn mask_aware_poisson_beats_frankot_chellappa_on_a_masked_sphere() {
 
 #[test]
 fn seed_sphere_normals_point_outward_and_its_auto_mask_is_one_disc() {
-    let rec = run(&seed("sphere-images"), &Options::default(), None);
+    let rec = run(&seed!("sphere-images"), &Options::default(), None);
     let (labels, sizes) = mask::components(&rec.mask);
     assert_eq!(sizes.len(), 2, "one component, got sizes {sizes:?}");
     assert!(
@@ -158,10 +148,10 @@ fn seed_sphere_normals_point_outward_and_its_auto_mask_is_one_disc() {
 
 #[test]
 fn seed_dog_auto_mask_fills_the_eye_holes() {
-    let dir = seed("dog-images");
+    let dir = seed!("dog-images");
     let rec = run(&dir, &Options::default(), None);
     // The plain threshold leaves holes (the eyes); the auto mask has none.
-    let set = intake::load_dir(&dir, None, &Limits::default()).unwrap();
+    let set = intake::load_dir(&dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     let raw = reconstruct(
         &set,
         &Options {
@@ -190,7 +180,7 @@ fn seed_dog_auto_mask_fills_the_eye_holes() {
 
 #[test]
 fn seed_synth_reconstructs_a_bump_with_varying_albedo() {
-    let rec = run(&seed("synth-images"), &Options::default(), None);
+    let rec = run(&seed!("synth-images"), &Options::default(), None);
     let inside: Vec<f32> = rec.albedo.iter().copied().filter(|a| *a > 0.0).collect();
     let (lo, hi) = inside
         .iter()

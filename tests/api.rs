@@ -1,6 +1,7 @@
 //! The HTTP API end to end: a real server on 127.0.0.1:0 and a real HTTP client.
 
 mod common;
+mod seed;
 
 use std::collections::{BTreeMap, HashSet};
 use std::time::Duration;
@@ -9,6 +10,7 @@ use common::*;
 use photostereo::core::outputs::{self, ARTIFACTS};
 use photostereo::service::{AppState, healthcheck, openapi_json, router};
 use reqwest::multipart::{Form, Part};
+use seed::{SEED_SETS, seed};
 use serde_json::Value;
 
 /// Download every artifact a succeeded job links and check each one: status, Content-Type,
@@ -134,8 +136,8 @@ async fn seed_sets_as_files_produce_their_selected_artifacts() {
     for (i, set) in SEED_SETS.iter().enumerate() {
         // The first set asks for every artifact, the others get the default set.
         let form = match i {
-            0 => folder_form(&seed(set)).text("options", r#"{"outputs": ["all"]}"#),
-            _ => folder_form(&seed(set)),
+            0 => folder_form(&seed!(set)).text("options", r#"{"outputs": ["all"]}"#),
+            _ => folder_form(&seed!(set)),
         };
         let job = s.submit(form).await;
         assert_eq!(job["image_count"], 4);
@@ -205,7 +207,7 @@ async fn seed_sets_as_files_produce_their_selected_artifacts() {
 async fn a_selection_writes_only_its_artifacts_and_reshading_names_what_it_lacks() {
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
-    let form = folder_form(&seed("synth-images"))
+    let form = folder_form(&repo_root().join("res/bump"))
         .text("options", r#"{"outputs": ["albedo.png", "shaded.png"]}"#);
     let id = s.submit(form).await["id"].as_str().unwrap().to_string();
     let job = s.wait_succeeded(&id).await;
@@ -234,7 +236,7 @@ async fn seed_sets_as_zip_archives() {
     ];
     let mut ids = Vec::new();
     for (set, top) in layouts {
-        let zip = zip_folder(&seed(set), top);
+        let zip = zip_folder(&seed!(set), top);
         let form = archive_form(zip).text("options", r#"{"integration": "frankot-chellappa"}"#);
         let job = s.submit(form).await;
         assert_eq!(job["options"]["integration"], "frankot-chellappa");
@@ -252,7 +254,7 @@ async fn seed_sets_as_zip_archives() {
 async fn malformed_requests_get_400() {
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
-    let synth = seed("synth-images");
+    let bump = repo_root().join("res/bump");
     let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
 
     let r = s
@@ -265,23 +267,23 @@ async fn malformed_requests_get_400() {
     expect_problem(r, 400, &["multipart/form-data"]).await;
 
     let mut no_lights = Form::new();
-    for img in images_of(&synth) {
+    for img in images_of(&bump) {
         no_lights = no_lights.part("images", file_part(&img));
     }
     expect_problem(post(no_lights).await.unwrap(), 400, &["lights"]).await;
 
-    let only_lights = Form::new().part("lights", file_part(&synth.join("light_directions.csv")));
+    let only_lights = Form::new().part("lights", file_part(&bump.join("light_directions.csv")));
     expect_problem(post(only_lights).await.unwrap(), 400, &["images"]).await;
 
-    let unknown = folder_form(&synth).text("colour", "red");
+    let unknown = folder_form(&bump).text("colour", "red");
     expect_problem(post(unknown).await.unwrap(), 400, &["\"colour\""]).await;
 
     let nameless = Form::new()
-        .part("lights", file_part(&synth.join("light_directions.csv")))
+        .part("lights", file_part(&bump.join("light_directions.csv")))
         .part("images", Part::bytes(png(4, 4, 9)));
     expect_problem(post(nameless).await.unwrap(), 400, &["file name"]).await;
 
-    let twice = folder_form(&synth).text("lights", "a.png, 0, 0, 1");
+    let twice = folder_form(&bump).text("lights", "a.png, 0, 0, 1");
     expect_problem(
         post(twice).await.unwrap(),
         400,
@@ -289,9 +291,9 @@ async fn malformed_requests_get_400() {
     )
     .await;
 
-    let both = folder_form(&synth).part(
+    let both = folder_form(&bump).part(
         "archive",
-        Part::bytes(zip_folder(&synth, None)).file_name("a.zip"),
+        Part::bytes(zip_folder(&bump, None)).file_name("a.zip"),
     );
     expect_problem(post(both).await.unwrap(), 400, &["either an archive"]).await;
 
@@ -330,6 +332,7 @@ async fn malformed_requests_get_400() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn limits_get_413() {
+    let (sphere, synth) = (seed!("sphere-images"), seed!("synth-images"));
     let dir = tempfile::tempdir().unwrap();
     let mut c = config(dir.path());
     c.max_body_bytes = 300_000;
@@ -342,13 +345,13 @@ async fn limits_get_413() {
 
     // The sphere set is 4 × 212 kB: over the body limit (declared length).
     expect_problem(
-        post(folder_form(&seed("sphere-images"))).await.unwrap(),
+        post(folder_form(&sphere)).await.unwrap(),
         413,
         &["300000 bytes"],
     )
     .await;
     // The same, streamed without a length: caught while reading.
-    let big = std::fs::read(seed("sphere-images").join("real1.bmp")).unwrap();
+    let big = std::fs::read(sphere.join("real1.bmp")).unwrap();
     let chunks: Vec<Result<Vec<u8>, std::io::Error>> = big
         .repeat(2)
         .chunks(16 * 1024)
@@ -381,7 +384,7 @@ async fn limits_get_413() {
 
     // Four images where three are allowed.
     expect_problem(
-        post(folder_form(&seed("synth-images"))).await.unwrap(),
+        post(folder_form(&synth)).await.unwrap(),
         413,
         &["limit of 3 images"],
     )
@@ -441,22 +444,23 @@ async fn unsupported_formats_get_415() {
     expect_problem(post(form).await.unwrap(), 415, &["not a zip"]).await;
 
     let p = png(8, 8, 50);
+    // A readme beside the images is skipped; an image the table names must be one.
     let zip = zip_entries(&[
-        ("a.png", &p),
+        ("a.png", b"hello"),
         ("b.png", &p),
         ("c.png", &p),
         ("readme.txt", b"hello"),
         ("light_directions.csv", table.as_bytes()),
     ]);
-    expect_problem(post(archive_form(zip)).await.unwrap(), 415, &["readme.txt"]).await;
+    expect_problem(post(archive_form(zip)).await.unwrap(), 415, &["\"a.png\""]).await;
     s.stop().await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn invalid_inputs_get_422_with_the_cores_message() {
+    let (synth, dog) = (seed!("synth-images"), seed!("dog-images"));
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
-    let synth = seed("synth-images");
     let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
     let with_table = |table: &str| {
         let mut f = Form::new().text("lights", table.to_string());
@@ -538,8 +542,8 @@ async fn invalid_inputs_get_422_with_the_cores_message() {
     for img in images_of(&synth).iter().take(3) {
         sizes = sizes.part("images", file_part(img));
     }
-    let dog = std::fs::read(seed("dog-images").join("dog1.png")).unwrap();
-    sizes = sizes.part("images", Part::bytes(dog).file_name("im4.png"));
+    let dog1 = std::fs::read(dog.join("dog1.png")).unwrap();
+    sizes = sizes.part("images", Part::bytes(dog1).file_name("im4.png"));
     expect_problem(
         post(sizes).await.unwrap(),
         422,
@@ -625,7 +629,7 @@ async fn unknown_things_get_404_and_unfinished_jobs_409() {
     let r = s.client.put(s.url("/v1/jobs")).send().await.unwrap();
     expect_problem(r, 405, &["PUT"]).await;
 
-    let job = s.submit(folder_form(&seed("synth-images"))).await;
+    let job = s.submit(folder_form(&repo_root().join("res/bump"))).await;
     let id = job["id"].as_str().unwrap();
     let r = s
         .client
@@ -678,17 +682,17 @@ async fn full_queue_gets_503_and_low_disk_507() {
     c.queue_length = 1;
     c.stage_delay = Duration::from_millis(300);
     let s = TestServer::start(c).await;
-    let synth = seed("synth-images");
+    let bump = repo_root().join("res/bump");
 
-    let a = s.submit(folder_form(&synth)).await;
+    let a = s.submit(folder_form(&bump)).await;
     let a = a["id"].as_str().unwrap().to_string();
     s.wait_for(&a, Duration::from_secs(30), |j| j["status"] == "running")
         .await;
-    let b = s.submit(folder_form(&synth)).await;
+    let b = s.submit(folder_form(&bump)).await;
     let r = s
         .client
         .post(s.url("/v1/jobs"))
-        .multipart(folder_form(&synth))
+        .multipart(folder_form(&bump))
         .send()
         .await
         .unwrap();
@@ -713,7 +717,7 @@ async fn full_queue_gets_503_and_low_disk_507() {
         .await
         .unwrap();
     assert_eq!(r.status(), 200);
-    s.submit(folder_form(&synth)).await;
+    s.submit(folder_form(&bump)).await;
     s.stop().await;
 
     let dir = tempfile::tempdir().unwrap();
@@ -723,7 +727,7 @@ async fn full_queue_gets_503_and_low_disk_507() {
     let r = s
         .client
         .post(s.url("/v1/jobs"))
-        .multipart(folder_form(&synth))
+        .multipart(folder_form(&bump))
         .send()
         .await
         .unwrap();
@@ -763,7 +767,7 @@ async fn api_keys_guard_v1_only() {
     let r = s
         .client
         .post(s.url("/v1/jobs"))
-        .multipart(folder_form(&seed("synth-images")))
+        .multipart(folder_form(&repo_root().join("res/bump")))
         .send()
         .await
         .unwrap();
@@ -781,7 +785,7 @@ async fn api_keys_guard_v1_only() {
         .client
         .post(s.url("/v1/jobs"))
         .bearer_auth("first-key")
-        .multipart(folder_form(&seed("synth-images")))
+        .multipart(folder_form(&repo_root().join("res/bump")))
         .send()
         .await
         .unwrap();
@@ -801,11 +805,11 @@ async fn twenty_jobs_at_once_all_finish_within_the_pool_size() {
     c.queue_length = 32;
     c.stage_delay = Duration::from_millis(5);
     let s = TestServer::start(c).await;
-    let synth = seed("synth-images");
+    let bump = repo_root().join("res/bump");
     let submissions = (0..20).map(|_| {
         let client = s.client.clone();
         let url = s.url("/v1/jobs");
-        let form = folder_form(&synth);
+        let form = folder_form(&bump);
         async move { client.post(url).multipart(form).send().await.unwrap() }
     });
     let answers = futures_util::future::join_all(submissions).await;
@@ -878,7 +882,7 @@ async fn delete_cancels_running_and_queued_jobs_then_removes_them() {
 
     let running = s.submit(synthetic_form(256, 6)).await;
     let running = running["id"].as_str().unwrap().to_string();
-    let queued = s.submit(folder_form(&seed("synth-images"))).await;
+    let queued = s.submit(folder_form(&repo_root().join("res/bump"))).await;
     let queued = queued["id"].as_str().unwrap().to_string();
     s.wait_for(&running, Duration::from_secs(30), |j| {
         j["status"] == "running"
@@ -967,7 +971,7 @@ async fn a_job_over_its_time_limit_fails_clearly() {
     c.job_timeout = Duration::from_millis(200);
     c.stage_delay = Duration::from_millis(300);
     let s = TestServer::start(c).await;
-    let job = s.submit(folder_form(&seed("synth-images"))).await;
+    let job = s.submit(folder_form(&repo_root().join("res/bump"))).await;
     let job = s.wait_finished(job["id"].as_str().unwrap()).await;
     assert_eq!(job["status"], "failed", "{job}");
     assert_eq!(job["error"]["type"], "urn:photostereo:problem:job-timeout");
@@ -1014,14 +1018,14 @@ async fn failed_reconstructions_report_a_problem() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn restart_serves_finished_jobs_unchanged_and_runs_queued_ones() {
+    let (synth, dog) = (seed!("synth-images"), seed!("dog-images"));
     let dir = tempfile::tempdir().unwrap();
-    let synth = seed("synth-images");
 
     // First life: one job finishes; one is interrupted by the stop; two never start.
     let mut c = config(dir.path());
     c.workers = 1;
     let s = TestServer::start(c.clone()).await;
-    let done = s.submit(folder_form(&seed("dog-images"))).await;
+    let done = s.submit(folder_form(&dog)).await;
     let done_id = done["id"].as_str().unwrap().to_string();
     let done = s.wait_succeeded(&done_id).await;
     let before = check_artifacts(&s, &done).await;
@@ -1104,6 +1108,19 @@ async fn operations_endpoints_and_request_ids() {
     let r = s.client.get(s.url("/docs/")).send().await.unwrap();
     assert_eq!(r.status(), 200);
     assert!(r.text().await.unwrap().contains("swagger"));
+    // A browser at the root lands on the Swagger UI: 303 to /docs/ (the client follows it).
+    let r = s.client.get(s.url("/")).send().await.unwrap();
+    assert_eq!(r.url().path(), "/docs/");
+    assert!(r.text().await.unwrap().contains("swagger"));
+    let no_follow = reqwest::Client::builder()
+        .redirect(reqwest::redirect::Policy::none())
+        .build()
+        .unwrap();
+    let r = no_follow.get(s.url("/")).send().await.unwrap();
+    assert_eq!(r.status(), 303);
+    assert_eq!(r.headers()["location"], "/docs/");
+    let r = no_follow.post(s.url("/")).send().await.unwrap();
+    expect_problem(r, 405, &[]).await;
 
     healthcheck(&s.url("/healthz")).await.unwrap();
     assert!(healthcheck(&s.url("/nope")).await.is_err());
@@ -1115,7 +1132,7 @@ async fn operations_endpoints_and_request_ids() {
     let r = s
         .client
         .post(s.url("/v1/jobs"))
-        .multipart(folder_form(&seed("synth-images")))
+        .multipart(folder_form(&repo_root().join("res/bump")))
         .send()
         .await
         .unwrap();
@@ -1170,6 +1187,10 @@ async fn served_openapi_document_is_the_checked_in_one() {
         "/openapi.json",
     ] {
         assert!(doc["paths"][path].is_object(), "{path} missing");
+    }
+    // The browser's pages are not API operations.
+    for path in ["/", "/docs", "/docs/"] {
+        assert!(doc["paths"].get(path).is_none(), "{path} documented");
     }
     for schema in ["Problem", "JobView", "JobList", "Options", "JobStatus"] {
         assert!(
@@ -1273,7 +1294,7 @@ async fn finished_jobs_expire_after_the_retention_period() {
     c.retention = Duration::from_millis(300);
     c.sweep_interval = Duration::from_millis(100);
     let s = TestServer::start(c).await;
-    let job = s.submit(folder_form(&seed("synth-images"))).await;
+    let job = s.submit(folder_form(&repo_root().join("res/bump"))).await;
     let id = job["id"].as_str().unwrap().to_string();
     s.wait_succeeded(&id).await;
     let start = std::time::Instant::now();
@@ -1412,7 +1433,7 @@ async fn a_refused_upload_drops_its_decoded_images() {
     let mut c = config(dir.path());
     c.decode_ahead = 1;
     let s = TestServer::start(c).await;
-    let set = seed("synth-images");
+    let set = repo_root().join("res/bump");
     // Every image arrives (and is decoded ahead), then a part the API does not know.
     let form = folder_form(&set).text("bogus", "x");
     let r = s
@@ -1429,5 +1450,59 @@ async fn a_refused_upload_drops_its_decoded_images() {
     s.wait_succeeded(job["id"].as_str().unwrap()).await;
     assert_eq!(metric(&s, "photostereo_prefetched_images_total").await, 4.0);
     assert_eq!(metric(&s, "photostereo_prefetch_sets").await, 0.0);
+    s.stop().await;
+}
+
+/// A zip of a folder in the field's benchmark layout (y-up `light_directions.txt`, RGB
+/// intensities, `filenames.txt`, `mask.png`, and files that are not part of the set):
+/// accepted, read in the project's frame, its mask used, the unnamed image noted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_benchmark_layout_archive_reconstructs_in_the_projects_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("bench");
+    std::fs::create_dir(&folder).unwrap();
+    let scene = benchmark_folder(&folder);
+    let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let opts = zip::write::SimpleFileOptions::default();
+    let mut files: Vec<_> = std::fs::read_dir(&folder)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    for f in files {
+        let name = format!("bench/{}", f.file_name().unwrap().to_string_lossy());
+        w.start_file(name, opts).unwrap();
+        std::io::Write::write_all(&mut w, &std::fs::read(&f).unwrap()).unwrap();
+    }
+    let zip = w.finish().unwrap().into_inner();
+
+    let s = TestServer::start(config(&dir.path().join("data"))).await;
+    let form = archive_form(zip).text("options", r#"{"outputs": ["normal.exr"]}"#);
+    let job = s.submit(form).await;
+    assert_eq!(job["options"]["mask"], "given");
+    let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    let inside = scene.mask.iter().filter(|m| **m).count() as u64;
+    assert_eq!(job["result"]["object_pixels"], inside);
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let mut report = Value::Null;
+    for name in ["normal.exr", "result.json"] {
+        let url = job["artifacts"][name].as_str().unwrap();
+        let r = s.client.get(s.url(url)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{name}");
+        let bytes = r.bytes().await.unwrap();
+        std::fs::write(out.join(name), &bytes).unwrap();
+        if name == "result.json" {
+            report = serde_json::from_slice(&bytes).unwrap();
+        }
+    }
+    let err = mean_normal_error_deg(&out, &scene);
+    assert!(err < 0.5, "mean normal error {err}°");
+    assert_eq!(report["mask_file"], "mask.png");
+    let notes = report["notes"].as_array().unwrap();
+    assert!(
+        notes.len() == 1 && notes[0].as_str().unwrap().contains("Normal_gt.png"),
+        "{notes:?}"
+    );
     s.stop().await;
 }

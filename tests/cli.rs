@@ -1,22 +1,23 @@
-//! The `photostereo` binary end to end: the seed's three sets through `reconstruct`, and
-//! `render` reproducing res/.
+//! The `photostereo` binary end to end: the seed's three sets and res/ through
+//! `reconstruct`, and `render` reproducing res/.
+
+mod seed;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+mod common;
+
+use common::{benchmark_folder, mean_normal_error_deg};
 use photostereo::core::outputs;
+use seed::{SEED_SETS, seed};
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_photostereo"))
 }
 
-fn seed(name: &str) -> PathBuf {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
-    let dir = root.join(name);
-    assert!(dir.is_dir(), "seed data missing: {}", dir.display());
-    dir
+fn res(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("res").join(name)
 }
 
 fn reconstruct(dir: &Path, extra: &[&str]) -> (tempfile::TempDir, serde_json::Value) {
@@ -37,8 +38,8 @@ fn reconstruct(dir: &Path, extra: &[&str]) -> (tempfile::TempDir, serde_json::Va
 
 #[test]
 fn seed_sets_reconstruct_with_every_output_decodable() {
-    for name in ["synth-images", "sphere-images", "dog-images"] {
-        let (out, report) = reconstruct(&seed(name), &["--outputs", outputs::ALL]);
+    for name in SEED_SETS {
+        let (out, report) = reconstruct(&seed!(name), &["--outputs", outputs::ALL]);
         let artifacts = report["artifacts"].as_array().unwrap();
         for required in [
             "albedo.png",
@@ -89,7 +90,7 @@ fn seed_sets_reconstruct_with_every_output_decodable() {
 
 #[test]
 fn without_a_selection_the_default_set_is_written() {
-    let (out, report) = reconstruct(&seed("synth-images"), &[]);
+    let (out, report) = reconstruct(&res("bump"), &[]);
     let mut written: Vec<String> = std::fs::read_dir(out.path())
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
@@ -109,11 +110,8 @@ fn without_a_selection_the_default_set_is_written() {
 
 #[test]
 fn normal_png_uses_the_opengl_convention() {
-    // Seed sphere: above the centre the normal tilts up the image, so green > half.
-    let (out, _) = reconstruct(
-        &seed("sphere-images"),
-        &["--outputs", "normal.png,mask.png"],
-    );
+    // A sphere: above the centre the normal tilts up the image, so green > half.
+    let (out, _) = reconstruct(&res("sphere"), &["--outputs", "normal.png,mask.png"]);
     let n = image::open(out.path().join("normal.png"))
         .unwrap()
         .to_rgb16();
@@ -168,8 +166,8 @@ fn render_reproduces_the_committed_res_sets() {
 }
 
 /// The bench end to end on tiny sets: every table, a row per size, the HTTP columns, the
-/// job in its own process (a child `photostereo reconstruct`, which must succeed), and
-/// nothing left in its temporary directory.
+/// job in its own process (a child `photostereo reconstruct`, which must succeed), the
+/// default job timed against the l2 job, and nothing left in its temporary directory.
 #[test]
 fn bench_prints_its_tables_and_cleans_up() {
     let tmp = tempfile::tempdir().unwrap();
@@ -197,8 +195,28 @@ fn bench_prints_its_tables_and_cleans_up() {
         "| 32² × 4 |",
         "| 64² × 4 |",
         "HTTP / core",
+        "### The default job against the l2 job",
+        "default ≤ 1.25 × l2 at 2048² × 24: not measured",
     ] {
         assert!(stdout.contains(needle), "no {needle:?} in\n{stdout}");
+    }
+    // Both jobs timed at every size: l2 ms, default ms and their ratio are numbers.
+    let versus = stdout
+        .split("### The default job against the l2 job")
+        .nth(1)
+        .unwrap();
+    for size in ["32", "64"] {
+        let row = versus
+            .lines()
+            .find(|l| l.starts_with(&format!("| {size}² × 4 |")))
+            .unwrap_or_else(|| panic!("no {size}² row in\n{versus}"));
+        let cells: Vec<f64> = row
+            .split('|')
+            .skip(2)
+            .filter(|c| !c.trim().is_empty())
+            .map(|c| c.trim().parse().unwrap_or(f64::NAN))
+            .collect();
+        assert!(cells.len() == 3 && cells.iter().all(|v| *v > 0.0), "{row}");
     }
     let left: Vec<_> = std::fs::read_dir(tmp.path()).unwrap().collect();
     assert!(left.is_empty(), "left behind: {left:?}");
@@ -270,4 +288,88 @@ fn readme_walkthrough_is_the_script_the_api_tests_run() {
         readme.contains(body.trim_end()),
         "README's walk-through differs from tests/walkthrough.sh"
     );
+}
+
+#[test]
+fn a_benchmark_layout_folder_reconstructs_in_the_projects_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = benchmark_folder(dir.path());
+    let (out, report) = reconstruct(dir.path(), &["--outputs", "normal.exr,albedo_rgb.png"]);
+    let err = mean_normal_error_deg(out.path(), &scene);
+    assert!(err < 0.5, "mean normal error {err}°");
+    assert_eq!(report["light_count"], 12);
+    assert_eq!(report["mask_file"], "mask.png");
+    assert_eq!(report["options"]["mask"], "given");
+    let inside = scene.mask.iter().filter(|m| **m).count();
+    assert_eq!(report["object_pixels"].as_u64().unwrap() as usize, inside);
+    let notes: Vec<&str> = (report["notes"].as_array().unwrap().iter())
+        .map(|n| n.as_str().unwrap())
+        .collect();
+    assert_eq!(notes.len(), 1, "{notes:?}");
+    assert!(notes[0].contains("Normal_gt.png"), "{notes:?}");
+    assert_eq!(report["lights"][0]["intensity_rgb"][0], 0.6);
+    // The balanced colour: albedo_rgb.png follows the tint, not the lights' colour.
+    let albedo = image::open(out.path().join("albedo_rgb.png"))
+        .unwrap()
+        .to_rgb16();
+    let p = albedo.get_pixel(24, 24).0.map(|v| v as f64 / 65535.0);
+    let truth = scene.albedo[[24, 24, 0]];
+    for (c, tint) in [0.9, 0.75, 0.6].iter().enumerate() {
+        assert!(
+            (p[c] - truth * tint).abs() < 0.01,
+            "channel {c}: {p:?} vs {truth}"
+        );
+    }
+}
+
+#[test]
+fn a_folder_mask_png_is_the_mask_unless_a_mode_is_chosen() {
+    let dir = tempfile::tempdir().unwrap();
+    let bump = Path::new(env!("CARGO_MANIFEST_DIR")).join("res/bump");
+    for entry in std::fs::read_dir(&bump).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, dir.path().join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let first = image::open(dir.path().join("im1.png")).unwrap();
+    let (w, h) = (first.width(), first.height());
+    // The left half is the object.
+    image::GrayImage::from_fn(w, h, |x, _| image::Luma([if x < w / 2 { 255 } else { 0 }]))
+        .save(dir.path().join("mask.png"))
+        .unwrap();
+    let (_, report) = reconstruct(dir.path(), &["--outputs", "mask.png"]);
+    assert_eq!(report["mask_file"], "mask.png");
+    assert_eq!(report["options"]["mask"], "given");
+    assert_eq!(report["object_pixels"], (w / 2 * h) as u64);
+    assert_eq!(report["notes"].as_array().unwrap().len(), 0, "{report}");
+
+    let (_, report) = reconstruct(dir.path(), &["--outputs", "mask.png", "--mask", "none"]);
+    assert!(report["mask_file"].is_null(), "{report}");
+    assert_eq!(report["object_pixels"], (w * h) as u64);
+    assert!(
+        report["notes"][0].as_str().unwrap().contains("mask.png"),
+        "{report}"
+    );
+}
+
+#[test]
+fn a_folder_in_no_layout_is_refused_naming_the_layouts() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("lights.csv"), "a.png, 0, 0, 1\n").unwrap();
+    let out = bin()
+        .arg("reconstruct")
+        .arg(dir.path())
+        .args(["--out", "/tmp/never"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    for name in [
+        "light_directions.csv",
+        "light_directions.txt",
+        "filenames.txt",
+    ] {
+        assert!(err.contains(name), "{err}");
+    }
 }

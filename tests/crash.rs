@@ -16,7 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use binserver::BinServer;
-use common::{archive_form, folder_form, repo_root, seed, zip_folder};
+use common::{archive_form, folder_form, repo_root, zip_folder};
 use photostereo::core::outputs;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -24,13 +24,15 @@ use serde_json::Value;
 /// One worker, so that jobs queue up and a kill finds some queued and one running.
 const FLAGS: &[&str] = &["--workers", "1", "--shutdown-grace", "1s"];
 
-/// The job forms used, round-robin: the seed's three sets as files and res/bump as a zip.
+/// The job forms used, round-robin: three of the project's rendered sets (16- and 8-bit,
+/// 4 and 24 images) as files and res/bump as a zip.
 fn form(i: usize) -> Form {
+    let res = repo_root().join("res");
     match i % 4 {
-        0 => folder_form(&seed("dog-images")),
-        1 => folder_form(&seed("sphere-images")),
-        2 => folder_form(&seed("synth-images")),
-        _ => archive_form(zip_folder(&repo_root().join("res/bump"), Some("bump"))),
+        0 => folder_form(&res.join("sphere")),
+        1 => folder_form(&res.join("shadows-noisy")),
+        2 => folder_form(&res.join("bump-noisy")),
+        _ => archive_form(zip_folder(&res.join("bump"), Some("bump"))),
     }
 }
 
@@ -277,7 +279,7 @@ async fn sigkill_at_any_point_loses_no_accepted_job_and_serves_no_torn_artifact(
         accepted.push(submit(&s, form(next_form)).await);
         next_form += 1;
     }
-    let png = std::fs::read(seed("synth-images").join("im1.png")).unwrap();
+    let png = std::fs::read(repo_root().join("res/bump-noisy/im1.png")).unwrap();
     let trickle = futures_util::stream::unfold(0usize, move |i| {
         let png = png.clone();
         async move {

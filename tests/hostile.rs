@@ -7,6 +7,7 @@
 
 mod binserver;
 mod common;
+mod seed;
 
 use std::io::Write;
 use std::path::Path;
@@ -15,9 +16,10 @@ use std::time::{Duration, Instant};
 use binserver::BinServer;
 use common::{
     archive_form, expect_problem, file_part, folder_form, images_of, palette_png, png, png_chunk,
-    seed,
+    repo_root,
 };
 use reqwest::multipart::{Form, Part};
+use seed::seed;
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -1018,11 +1020,11 @@ async fn hostile_options() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn mixed_sizes_and_bit_depths_are_refused_at_submission() {
+    let (synth, dog) = (seed!("synth-images"), seed!("dog-images"));
     let dir = tempfile::tempdir().unwrap();
     let s = start(dir.path());
     // The synth set (100×100) with one of the dog's images (400×400) in its place.
-    let synth = seed("synth-images");
-    let dog = std::fs::read(seed("dog-images").join("dog1.png")).unwrap();
+    let dog = std::fs::read(dog.join("dog1.png")).unwrap();
     let mut form = Form::new().part("lights", file_part(&synth.join("light_directions.csv")));
     for img in images_of(&synth) {
         let name = img.file_name().unwrap().to_string_lossy().into_owned();
@@ -1085,17 +1087,17 @@ async fn mixed_sizes_and_bit_depths_are_refused_at_submission() {
 async fn client_names_never_become_paths() {
     let dir = tempfile::tempdir().unwrap();
     let s = start(dir.path());
-    let synth = seed("synth-images");
+    let bump = repo_root().join("res/bump");
     let names = [
         "../../../../pwned-a.png",
         "/tmp/pwned-b.png",
         "....//pwned-c.png",
         "%2e%2e%2f%2e%2e%2fpwned-d.png",
     ];
-    let rows: Vec<String> = synth_rows(&synth);
+    let rows: Vec<String> = table_rows(&bump);
     let mut table = String::new();
     let mut form = Form::new();
-    for ((img, row), name) in images_of(&synth).iter().zip(&rows).zip(names) {
+    for ((img, row), name) in images_of(&bump).iter().zip(&rows).zip(names) {
         table.push_str(&format!("{name}, {row}\n"));
         form = form.part(
             "images",
@@ -1142,8 +1144,8 @@ async fn client_names_never_become_paths() {
     assert_alive(&s, "path names").await;
 }
 
-/// "x, y, z" of each row of a seed table, in image order.
-fn synth_rows(dir: &Path) -> Vec<String> {
+/// "x, y, z" of each row of a light table in the seed's format, in image order.
+fn table_rows(dir: &Path) -> Vec<String> {
     let table = std::fs::read_to_string(dir.join("light_directions.csv")).unwrap();
     let mut rows: Vec<(String, String)> = table
         .lines()
@@ -1168,7 +1170,7 @@ async fn api_key_guards_every_v1_route_and_leaves_probes_open() {
         .client
         .post(s.url("/v1/jobs"))
         .bearer_auth(key)
-        .multipart(folder_form(&seed("synth-images")))
+        .multipart(folder_form(&repo_root().join("res/bump")))
         .send()
         .await
         .unwrap();
@@ -1206,7 +1208,7 @@ async fn api_key_guards_every_v1_route_and_leaves_probes_open() {
                 req = req.header("authorization", a);
             }
             if *method == reqwest::Method::POST {
-                req = req.multipart(folder_form(&seed("synth-images")));
+                req = req.multipart(folder_form(&repo_root().join("res/bump")));
             }
             let r = req.send().await.unwrap();
             assert_eq!(
@@ -1256,10 +1258,10 @@ async fn load_twenty_jobs_and_a_thousand_status_requests() {
         .pool_max_idle_per_host(1000)
         .build()
         .unwrap();
-    let synth = seed("synth-images");
+    let bump = repo_root().join("res/bump");
     let started = Instant::now();
     let submissions = (0..20).map(|_| {
-        let (client, url, form) = (client.clone(), s.url("/v1/jobs"), folder_form(&synth));
+        let (client, url, form) = (client.clone(), s.url("/v1/jobs"), folder_form(&bump));
         async move {
             let t = Instant::now();
             let r = client.post(url).multipart(form).send().await.unwrap();

@@ -25,7 +25,7 @@ fn folder(names: &[&str], table: &str) -> tempfile::TempDir {
 const TABLE: &str = "a.png, 0, 0, 1\nb.png, 0.5, 0, 1\nc.png, 0, 0.5, 1\n";
 
 fn load_err(dir: &Path) -> String {
-    intake::load_dir(dir, None, &Limits::default())
+    intake::load_dir(dir, intake::DirMask::Folder, &Limits::default())
         .unwrap_err()
         .to_string()
 }
@@ -33,7 +33,7 @@ fn load_err(dir: &Path) -> String {
 #[test]
 fn a_good_folder_loads() {
     let d = folder(&["a.png", "b.png", "c.png"], TABLE);
-    let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
+    let set = intake::load_dir(d.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     assert_eq!(
         (set.width, set.height, set.planes.len(), set.bit_depth),
         (8, 8, 3, 8)
@@ -52,9 +52,35 @@ fn image_named_but_missing_and_the_reverse() {
     let d = folder(&["a.png", "b.png"], TABLE);
     let e = load_err(d.path());
     assert!(e.contains("\"c.png\"") && e.contains("not provided"), "{e}");
-    let d = folder(&["a.png", "b.png", "c.png", "extra.png"], TABLE);
-    let e = load_err(d.path());
-    assert!(e.contains("\"extra.png\"") && e.contains("no row"), "{e}");
+    // An image the table does not name is ignored, and said so once.
+    let d = folder(&["a.png", "b.png", "c.png", "extra.png", "more.png"], TABLE);
+    let set = intake::load_dir(d.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
+    assert_eq!(set.planes.len(), 3);
+    assert_eq!(set.notes.len(), 1, "{:?}", set.notes);
+    assert!(
+        set.notes[0].contains("extra.png, more.png"),
+        "{:?}",
+        set.notes
+    );
+}
+
+#[test]
+fn a_folder_in_no_layout_lists_the_layouts() {
+    let dir = tempfile::tempdir().unwrap();
+    for n in ["a.png", "b.png", "c.png"] {
+        gray(&dir.path().join(n), 8, 8);
+    }
+    std::fs::write(dir.path().join("lights.csv"), TABLE).unwrap();
+    let e = load_err(dir.path());
+    for name in [
+        "light_directions.csv",
+        "light_directions.json",
+        "light_directions.txt",
+        "filenames.txt",
+        "light_intensities.txt",
+    ] {
+        assert!(e.contains(name), "{e}");
+    }
 }
 
 #[test]
@@ -125,7 +151,7 @@ fn decompression_bomb_header_is_refused_before_decoding() {
         max_pixels_per_image: 32,
         ..Limits::default()
     };
-    let e = intake::load_dir(d.path(), None, &limits).unwrap_err();
+    let e = intake::load_dir(d.path(), intake::DirMask::Folder, &limits).unwrap_err();
     assert!(e.is_too_large());
     assert!(
         e.to_string()
@@ -166,7 +192,7 @@ fn palette_pngs_decode_and_a_ragged_palette_is_refused() {
 fn ill_conditioned_and_rank_deficient_light_sets() {
     let coplanar = "a.png, 1, 0, 1\nb.png, -1, 0, 1\nc.png, 0, 0, 1\n";
     let d = folder(&["a.png", "b.png", "c.png"], coplanar);
-    let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
+    let set = intake::load_dir(d.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     let e = reconstruct(&set, &Options::default(), &mut RunToEnd)
         .unwrap_err()
         .to_string();
@@ -174,7 +200,7 @@ fn ill_conditioned_and_rank_deficient_light_sets() {
 
     let narrow = "a.png, 0, 0, 1\nb.png, 0.001, 0, 1\nc.png, 0, 0.001, 1\n";
     let d = folder(&["a.png", "b.png", "c.png"], narrow);
-    let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
+    let set = intake::load_dir(d.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     let e = reconstruct(&set, &Options::default(), &mut RunToEnd)
         .unwrap_err()
         .to_string();
@@ -189,7 +215,7 @@ fn mask_of_the_wrong_size() {
     let d = folder(&["a.png", "b.png", "c.png"], TABLE);
     let m = d.path().join("mask.bmp");
     gray(&m, 4, 4);
-    let e = intake::load_dir(d.path(), Some(&m), &Limits::default())
+    let e = intake::load_dir(d.path(), intake::DirMask::File(&m), &Limits::default())
         .unwrap_err()
         .to_string();
     assert!(e.contains("mask") && e.contains("4×4"), "{e}");
@@ -211,7 +237,7 @@ fn colour_inputs_keep_per_channel_albedo() {
             .save(d.path().join(name))
             .unwrap();
     }
-    let set = intake::load_dir(d.path(), None, &Limits::default()).unwrap();
+    let set = intake::load_dir(d.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     let rec = reconstruct(&set, &Options::default(), &mut RunToEnd).unwrap();
     let rgb = rec.albedo_rgb.expect("colour inputs give albedo_rgb");
     for (k, want) in [0.8f32, 0.4, 0.2].iter().enumerate() {

@@ -618,7 +618,8 @@ fn unpack_checked(s: &Scratch, zip: &[u8]) {
         let e = e.unwrap();
         let name = e.file_name().to_string_lossy().into_owned();
         assert!(
-            name.len() == 7 && name.ends_with(".img") && e.file_type().unwrap().is_file(),
+            (name.len() == 7 && name.ends_with(".img") || name == "mask.img")
+                && e.file_type().unwrap().is_file(),
             "unexpected {name:?} in the output"
         );
         total += e.metadata().unwrap().len();

@@ -1,6 +1,8 @@
 //! The robust solver against ground truth on the project's rendered scenes (res/), and
 //! against least squares on the seed's real data.
 
+mod seed;
+
 use std::path::{Path, PathBuf};
 
 use ndarray::{Array2, Array3};
@@ -10,13 +12,14 @@ use photostereo::core::metrics::{self, Accuracy};
 use photostereo::core::options::{Integration, MaskMode, Solver};
 use photostereo::core::synth::{Capture, Scene};
 use photostereo::core::{Options, Reconstruction, RunToEnd, reconstruct, synth};
+use seed::seed;
 
 fn res(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("res").join(name)
 }
 
 fn solve(dir: &Path, solver: Solver, mask: Option<ndarray::Array2<bool>>) -> Reconstruction {
-    let mut set = intake::load_dir(dir, None, &Limits::default()).unwrap();
+    let mut set = intake::load_dir(dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = mask;
     let opts = Options {
         solver,
@@ -93,7 +96,12 @@ fn four_light_8_bit_noisy_set_is_no_worse_than_least_squares() {
 
 #[test]
 fn black_level_and_noise_are_estimated() {
-    let set = intake::load_dir(&res("sphere-noisy"), None, &Limits::default()).unwrap();
+    let set = intake::load_dir(
+        &res("sphere-noisy"),
+        intake::DirMask::Folder,
+        &Limits::default(),
+    )
+    .unwrap();
     let est = photostereo::core::robust::estimate(&set);
     assert!((est.black_level - 0.02).abs() < 0.002, "{est:?}");
     assert!((est.noise_sigma - 0.004).abs() < 0.0015, "{est:?}");
@@ -101,15 +109,11 @@ fn black_level_and_noise_are_estimated() {
 
 #[test]
 fn seed_reprojection_is_no_worse_than_least_squares() {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
-    for (name, strictly) in [("dog-images", true), ("sphere-images", false)] {
-        let dir = root.join(name);
-        assert!(dir.is_dir(), "seed data missing: {}", dir.display());
+    let (dog, sphere) = (seed!("dog-images"), seed!("sphere-images"));
+    for (name, dir, strictly) in [("dog", dog, true), ("sphere", sphere, false)] {
         // One mask for both, so the same pixels are compared.
         let l2 = solve(&dir, Solver::L2, None);
-        let mut set = intake::load_dir(&dir, None, &Limits::default()).unwrap();
+        let mut set = intake::load_dir(&dir, intake::DirMask::Folder, &Limits::default()).unwrap();
         set.mask = Some(l2.mask.clone());
         let opts = Options {
             solver: Solver::Robust,
@@ -189,7 +193,8 @@ fn low_light_bumps(
     };
     synth::write_set(dir.path(), &Scene::shadows(128), &lights, &capture).unwrap();
     let truth = synth::read_truth(dir.path()).unwrap();
-    let mut set = intake::load_dir(dir.path(), None, &Limits::default()).unwrap();
+    let mut set =
+        intake::load_dir(dir.path(), intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = Some(truth.mask.clone());
     let mut flagged = 0;
     let scores = methods
@@ -283,11 +288,7 @@ fn seed_dog_height_map_has_no_spikes() {
     // ill-conditioned 3-light solve that can face away from the camera; such fits are
     // flagged and replaced, so the height map is as smooth as least squares' (which is
     // biased by the shadows but never spiky). Spike = |z − mean of the 4 neighbours|.
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
-    let dir = root.join("dog-images");
-    assert!(dir.is_dir(), "seed data missing: {}", dir.display());
+    let dir = seed!("dog-images");
     let worst = |solver| {
         let rec = solve(&dir, solver, None);
         let (z, m) = (&rec.heights, &rec.mask);

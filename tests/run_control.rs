@@ -16,7 +16,7 @@ fn bump() -> ImageSet {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("res")
         .join("bump");
-    intake::load_dir(&dir, None, &Limits::default()).unwrap()
+    intake::load_dir(&dir, intake::DirMask::Folder, &Limits::default()).unwrap()
 }
 
 fn files_in(dir: &Path) -> Vec<PathBuf> {

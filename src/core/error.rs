@@ -8,6 +8,11 @@ use thiserror::Error;
 pub enum InputError {
     #[error("light table: {0}")]
     Lights(String),
+    #[error("{place} matches no layout intake reads; accepted: {accepted}")]
+    NoLayout {
+        place: String,
+        accepted: &'static str,
+    },
     #[error("light table row {row}: {reason}")]
     LightRow { row: usize, reason: String },
     #[error("image {name:?} appears twice in the light table (rows {first} and {second})")]

@@ -3,6 +3,9 @@
 //! Images are decoded in parallel and kept as 16-bit luminance planes (2 bytes per pixel
 //! per image): 8-bit data is widened exactly (v·257), colour is reduced to luminance with
 //! the Rec. 709 weights (0.2126 R + 0.7152 G + 0.0722 B) applied to the stored values.
+//! Under a light with RGB intensities, a colour image's channel c is first divided by
+//! rgb_c and the whole rescaled by s = min_c rgb_c (so no factor exceeds 1 and the plane
+//! cannot clip); the light's scalar intensity becomes s.
 
 use std::io::Cursor;
 use std::panic::AssertUnwindSafe;
@@ -16,17 +19,14 @@ use rayon::prelude::*;
 
 use super::InputError;
 use super::error::panic_message;
-use super::lights::{self, Light};
-
-/// Rec. 709 luminance weights for R, G, B.
-pub const LUMA_WEIGHTS: [f32; 3] = [0.2126, 0.7152, 0.0722];
+use super::layout;
+pub use super::lights::LUMA_WEIGHTS;
+use super::lights::Light;
 
 /// The light table's file name inside a data-set folder.
-pub const LIGHTS_FILE: &str = "light_directions.csv";
+pub const LIGHTS_FILE: &str = layout::SEED_CSV;
 /// The JSON alternative to [`LIGHTS_FILE`].
-pub const LIGHTS_JSON_FILE: &str = "light_directions.json";
-
-const IMAGE_EXTENSIONS: [&str; 7] = ["png", "bmp", "jpg", "jpeg", "tif", "tiff", "exr"];
+pub const LIGHTS_JSON_FILE: &str = layout::SEED_JSON;
 
 /// Bounds on what intake will decode.
 #[derive(Debug, Clone, Copy)]
@@ -61,6 +61,10 @@ pub struct ImageSet {
     pub colour_moments: Option<Array3<f32>>,
     /// The caller's mask (true = object), if any.
     pub mask: Option<Array2<bool>>,
+    /// The name of the mask file used, if any.
+    pub mask_file: Option<String>,
+    /// What intake ignored or chose on the caller's behalf (for `result.json`).
+    pub notes: Vec<String>,
 }
 
 /// An input file under the name the light table uses for it.
@@ -70,55 +74,69 @@ pub struct NamedFile {
     pub path: PathBuf,
 }
 
-/// Load a folder in the seed's layout: `light_directions.csv` (or `.json`) and the images
-/// it names. Image files in the folder that the table does not name are an error.
-pub fn load_dir(dir: &Path, mask: Option<&Path>, limits: &Limits) -> Result<ImageSet, InputError> {
-    let table_path = [LIGHTS_FILE, LIGHTS_JSON_FILE]
-        .iter()
-        .map(|f| dir.join(f))
-        .find(|p| p.is_file())
-        .ok_or_else(|| {
-            InputError::Lights(format!(
-                "no {LIGHTS_FILE} or {LIGHTS_JSON_FILE} in {}",
-                dir.display()
-            ))
-        })?;
-    let bytes = std::fs::read(&table_path).map_err(|e| InputError::io(&table_path, e))?;
-    let lights = lights::parse_bytes(&bytes)?;
-    let mut files = Vec::new();
-    for entry in std::fs::read_dir(dir).map_err(|e| InputError::io(dir, e))? {
-        let path = entry.map_err(|e| InputError::io(dir, e))?.path();
-        let is_image = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()));
-        let is_mask = mask.is_some_and(|m| same_file(m, &path));
-        if path.is_file() && is_image && !is_mask {
-            let name = path
-                .file_name()
-                .unwrap_or_default()
-                .to_string_lossy()
-                .into_owned();
-            files.push(NamedFile { name, path });
-        }
-    }
-    files.sort_by(|a, b| a.name.cmp(&b.name));
-    let mask = mask.map(|p| NamedFile {
-        name: p
-            .file_name()
-            .unwrap_or_default()
-            .to_string_lossy()
-            .into_owned(),
-        path: p.to_path_buf(),
-    });
-    load(lights, &files, mask.as_ref(), limits)
+/// Which mask [`load_dir`] gives the set.
+#[derive(Debug, Clone, Copy, Default)]
+pub enum DirMask<'a> {
+    /// The folder's own `mask.png`, when it has one.
+    #[default]
+    Folder,
+    /// This file.
+    File(&'a Path),
+    /// None (a folder `mask.png` is left unused, with a note).
+    Without,
 }
 
-fn same_file(a: &Path, b: &Path) -> bool {
-    match (a.canonicalize(), b.canonicalize()) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => a == b,
+/// Load a folder in one of the layouts [`layout`] reads (the seed's
+/// `light_directions.csv` / `.json`, or the benchmark's `light_directions.txt` +
+/// `filenames.txt`): the images its table names. Image files it does not name are
+/// ignored and listed in the set's notes.
+pub fn load_dir(dir: &Path, mask: DirMask<'_>, limits: &Limits) -> Result<ImageSet, InputError> {
+    let mut names = Vec::new();
+    for entry in std::fs::read_dir(dir).map_err(|e| InputError::io(dir, e))? {
+        let entry = entry.map_err(|e| InputError::io(dir, e))?;
+        if entry.path().is_file() {
+            names.push(entry.file_name().to_string_lossy().into_owned());
+        }
     }
+    names.sort();
+    let mut read = |name: &str| {
+        let path = dir.join(name);
+        std::fs::read(&path).map_err(|e| InputError::io(&path, e))
+    };
+    let table = layout::read_table(&dir.display().to_string(), &names, &mut read)?;
+    let named = |name: &str| NamedFile {
+        name: name.to_string(),
+        path: dir.join(name),
+    };
+    // Only files that exist, so that a missing one is reported by name.
+    let files: Vec<NamedFile> = (table.lights.iter())
+        .filter(|l| names.contains(&l.name))
+        .map(|l| named(&l.name))
+        .collect();
+    let mut notes = table.notes;
+    let unused = |why: &str| format!("{} in the folder not used: {why}", layout::MASK);
+    let mask = match (mask, &table.mask) {
+        (DirMask::Folder, Some(m)) => Some(named(m)),
+        (DirMask::Folder, None) | (DirMask::Without, None) => None,
+        (DirMask::File(p), folder) => {
+            if folder.is_some() {
+                notes.push(unused("another mask file was given"));
+            }
+            Some(NamedFile {
+                name: (p.file_name().unwrap_or_default())
+                    .to_string_lossy()
+                    .into_owned(),
+                path: p.to_path_buf(),
+            })
+        }
+        (DirMask::Without, Some(_)) => {
+            notes.push(unused("the mask mode asked for takes no mask"));
+            None
+        }
+    };
+    let mut set = load(table.lights, &files, mask.as_ref(), limits)?;
+    set.notes = notes;
+    Ok(set)
 }
 
 /// Decode the images a light table names, in the table's order.
@@ -142,9 +160,9 @@ pub struct Decoded {
 
 /// Decode one image's bytes ahead of [`load_with`] (e.g. while the rest of a set is still
 /// being received); `name` is the light table's name for it. `None` for colour images,
-/// which must be left to the load: their colour moments need the image's light.
+/// which must be left to the load: their plane and colour moments need the image's light.
 pub fn predecode(name: &str, bytes: &[u8], limits: &Limits) -> Option<Result<Decoded, InputError>> {
-    match decode_bytes(name, bytes, limits) {
+    match decode_bytes(name, bytes, limits, None) {
         Ok((decoded, None)) => Some(Ok(decoded)),
         Ok((_, Some(_colour))) => None,
         Err(e) => Some(Err(e)),
@@ -173,28 +191,41 @@ pub fn load_with(
         });
     }
     let ordered = match_files(&lights, files)?;
+    let mut lights = lights;
 
     let moments: Mutex<Option<Array3<f32>>> = Mutex::new(None);
     let colour_count = AtomicUsize::new(0);
-    let decoded: Vec<Decoded> = ordered
+    let decoded: Vec<(Decoded, Option<f64>)> = ordered
         .par_iter()
         .zip(lights.par_iter())
         .map(|(&i, light)| {
             if let Some(ready) = predecoded(i) {
-                return ready; // gray by construction: no colour moments to add
+                // Gray by construction: no colour moments to add, the scalar stands.
+                return ready.map(|d| (d, None));
             }
-            let (decoded, colour) = decode_file(&files[i], limits)?;
-            if let Some(rgb) = colour {
-                accumulate_moments(&moments, &rgb, light);
-                colour_count.fetch_add(1, Ordering::Relaxed);
-            }
-            Ok(decoded)
+            let (decoded, colour) = decode_file(&files[i], limits, light.rgb)?;
+            let Some(colour) = colour else {
+                return Ok((decoded, None));
+            };
+            let intensity = colour.balanced.unwrap_or(light.intensity);
+            let scaled = light.direction.map(|c| c * intensity);
+            accumulate_moments(&moments, &colour.rgb, scaled);
+            colour_count.fetch_add(1, Ordering::Relaxed);
+            Ok((decoded, colour.balanced))
         })
         .collect::<Vec<Result<_, InputError>>>()
         // The first failure in table order, not the first in time: the error a set gets
         // must not depend on thread scheduling.
         .into_iter()
         .collect::<Result<_, InputError>>()?;
+    let decoded: Vec<Decoded> = (decoded.into_iter().zip(&mut lights))
+        .map(|((d, intensity), light)| {
+            if let Some(s) = intensity {
+                light.intensity = s;
+            }
+            d
+        })
+        .collect();
 
     let (rows, cols) = decoded[0].plane.dim();
     let first_depth = decoded[0].depth;
@@ -220,6 +251,7 @@ pub fn load_with(
         }
     }
     let bit_depth = first_depth;
+    let mask_file = mask;
     let mask = mask.map(|m| load_mask(m, rows, cols, limits)).transpose()?;
     let colour_moments = moments.into_inner().unwrap_or_else(|p| p.into_inner());
     // A set where only some images carry colour is treated as gray: moments from a
@@ -233,6 +265,8 @@ pub fn load_with(
         planes: decoded.into_iter().map(|d| d.plane).collect(),
         colour_moments: if colour_images { colour_moments } else { None },
         mask,
+        mask_file: mask_file.map(|m| m.name.clone()),
+        notes: Vec::new(),
     })
 }
 
@@ -268,32 +302,62 @@ fn match_files(lights: &[Light], files: &[NamedFile]) -> Result<Vec<usize>, Inpu
     Ok(ordered)
 }
 
+/// A colour image's values as the set uses them.
+struct Colour {
+    /// RGB in [0, 1]; balanced: each channel divided by its light's intensity, times s.
+    rgb: image::Rgb32FImage,
+    /// s = min_c rgb_c, the light's scalar intensity, when the light gave RGB intensities.
+    balanced: Option<f64>,
+}
+
 /// Read and decode one image file.
 fn decode_file(
     file: &NamedFile,
     limits: &Limits,
-) -> Result<(Decoded, Option<image::Rgb32FImage>), InputError> {
+    light_rgb: Option<[f64; 3]>,
+) -> Result<(Decoded, Option<Colour>), InputError> {
     let bytes = std::fs::read(&file.path).map_err(|e| InputError::io(&file.path, e))?;
-    decode_bytes(&file.name, &bytes, limits)
+    decode_bytes(&file.name, &bytes, limits, light_rgb)
 }
 
 /// Decode one image: its plane, and its RGB values when it really carries colour. The one
-/// decode path of [`load_with`] and [`predecode`].
+/// decode path of [`load_with`] and [`predecode`]. With a per-channel light intensity, a
+/// colour image is balanced by it before its luminance is taken (see the module docs).
 fn decode_bytes(
     name: &str,
     bytes: &[u8],
     limits: &Limits,
-) -> Result<(Decoded, Option<image::Rgb32FImage>), InputError> {
+    light_rgb: Option<[f64; 3]>,
+) -> Result<(Decoded, Option<Colour>), InputError> {
     let img = decode(name, bytes, limits)?;
     let depth = bit_depth(&img);
-    let colour = colour_content(&img);
-    Ok((
-        Decoded {
-            plane: to_luma16(img),
-            depth,
-        },
-        colour,
-    ))
+    let Some(mut rgb) = colour_content(&img) else {
+        let plane = to_luma16(img);
+        return Ok((Decoded { plane, depth }, None));
+    };
+    let Some(gains) = light_rgb else {
+        let plane = to_luma16(img);
+        return Ok((
+            Decoded { plane, depth },
+            Some(Colour {
+                rgb,
+                balanced: None,
+            }),
+        ));
+    };
+    let s = gains.iter().copied().fold(f64::INFINITY, f64::min);
+    let factor = gains.map(|g| (s / g) as f32);
+    for p in rgb.pixels_mut() {
+        for c in 0..3 {
+            p.0[c] *= factor[c];
+        }
+    }
+    let plane = luma_plane(&rgb);
+    let colour = Colour {
+        rgb,
+        balanced: Some(s),
+    };
+    Ok((Decoded { plane, depth }, Some(colour)))
 }
 
 /// Decode one image, refusing unknown formats and oversized headers before allocating.
@@ -413,6 +477,12 @@ pub fn to_luma16(img: DynamicImage) -> Array2<u16> {
     Array2::from_shape_vec((h, w), data).expect("buffer matches its dimensions")
 }
 
+fn luma_plane(rgb: &image::Rgb32FImage) -> Array2<u16> {
+    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+    let data = luma_of(rgb.pixels().map(|p| p.0));
+    Array2::from_shape_vec((h, w), data).expect("buffer matches its dimensions")
+}
+
 fn luma_of(pixels: impl Iterator<Item = [f32; 3]>) -> Vec<u16> {
     pixels
         .map(|[r, g, b]| {
@@ -435,13 +505,14 @@ fn colour_content(img: &DynamicImage) -> Option<image::Rgb32FImage> {
     coloured.then_some(rgb)
 }
 
+/// Add one image's Σ l·I_c, with `scaled` its light as the solve sees it.
 fn accumulate_moments(
     moments: &Mutex<Option<Array3<f32>>>,
     rgb: &image::Rgb32FImage,
-    light: &Light,
+    scaled: [f64; 3],
 ) {
     let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    let s = light.scaled().map(|v| v as f32);
+    let s = scaled.map(|v| v as f32);
     let mut guard = moments.lock().unwrap_or_else(|p| p.into_inner());
     let m = guard.get_or_insert_with(|| Array3::zeros((h, w, 9)));
     if m.dim() != (h, w, 9) {
@@ -473,4 +544,136 @@ fn load_mask(
         )));
     }
     Ok(to_luma16(img).mapv(|v| v > 0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::lights::{Intensity, make_light};
+    use crate::core::synth::{self, Capture, Scene};
+    use crate::core::{Options, RunToEnd, reconstruct};
+
+    const TINT: [f64; 3] = [0.95, 0.7, 0.45];
+    const SIZE: usize = 40;
+
+    /// Per-light RGB intensities that differ from light to light and channel to channel.
+    fn intensities(count: usize) -> Vec<[f64; 3]> {
+        (0..count)
+            .map(|i| {
+                let t = i as f64 / count as f64;
+                [
+                    0.6 + 0.5 * t,
+                    1.1 - 0.4 * t,
+                    0.8 + 0.3 * (t * 9.0).sin().abs(),
+                ]
+            })
+            .collect()
+    }
+
+    /// A colour sphere under 8 lights of the given RGB intensities, written and loaded;
+    /// the table's intensities are the true ones times `table_scale`.
+    fn colour_set(dir: &Path, table_scale: f64) -> (Scene, ImageSet) {
+        let scene = Scene::sphere(SIZE);
+        let dirs = synth::light_rings(8, 20.0, 45.0);
+        let rgb = intensities(dirs.len());
+        let images = synth::render_rgb(&scene, TINT, &dirs, &rgb, &Capture::default());
+        let mut files = Vec::new();
+        let mut lights = Vec::new();
+        for (i, img) in images.iter().enumerate() {
+            let name = format!("{i}.png");
+            img.save(dir.join(&name)).unwrap();
+            files.push(NamedFile {
+                path: dir.join(&name),
+                name: name.clone(),
+            });
+            let given = rgb[i].map(|v| v * table_scale);
+            lights.push(make_light(i + 1, &name, dirs[i], Some(Intensity::Rgb(given))).unwrap());
+        }
+        let set = load(lights, &files, None, &Limits::default()).unwrap();
+        (scene, set)
+    }
+
+    fn opts() -> Options {
+        Options {
+            mask: crate::core::options::MaskMode::None,
+            ..Options::default()
+        }
+    }
+
+    #[test]
+    fn rgb_light_intensities_give_true_normals_and_channel_albedo() {
+        let dir = tempfile::tempdir().unwrap();
+        let (scene, set) = colour_set(dir.path(), 1.0);
+        let rgb = intensities(set.lights.len());
+        for (l, i) in set.lights.iter().zip(&rgb) {
+            assert_eq!(l.intensity, i.iter().copied().fold(f64::INFINITY, f64::min));
+        }
+        let rec = reconstruct(&set, &opts(), &mut RunToEnd).unwrap();
+        let albedo_rgb = rec.albedo_rgb.as_ref().expect("colour inputs");
+        let (mut worst_deg, mut worst_albedo, mut count) = (0f64, [0f64; 3], 0);
+        for ((r, c), &inside) in scene.mask.indexed_iter() {
+            // Away from the rim, where every light reaches.
+            let n = [0, 1, 2].map(|k| scene.normals[[r, c, k]]);
+            if !inside || n[2] < 0.8 {
+                continue;
+            }
+            count += 1;
+            let dot: f64 = (0..3).map(|k| n[k] * rec.normals[[r, c, k]] as f64).sum();
+            worst_deg = worst_deg.max(dot.clamp(-1.0, 1.0).acos().to_degrees());
+            for ch in 0..3 {
+                let truth = scene.albedo[[r, c, 0]] * TINT[ch];
+                let err = (albedo_rgb[[r, c, ch]] as f64 - truth).abs();
+                worst_albedo[ch] = worst_albedo[ch].max(err);
+            }
+        }
+        assert!(count > 200, "{count}");
+        assert!(worst_deg < 0.1, "normals off by up to {worst_deg}°");
+        assert!(
+            worst_albedo.iter().all(|&e| e < 2e-3),
+            "albedo errors {worst_albedo:?}"
+        );
+    }
+
+    #[test]
+    fn scaling_every_intensity_leaves_normals_unchanged() {
+        let dir = tempfile::tempdir().unwrap();
+        let (_, one) = colour_set(dir.path(), 1.0);
+        let (_, tripled) = colour_set(dir.path(), 3.0);
+        let a = reconstruct(&one, &opts(), &mut RunToEnd).unwrap();
+        let b = reconstruct(&tripled, &opts(), &mut RunToEnd).unwrap();
+        let most = (a.normals.iter().zip(&b.normals))
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max);
+        assert!(most < 1e-5, "normals moved by {most}");
+        let ratio = (a.albedo.iter().zip(&b.albedo))
+            .filter(|(x, _)| **x > 0.05)
+            .map(|(x, y)| x / y)
+            .fold(0f32, f32::max);
+        assert!((ratio - 3.0).abs() < 1e-3, "albedo ratio {ratio}");
+    }
+
+    #[test]
+    fn gray_images_take_the_luminance_of_an_rgb_intensity() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut files = Vec::new();
+        let mut lights = Vec::new();
+        for (i, d) in [[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [0.0, 0.5, 1.0]]
+            .iter()
+            .enumerate()
+        {
+            let name = format!("{i}.png");
+            image::GrayImage::from_pixel(4, 4, image::Luma([100]))
+                .save(dir.path().join(&name))
+                .unwrap();
+            files.push(NamedFile {
+                path: dir.path().join(&name),
+                name: name.clone(),
+            });
+            let rgb = Intensity::Rgb([1.0, 2.0, 4.0]);
+            lights.push(make_light(i + 1, &name, *d, Some(rgb)).unwrap());
+        }
+        let set = load(lights, &files, None, &Limits::default()).unwrap();
+        let luma = 0.2126 + 0.7152 * 2.0 + 0.0722 * 4.0;
+        assert!(set.lights.iter().all(|l| (l.intensity - luma).abs() < 1e-6));
+    }
 }

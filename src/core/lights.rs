@@ -1,16 +1,35 @@
-//! The light table: `file name, x, y, z[, intensity]` per row (the seed's CSV), or the same
-//! as JSON. Vectors are normalised here; the intensity (default 1) is kept apart.
+//! The light table: `file name, x, y, z`, `file name, x, y, z, intensity` or
+//! `file name, x, y, z, r, g, b` per row (the seed's CSV), or the same as JSON with
+//! `"intensity": 0.8` or `"intensity": [r, g, b]`. Vectors are normalised here; the
+//! intensity (default 1) is kept apart.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use super::InputError;
+
+/// Rec. 709 luminance weights for R, G, B.
+pub const LUMA_WEIGHTS: [f32; 3] = [0.2126, 0.7152, 0.0722];
+
+/// A light's brightness as a table gives it: one value, or one per colour channel.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Intensity {
+    One(f64),
+    Rgb([f64; 3]),
+}
 
 /// One image's light: a unit direction (seed frame) and a relative intensity.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Light {
     pub name: String,
     pub direction: [f64; 3],
+    /// The scalar the solve uses. For an RGB intensity this is the Rec. 709 luminance of
+    /// `rgb` (right for a gray image), until intake meets the image in colour: it then
+    /// divides each channel by its own intensity and rescales the result by
+    /// min(r, g, b), which becomes this value.
     pub intensity: f64,
+    /// The per-channel intensities, when the table gives them.
+    pub rgb: Option<[f64; 3]>,
 }
 
 impl Light {
@@ -31,13 +50,19 @@ pub fn parse(text: &str) -> Result<Vec<Light>, InputError> {
     } else {
         parse_csv(trimmed)?
     };
-    check_duplicates(&lights)?;
+    check_table(&lights)?;
+    Ok(lights)
+}
+
+/// What every table must be, whatever its layout: no name twice, at least 3 rows.
+pub fn check_table(lights: &[Light]) -> Result<(), InputError> {
+    check_duplicates(lights)?;
     if lights.len() < 3 {
         return Err(InputError::TooFewImages {
             count: lights.len(),
         });
     }
-    Ok(lights)
+    Ok(())
 }
 
 /// Parse the bytes of a light table, refusing text that is not UTF-8.
@@ -63,11 +88,11 @@ fn parse_csv(text: &str) -> Result<Vec<Light>, InputError> {
             return Err(InputError::Lights(format!("more than {MAX_ROWS} rows")));
         }
         let fields: Vec<&str> = line.split(',').map(str::trim).collect();
-        if !(4..=5).contains(&fields.len()) {
+        if ![4, 5, 7].contains(&fields.len()) {
             return Err(InputError::LightRow {
                 row,
                 reason: format!(
-                    "expected `name, x, y, z[, intensity]`, found {} fields",
+                    "expected `name, x, y, z`, `name, x, y, z, intensity` or `name, x, y, z, r, g, b`, found {} fields",
                     fields.len()
                 ),
             });
@@ -82,10 +107,14 @@ fn parse_csv(text: &str) -> Result<Vec<Light>, InputError> {
                 })
         };
         let v = [number(1, "x")?, number(2, "y")?, number(3, "z")?];
-        let intensity = if fields.len() == 5 {
-            Some(number(4, "intensity")?)
-        } else {
-            None
+        let intensity = match fields.len() {
+            5 => Some(Intensity::One(number(4, "intensity")?)),
+            7 => Some(Intensity::Rgb([
+                number(4, "intensity r")?,
+                number(5, "intensity g")?,
+                number(6, "intensity b")?,
+            ])),
+            _ => None,
         };
         lights.push(make_light(row, name, v, intensity)?);
     }
@@ -98,7 +127,7 @@ struct JsonLight {
     name: String,
     direction: [f64; 3],
     #[serde(default)]
-    intensity: Option<f64>,
+    intensity: Option<Intensity>,
 }
 
 #[derive(Deserialize)]
@@ -111,7 +140,7 @@ enum JsonTable {
 fn parse_json(text: &str) -> Result<Vec<Light>, InputError> {
     let table: JsonTable = serde_json::from_str(text).map_err(|e| {
         InputError::Lights(format!(
-            "invalid JSON (expected [{{\"name\", \"direction\": [x, y, z], \"intensity\"?}}, ...]): {e}"
+            "invalid JSON (expected [{{\"name\", \"direction\": [x, y, z], \"intensity\"?: i or [r, g, b]}}, ...]): {e}"
         ))
     })?;
     let rows = match table {
@@ -126,11 +155,33 @@ fn parse_json(text: &str) -> Result<Vec<Light>, InputError> {
         .collect()
 }
 
-fn make_light(
+/// A table as JSON that [`parse`] reads back to the same lights (for tables read from
+/// another layout and stored for later).
+pub fn to_json(lights: &[Light]) -> Vec<u8> {
+    let rows: Vec<serde_json::Value> = lights
+        .iter()
+        .map(|l| {
+            let intensity = match l.rgb {
+                Some(rgb) => Intensity::Rgb(rgb),
+                None => Intensity::One(l.intensity),
+            };
+            serde_json::json!({"name": l.name, "direction": l.direction, "intensity": intensity})
+        })
+        .collect();
+    serde_json::to_vec(&rows).expect("lights serialise")
+}
+
+/// Rec. 709 luminance of an RGB intensity: the scalar for a gray image under that light.
+pub fn luminance(rgb: [f64; 3]) -> f64 {
+    (0..3).map(|c| f64::from(LUMA_WEIGHTS[c]) * rgb[c]).sum()
+}
+
+/// One row's light from its parts, checked; `row` (1-based) goes into the error.
+pub fn make_light(
     row: usize,
     name: &str,
     v: [f64; 3],
-    intensity: Option<f64>,
+    intensity: Option<Intensity>,
 ) -> Result<Light, InputError> {
     let bad = |reason: String| InputError::LightRow { row, reason };
     if name.is_empty() {
@@ -149,16 +200,30 @@ fn make_light(
     if norm < 1e-12 {
         return Err(bad(format!("light vector of {name:?} is zero: {v:?}")));
     }
-    let intensity = intensity.unwrap_or(1.0);
-    if !intensity.is_finite() || intensity <= 0.0 || intensity > 1e6 {
-        return Err(bad(format!(
-            "intensity of {name:?} must be a positive number, got {intensity}"
-        )));
-    }
+    let check = |what: &str, i: f64| {
+        if !i.is_finite() || i <= 0.0 || i > 1e6 {
+            return Err(bad(format!(
+                "{what} of {name:?} must be a positive number up to 1e6, got {i}"
+            )));
+        }
+        Ok(i)
+    };
+    let (intensity, rgb) = match intensity.unwrap_or(Intensity::One(1.0)) {
+        Intensity::One(i) => (check("intensity", i)?, None),
+        Intensity::Rgb([r, g, b]) => {
+            let rgb = [
+                check("intensity r", r)?,
+                check("intensity g", g)?,
+                check("intensity b", b)?,
+            ];
+            (luminance(rgb), Some(rgb))
+        }
+    };
     Ok(Light {
         name: name.to_string(),
         direction: v.map(|c| c / norm),
         intensity,
+        rgb,
     })
 }
 
@@ -280,6 +345,35 @@ mod tests {
         assert!(e.contains("UTF-8"), "{e}");
         let e = err(r#"[{"name":"a.png","direction":[0,0]}]"#);
         assert!(e.contains("invalid JSON"), "{e}");
+    }
+
+    #[test]
+    fn rgb_intensities_in_csv_and_json() {
+        let csv = parse("a.png, 0, 0, 1, 1, 2, 4\nb.png, 1, 0, 1, 0.5\nc.png, 0, 1, 1\n").unwrap();
+        let json = parse(r#"[{"name":"a.png","direction":[0,0,1],"intensity":[1,2,4]},{"name":"b.png","direction":[1,0,1],"intensity":0.5},{"name":"c.png","direction":[0,1,1]}]"#).unwrap();
+        assert_eq!(csv, json);
+        assert_eq!(csv[0].rgb, Some([1.0, 2.0, 4.0]));
+        assert!((csv[0].intensity - luminance([1.0, 2.0, 4.0])).abs() < 1e-12);
+        assert_eq!((csv[1].rgb, csv[1].intensity), (None, 0.5));
+        // Stored and read back: the same lights (directions renormalised, to the last bit).
+        let back = parse_bytes(&to_json(&csv)).unwrap();
+        for (a, b) in back.iter().zip(&csv) {
+            assert_eq!((&a.name, a.intensity, a.rgb), (&b.name, b.intensity, b.rgb));
+            assert!((0..3).all(|k| (a.direction[k] - b.direction[k]).abs() < 1e-15));
+        }
+        for (row, needle) in [
+            ("a.png, 0, 0, 1, 1, 0, 1", "intensity g"),
+            ("a.png, 0, 0, 1, 1, 1, -2", "intensity b"),
+            ("a.png, 0, 0, 1, NaN, 1, 1", "intensity r"),
+            ("a.png, 0, 0, 1, 1, x, 1", "intensity g"),
+        ] {
+            let e = err(&format!("b.png, 1, 0, 1\n{row}\nc.png, 0, 1, 1"));
+            assert!(e.contains("row 2") && e.contains(needle), "{row}: {e}");
+        }
+        let e = err("a.png, 0, 0, 1, 1, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1");
+        assert!(e.contains("row 1") && e.contains("6 fields"), "{e}");
+        let e = err(r#"[{"name":"a.png","direction":[0,0,1],"intensity":[1,0,1]}]"#);
+        assert!(e.contains("row 1") && e.contains("intensity g"), "{e}");
     }
 
     #[test]

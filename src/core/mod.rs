@@ -12,6 +12,7 @@ pub mod error;
 mod histogram;
 pub mod intake;
 pub mod integrate;
+pub mod layout;
 pub mod lights;
 pub mod mask;
 pub mod mesh;

@@ -57,6 +57,8 @@ struct Prepared {
     inliers: Array2<u16>,
     unreliable: Array2<bool>,
     estimate: Option<robust::CaptureEstimate>,
+    mask_file: Option<String>,
+    notes: Vec<String>,
 }
 
 /// The solve and the mask stages. An owned set's image stack is dropped after the solve.
@@ -140,6 +142,8 @@ fn prepare(
         inliers,
         unreliable,
         estimate,
+        mask_file: set.mask_file.clone(),
+        notes: set.notes.clone(),
     })
 }
 
@@ -213,6 +217,7 @@ impl Prepared {
                     name: l.name.clone(),
                     direction: l.direction,
                     intensity: l.intensity,
+                    intensity_rgb: l.rgb,
                 })
                 .collect(),
             options: opts.clone(),
@@ -226,6 +231,8 @@ impl Prepared {
             background_pixels: self.mask.len() - object,
             object_pixels: object,
             artifacts: Vec::new(),
+            mask_file: self.mask_file,
+            notes: self.notes,
         };
         Reconstruction {
             width: self.width,

@@ -68,13 +68,23 @@ pub struct Report {
     pub warnings: Vec<String>,
     /// Names of the files written (filled in by [`run`]).
     pub artifacts: Vec<String>,
+    /// The mask file used, if any (e.g. a folder's `mask.png`).
+    pub mask_file: Option<String>,
+    /// What intake ignored or chose on the caller's behalf (unnamed images, an unused
+    /// `mask.png`, …).
+    pub notes: Vec<String>,
 }
 
 #[derive(Debug, Clone, Serialize)]
 pub struct LightSummary {
     pub name: String,
+    /// Unit direction in the project's frame (x right, y down the rows, z to the camera).
     pub direction: [f64; 3],
+    /// The scalar intensity the solve used.
     pub intensity: f64,
+    /// The per-channel intensities the table gave, if it gave them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub intensity_rgb: Option<[f64; 3]>,
 }
 
 /// Wall-clock time of one stage.

@@ -375,6 +375,7 @@ mod tests {
                     name: format!("{i}"),
                     direction: d.map(|v| v / n),
                     intensity: 1.0,
+                    rgb: None,
                 }
             })
             .collect();
@@ -399,6 +400,8 @@ mod tests {
             planes,
             colour_moments: None,
             mask: None,
+            mask_file: None,
+            notes: Vec::new(),
         }
     }
 

@@ -35,6 +35,10 @@ pub fn image_file(i: usize) -> String {
 pub struct Manifest {
     pub images: Vec<ManifestEntry>,
     pub mask: Option<ManifestEntry>,
+    /// What the upload ignored or chose (an archive's unnamed images, say), for the
+    /// job's `result.json`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -47,7 +47,7 @@ pub struct ServeArgs {
     pub max_body_bytes: u64,
 
     /// Most images in one job (413 past it).
-    #[arg(long, env = "PHOTOSTEREO_MAX_IMAGES", default_value_t = 64)]
+    #[arg(long, env = "PHOTOSTEREO_MAX_IMAGES", default_value_t = 256)]
     pub max_images: usize,
 
     /// Most pixels in one image, width × height (413 past it).
@@ -64,8 +64,8 @@ pub struct ServeArgs {
     pub max_job_pixels: u64,
 
     /// Most parts in one multipart upload, and most entries in one zip archive (413 past
-    /// it).
-    #[arg(long, env = "PHOTOSTEREO_MAX_PARTS", default_value_t = 256)]
+    /// it); room for --max-images images and a benchmark folder's other files.
+    #[arg(long, env = "PHOTOSTEREO_MAX_PARTS", default_value_t = 512)]
     pub max_parts: usize,
 
     /// Most bytes a zip archive may unpack to, all entries together (413 past it).
@@ -165,10 +165,10 @@ impl Config {
             workers,
             queue_length: 64,
             max_body_bytes: 2 << 30,
-            max_images: 64,
+            max_images: 256,
             max_pixels: 33_554_432,
             max_job_pixels: 1 << 30,
-            max_parts: 256,
+            max_parts: 512,
             max_unpacked_bytes: 2 << 30,
             retention: Duration::from_secs(7 * 86_400),
             job_timeout: Duration::from_secs(30 * 60),

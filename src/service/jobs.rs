@@ -495,7 +495,8 @@ fn execute(
         name: m.name.clone(),
         path: input.join(&m.file),
     });
-    let set = load_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, clock)?;
+    let mut set = load_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, clock)?;
+    set.notes = manifest.notes.clone();
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
     let report = pipeline::run(set, &options, &out, clock);

@@ -504,6 +504,7 @@ pub fn router(state: AppState) -> Router {
     ));
     let (app, _) = api.merge(operations_routes()).split_for_parts();
     app.merge(SwaggerUi::new("/docs").config(utoipa_swagger_ui::Config::new(["/openapi.json"])))
+        .route("/", axum::routing::get(routes::root))
         .fallback(routes::not_found)
         .method_not_allowed_fallback(routes::method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), track_http))

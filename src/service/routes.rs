@@ -784,6 +784,13 @@ pub async fn openapi_doc() -> Response {
         .into_response()
 }
 
+/// `GET /` sends a browser to the Swagger UI (there is no web app yet). 303 See Other, as
+/// `/docs` → `/docs/` answers: the follow-up is a GET whatever the method was, and nothing
+/// caches it. Like `/docs`, it is not part of the API, so not in the OpenAPI document.
+pub async fn root() -> axum::response::Redirect {
+    axum::response::Redirect::to("/docs/")
+}
+
 /// Unknown routes.
 pub async fn not_found(uri: axum::http::Uri) -> ApiError {
     ApiError::not_found(format!("there is no route {}", uri.path()))

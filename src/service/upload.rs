@@ -24,7 +24,7 @@ use axum::extract::multipart::{Field, MultipartError};
 use image::ImageReader;
 use serde::Deserialize;
 
-use crate::core::intake::{LIGHTS_FILE as TABLE_CSV, LIGHTS_JSON_FILE as TABLE_JSON};
+use crate::core::layout;
 use crate::core::lights::{self, Light};
 use crate::core::options::MaskMode;
 use crate::core::outputs;
@@ -166,6 +166,8 @@ struct Parts {
     lights: Option<Vec<u8>>,
     mask: Option<StoredImage>,
     options: Option<Options>,
+    /// The mask mode the options part names, if it names one.
+    mask_chosen: Option<MaskMode>,
     archive: Option<PathBuf>,
     count: usize,
 }
@@ -261,7 +263,11 @@ pub async fn receive(
                 once(&parts.options, "options")?;
                 let bytes =
                     read_small(&mut field, MAX_OPTIONS_BYTES, "options", tap, config).await?;
-                parts.options = Some(parse_options(&bytes)?);
+                let options = parse_options(&bytes)?;
+                let names_mask = serde_json::from_slice::<serde_json::Value>(&bytes)
+                    .is_ok_and(|v| v.get("mask").is_some());
+                parts.mask_chosen = names_mask.then_some(options.mask);
+                parts.options = Some(options);
             }
             "archive" => {
                 once(&parts.archive, "archive")?;
@@ -272,7 +278,7 @@ pub async fn receive(
                 let (head, _) = stream_to_file(&mut field, &path, tap, config).await?;
                 if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
                     return Err(ApiError::unsupported_media(
-                        "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv)",
+                        "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv, or in the benchmark layout with light_directions.txt and filenames.txt)",
                     ));
                 }
                 parts.archive = Some(path);
@@ -290,19 +296,38 @@ pub async fn receive(
         }
     }
 
+    let mut options = parts.options.take().unwrap_or_default();
+    let mut notes = Vec::new();
     if let Some(archive) = parts.archive.take() {
         let limits = ArchiveLimits::from(config);
         let out = dir.to_path_buf();
-        let (images, table) = tokio::task::spawn_blocking(move || {
-            let r = extract_archive(&archive, &out, &limits);
+        // The archive's own mask.png is the mask unless a mask part came, or the options
+        // chose a mode that takes none (auto, none); it then makes the mode `given`.
+        let own_mask = match (&parts.mask, parts.mask_chosen) {
+            (Some(_), _) => Err("a mask part was sent"),
+            (None, None | Some(MaskMode::Given)) => Ok(()),
+            (None, Some(_)) => Err("the mask mode asked for takes no mask"),
+        };
+        let unpacked = tokio::task::spawn_blocking(move || {
+            let r = extract_archive(&archive, &out, &limits, own_mask.is_ok());
             let _ = std::fs::remove_file(&archive);
             r
         })
         .await??;
-        parts.images = images;
-        parts.lights = Some(table);
+        parts.images = unpacked.images;
+        parts.lights = Some(unpacked.table);
+        notes = unpacked.notes;
+        match (own_mask, unpacked.mask) {
+            (Ok(()), Some(mask)) => {
+                parts.mask = Some(mask);
+                options.mask = MaskMode::Given;
+            }
+            (Err(why), _) if unpacked.has_mask => {
+                notes.push(format!("{} in the archive not used: {why}", layout::MASK));
+            }
+            _ => {}
+        }
     }
-    let options = parts.options.take().unwrap_or_default();
     let table = parts.lights.take().ok_or_else(|| {
         ApiError::bad_request(
             "missing the lights part (the light table, CSV `name, x, y, z[, intensity]` or JSON), or an archive part",
@@ -344,6 +369,7 @@ pub async fn receive(
             name: m.name.clone(),
             file: m.file.clone(),
         }),
+        notes,
     };
     let manifest = serde_json::to_vec_pretty(&manifest)
         .map_err(|e| ApiError::internal(format!("manifest: {e}")))?;
@@ -729,14 +755,29 @@ fn zip_error(entry: &str, e: zip::result::ZipError) -> ApiError {
     }
 }
 
-/// Unpack a zip in the seed's layout (images + `light_directions.csv`, at the top or in
-/// one folder) into `dir`, streaming every entry under the size caps. Returns the images
-/// and the light table's bytes.
+/// What an archive unpacked to.
+struct Unpacked {
+    /// The images its table names, in archive order.
+    images: Vec<StoredImage>,
+    /// Its light table, as JSON in the project's frame ([`lights::to_json`]).
+    table: Vec<u8>,
+    /// Its `mask.png`, when asked for and present.
+    mask: Option<StoredImage>,
+    /// Whether it holds a `mask.png` (used or not).
+    has_mask: bool,
+    notes: Vec<String>,
+}
+
+/// Unpack a zip of a folder in one of the layouts [`layout`] reads (at the top of the
+/// archive or in one folder) into `dir`: its table files are read, then the images the
+/// table names (and its `mask.png` when `want_mask`) streamed out under the size caps;
+/// every other entry is skipped.
 fn extract_archive(
     path: &Path,
     dir: &Path,
     limits: &ArchiveLimits,
-) -> Result<(Vec<StoredImage>, Vec<u8>), ApiError> {
+    want_mask: bool,
+) -> Result<Unpacked, ApiError> {
     let file = File::open(path)?;
     let mut zip = zip::ZipArchive::new(BufReader::new(file))
         .map_err(|e| ApiError::invalid(format!("the archive is not a readable zip file: {e}")))?;
@@ -795,13 +836,21 @@ fn extract_archive(
         let top = &entries[0].1[0];
         if let Some((_, c)) = entries.iter().find(|(_, c)| c.len() != 2 || &c[0] != top) {
             return Err(ApiError::invalid(format!(
-                "archive entry {:?} is out of place: the images and {TABLE_CSV} must be at the top of the archive or all inside one folder",
+                "archive entry {:?} is out of place: the images and the light table must be at the top of the archive or all inside one folder",
                 c.join("/")
             )));
         }
     }
+    let mut by_name: HashMap<String, usize> = HashMap::new();
+    for (i, components) in &entries {
+        let name = components.last().cloned().unwrap_or_default();
+        if by_name.insert(name.clone(), *i).is_some() {
+            return Err(ApiError::invalid(format!(
+                "the archive holds {name:?} more than once"
+            )));
+        }
+    }
 
-    // Pass 2: stream each entry out under the caps.
     let mut budget = limits.max_unpacked;
     let over_budget = || {
         ApiError::too_large(format!(
@@ -809,45 +858,66 @@ fn extract_archive(
             limits.max_unpacked
         ))
     };
+    // The table files first: they say which entries are wanted.
+    let mut texts: HashMap<&str, Vec<u8>> = HashMap::new();
+    for name in layout::TABLE_FILES {
+        let Some(&i) = by_name.get(name) else {
+            continue;
+        };
+        let mut entry = zip.by_index(i).map_err(|e| zip_error(name, e))?;
+        if entry.size() > budget {
+            return Err(over_budget());
+        }
+        let mut bytes = Vec::new();
+        (&mut entry)
+            .take(MAX_LIGHTS_BYTES as u64 + 1)
+            .read_to_end(&mut bytes)
+            .map_err(|e| {
+                ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}"))
+            })?;
+        if bytes.len() > MAX_LIGHTS_BYTES {
+            return Err(ApiError::too_large(format!(
+                "the light table file {name:?} is larger than {MAX_LIGHTS_BYTES} bytes"
+            )));
+        }
+        budget -= bytes.len() as u64;
+        texts.insert(name, bytes);
+    }
+    let mut names: Vec<String> = by_name.keys().cloned().collect();
+    names.sort();
+    let table = layout::read_table("the archive", &names, &mut |n| {
+        Ok(texts.get(n).cloned().unwrap_or_default())
+    })?;
+    let named: std::collections::HashSet<&str> =
+        table.lights.iter().map(|l| l.name.as_str()).collect();
+    if named.len() > limits.max_images {
+        return Err(InputError::TooManyImages {
+            count: named.len(),
+            limit: limits.max_images,
+        }
+        .into());
+    }
+    let mask_name = table.mask.as_deref().filter(|_| want_mask);
+
+    // Then the images the table names, and the mask, in archive order.
     let mut images = Vec::new();
-    let mut table: Option<Vec<u8>> = None;
+    let mut mask = None;
     let mut buf = vec![0u8; 64 * 1024];
     for (i, components) in entries {
         let name = components.last().cloned().unwrap_or_default();
+        let is_mask = mask_name == Some(name.as_str());
+        if !(named.contains(name.as_str()) || is_mask) {
+            continue;
+        }
         let mut entry = zip.by_index(i).map_err(|e| zip_error(&name, e))?;
         if entry.size() > budget {
             return Err(over_budget());
         }
-        if name == TABLE_CSV || name == TABLE_JSON {
-            if table.is_some() {
-                return Err(ApiError::invalid(format!(
-                    "the archive holds more than one light table ({TABLE_CSV} / {TABLE_JSON})"
-                )));
-            }
-            let mut bytes = Vec::new();
-            (&mut entry)
-                .take(MAX_LIGHTS_BYTES as u64 + 1)
-                .read_to_end(&mut bytes)
-                .map_err(|e| {
-                    ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}"))
-                })?;
-            if bytes.len() > MAX_LIGHTS_BYTES {
-                return Err(ApiError::too_large(format!(
-                    "the light table {name:?} is larger than {MAX_LIGHTS_BYTES} bytes"
-                )));
-            }
-            budget -= bytes.len() as u64;
-            table = Some(bytes);
-            continue;
-        }
-        if images.len() >= limits.max_images {
-            return Err(InputError::TooManyImages {
-                count: images.len() + 1,
-                limit: limits.max_images,
-            }
-            .into());
-        }
-        let file = image_file(images.len());
+        let file = if is_mask {
+            MASK_FILE.to_string()
+        } else {
+            image_file(images.len())
+        };
         let target = dir.join(&file);
         let mut out = File::create(&target)?;
         let mut head = Vec::with_capacity(HEAD_BYTES);
@@ -874,7 +944,20 @@ fn extract_archive(
         }
         out.flush()?;
         drop(out);
-        let (width, height, depth) = probe_image(&target, &name, &head, limits.max_pixels)?;
+        let probed = probe_image(&target, &name, &head, limits.max_pixels);
+        if is_mask {
+            let (width, height, depth) =
+                probed.map_err(|e| ApiError::invalid(format!("mask: {e}")))?;
+            mask = Some(StoredImage {
+                name,
+                file,
+                width,
+                height,
+                depth,
+            });
+            continue;
+        }
+        let (width, height, depth) = probed?;
         check_job_pixels(&images, &name, width, height, limits.max_job_pixels)?;
         images.push(StoredImage {
             name,
@@ -884,25 +967,28 @@ fn extract_archive(
             depth,
         });
     }
-    let table = table.ok_or_else(|| {
-        InputError::Lights(format!(
-            "the archive has no {TABLE_CSV} or {TABLE_JSON} next to the images"
-        ))
-    })?;
-    Ok((images, table))
+    Ok(Unpacked {
+        images,
+        table: lights::to_json(&table.lights),
+        mask,
+        has_mask: table.mask.is_some(),
+        notes: table.notes,
+    })
 }
 
 /// The archive reader on its own, for property tests and fuzzing: unpack the zip file at
 /// `zip` into the directory `dir` under `config`'s caps (`max_parts` entries,
 /// `max_unpacked_bytes`, `max_images`, `max_pixels`), exactly as an `archive` part is
-/// unpacked. Returns the images' names (in archive order) and the light table's bytes.
+/// unpacked. Returns the images' names (in archive order) and the light table's bytes
+/// (as stored for the job: JSON in the project's frame).
 pub fn unpack_archive(
     zip: &Path,
     dir: &Path,
     config: &Config,
 ) -> Result<(Vec<String>, Vec<u8>), ApiError> {
-    let (images, table) = extract_archive(zip, dir, &ArchiveLimits::from(config))?;
-    Ok((images.into_iter().map(|i| i.name).collect(), table))
+    let unpacked = extract_archive(zip, dir, &ArchiveLimits::from(config), true)?;
+    let names = unpacked.images.into_iter().map(|i| i.name).collect();
+    Ok((names, unpacked.table))
 }
 
 #[cfg(test)]
@@ -943,8 +1029,8 @@ mod tests {
         std::fs::write(&path, bytes).unwrap();
         let out = dir.path().join("out");
         std::fs::create_dir(&out).unwrap();
-        extract_archive(&path, &out, limits)
-            .map(|(imgs, _)| imgs.into_iter().map(|i| i.name).collect())
+        extract_archive(&path, &out, limits, true)
+            .map(|u| u.images.into_iter().map(|i| i.name).collect())
     }
 
     const TABLE: &[u8] = b"a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\n";
@@ -963,6 +1049,8 @@ mod tests {
             ("set/b.png", &p),
             ("set/light_directions.csv", TABLE),
             ("set/.DS_Store", b"x"),
+            ("set/notes.txt", b"not named: skipped"),
+            ("set/other.png", b"not named: skipped"),
         ]);
         assert_eq!(extract(&nested, &limits()).unwrap(), ["a.png", "b.png"]);
     }
@@ -991,7 +1079,7 @@ mod tests {
         assert!(e.detail().contains("out of place"), "{e}");
         let e = extract(
             &zip_of(&[
-                ("a.png", &p),
+                ("a.png", b"hello"),
                 ("notes.txt", b"hello"),
                 ("light_directions.csv", TABLE),
             ]),
@@ -999,7 +1087,7 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(e.status().as_u16(), 415, "{e}");
-        assert!(e.detail().contains("notes.txt"), "{e}");
+        assert!(e.detail().contains("a.png"), "{e}");
         let e = extract(&zip_of(&[("a.png", &p)]), &limits()).unwrap_err();
         assert!(e.detail().contains("light_directions.csv"), "{e}");
         // 4 MiB of zeros compresses to a few KiB: the cap stops it while streaming.

@@ -1,5 +1,5 @@
-//! Shared helpers of the HTTP API tests: a real server on 127.0.0.1:0, the seed data,
-//! multipart forms and zips, polling, problem bodies.
+//! Shared helpers of the HTTP API tests: a real server on 127.0.0.1:0, multipart forms and
+//! zips, polling, problem bodies. Finding the seed data: `tests/seed/mod.rs`.
 
 #![allow(dead_code)]
 
@@ -7,30 +7,15 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use photostereo::core::synth::{self, Capture, Scene};
 use photostereo::service::{AppState, Config, serve_with};
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
-pub const SEED_SETS: [&str; 3] = ["synth-images", "sphere-images", "dog-images"];
-
 pub fn repo_root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-}
-
-/// A seed data set; the tests fail (not skip) when the seed data is missing.
-pub fn seed(name: &str) -> PathBuf {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| repo_root().join("../shared/seed-data"));
-    let dir = root.join(name);
-    assert!(
-        dir.join("light_directions.csv").is_file(),
-        "seed data missing: {} (the API tests need ../shared/seed-data)",
-        dir.display()
-    );
-    dir
 }
 
 /// Test settings: a fresh data directory, two workers, no disk-space floor.
@@ -345,4 +330,64 @@ pub fn synthetic_form(size: u32, n: usize) -> Form {
         form = form.part("images", Part::bytes(bytes.into_inner()).file_name(name));
     }
     form.text("lights", table)
+}
+
+/// A sphere the project renders, written as the field's benchmark folder: RGB 16-bit
+/// PNGs under lights of non-unit RGB intensities, `light_directions.txt` with y UP,
+/// `light_intensities.txt`, `filenames.txt`, `mask.png`, and files beside them that are
+/// not part of the set (a ground-truth normal map, a names file, a `.mat`).
+pub fn benchmark_folder(dir: &Path) -> Scene {
+    let scene = Scene::sphere(48);
+    let dirs = synth::light_rings(12, 20.0, 50.0);
+    let rgb: Vec<[f64; 3]> = (0..dirs.len())
+        .map(|i| [0.6 + 0.04 * i as f64, 1.05 - 0.03 * i as f64, 0.8])
+        .collect();
+    let images = synth::render_rgb(&scene, [0.9, 0.75, 0.6], &dirs, &rgb, &Capture::default());
+    let (mut directions, mut intensities, mut names) =
+        (String::new(), String::new(), String::new());
+    for (i, img) in images.iter().enumerate() {
+        let name = format!("view_{:02}.png", i + 1);
+        img.save(dir.join(&name)).unwrap();
+        let [x, y, z] = dirs[i];
+        directions += &format!("{x:.9} {:.9} {z:.9}\n", -y); // the format's y is up
+        intensities += &format!("{} {} {}\n", rgb[i][0], rgb[i][1], rgb[i][2]);
+        names += &format!("{name}\n");
+    }
+    std::fs::write(dir.join("light_directions.txt"), directions).unwrap();
+    std::fs::write(dir.join("light_intensities.txt"), intensities).unwrap();
+    std::fs::write(dir.join("filenames.txt"), names).unwrap();
+    let (w, h) = (scene.width as u32, scene.height as u32);
+    image::GrayImage::from_fn(w, h, |x, y| {
+        image::Luma([if scene.mask[[y as usize, x as usize]] {
+            255
+        } else {
+            0
+        }])
+    })
+    .save(dir.join("mask.png"))
+    .unwrap();
+    image::RgbImage::from_pixel(w, h, image::Rgb([128, 128, 255]))
+        .save(dir.join("Normal_gt.png"))
+        .unwrap();
+    std::fs::write(dir.join("names.txt"), "view_01.png\n").unwrap();
+    std::fs::write(dir.join("Normal_gt.mat"), b"MATLAB 5.0 MAT-file").unwrap();
+    scene
+}
+
+/// Mean angle, in degrees, between `normal.exr` (OpenGL convention: y up) and the scene's
+/// normals (y down the rows), where the surface faces the camera within 37° (there every
+/// light reaches it: no attached shadows to bias the plain solve).
+pub fn mean_normal_error_deg(out: &Path, scene: &Scene) -> f64 {
+    let exr = image::open(out.join("normal.exr")).unwrap().to_rgb32f();
+    let (mut sum, mut count) = (0.0, 0);
+    for ((r, c), &inside) in scene.mask.indexed_iter() {
+        if inside && scene.normals[[r, c, 2]] > 0.8 {
+            let p = exr.get_pixel(c as u32, r as u32).0;
+            let got = [p[0] as f64, -p[1] as f64, p[2] as f64];
+            let dot: f64 = (0..3).map(|k| got[k] * scene.normals[[r, c, k]]).sum();
+            sum += dot.clamp(-1.0, 1.0).acos().to_degrees();
+            count += 1;
+        }
+    }
+    sum / count as f64
 }

@@ -681,7 +681,12 @@ fn ragged_mask_converges() {
 fn rendered_set() -> Option<(Array3<f32>, Array2<bool>)> {
     let dir = std::env::var("PHOTOSTEREO_SET").unwrap_or_else(|_| "/tmp/set2048".into());
     let dir = std::path::Path::new(&dir);
-    let set = crate::core::intake::load_dir(dir, None, &Default::default()).ok()?;
+    let set = crate::core::intake::load_dir(
+        dir,
+        crate::core::intake::DirMask::Folder,
+        &Default::default(),
+    )
+    .ok()?;
     let rec =
         crate::core::reconstruct(&set, &Default::default(), &mut crate::core::RunToEnd).ok()?;
     Some((rec.normals, rec.mask))

@@ -1,0 +1,69 @@
+//! The `bench` subcommand's flags and the values it accepts.
+
+use std::path::PathBuf;
+
+use anyhow::ensure;
+use clap::Args;
+
+/// Time, memory and HTTP figures on synthetic data sets (see the README's Performance).
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Square image sizes in pixels, comma-separated (up to 8192; 5120² is a 26-megapixel camera).
+    #[arg(long, value_delimiter = ',', default_value = "512,1024,2048")]
+    pub sizes: Vec<usize>,
+    /// Lights (= 16-bit PNG images) per data set.
+    #[arg(long, default_value_t = 24)]
+    pub lights: usize,
+    /// Runs of each measurement; the tables show medians (peak memory: the largest).
+    #[arg(long, default_value_t = 3)]
+    pub runs: usize,
+    /// Also submit every set to an in-process server over HTTP and time it.
+    #[arg(long)]
+    pub http: bool,
+    /// Also time status requests while every server worker is busy with a big job.
+    #[arg(long)]
+    pub load: bool,
+    /// Status requests sent by --load.
+    #[arg(long, default_value_t = 1000)]
+    pub requests: usize,
+    /// Keep-alive connections the --load status requests are spread over.
+    #[arg(long, default_value_t = 4)]
+    pub connections: usize,
+    /// Where to create the temporary directory [default: the system's temp dir].
+    #[arg(long)]
+    pub tmp_dir: Option<PathBuf>,
+}
+
+impl BenchArgs {
+    /// Refuse values the bench cannot measure with, naming the flag.
+    pub(super) fn check(&self) -> anyhow::Result<()> {
+        ensure!(!self.sizes.is_empty(), "--sizes needs at least one size");
+        for &s in &self.sizes {
+            ensure!(
+                (32..=8192).contains(&s),
+                "--sizes: {s} is outside 32..=8192"
+            );
+        }
+        let mut seen = self.sizes.clone();
+        seen.sort_unstable();
+        seen.dedup();
+        ensure!(
+            seen.len() == self.sizes.len(),
+            "--sizes: a size is repeated"
+        );
+        ensure!(
+            (3..=64).contains(&self.lights),
+            "--lights must be 3..=64 (the service takes at most 64 images)"
+        );
+        ensure!((1..=100).contains(&self.runs), "--runs must be 1..=100");
+        ensure!(
+            (1..=100_000).contains(&self.requests),
+            "--requests must be 1..=100000"
+        );
+        ensure!(
+            (1..=64).contains(&self.connections),
+            "--connections must be 1..=64"
+        );
+        Ok(())
+    }
+}

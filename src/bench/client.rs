@@ -1,0 +1,197 @@
+//! A small HTTP/1.1 client on `tokio::net::TcpStream` for the bench's own server: requests
+//! without a body over keep-alive connections, Content-Length and chunked responses.
+//! It only talks to loopback, and every wait has a timeout.
+
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use anyhow::{Context, anyhow, bail, ensure};
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::net::TcpStream;
+
+/// Longest one request (or one upload) may take.
+pub(super) const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
+/// Largest response body read (status JSON is a few kB).
+const MAX_BODY: usize = 16 << 20;
+
+/// One HTTP/1.1 connection to the bench's server.
+pub(super) struct Conn {
+    pub(super) stream: BufReader<TcpStream>,
+    host: String,
+    /// The server said `Connection: close` (or the stream failed).
+    pub(super) closed: bool,
+}
+
+pub(super) struct Response {
+    pub(super) status: u16,
+    pub(super) body: Vec<u8>,
+}
+
+impl Response {
+    pub(super) fn describe(&self) -> String {
+        let body = String::from_utf8_lossy(&self.body);
+        let body: String = body.chars().take(300).collect();
+        format!("HTTP {} {body}", self.status)
+    }
+}
+
+impl Conn {
+    pub(super) async fn connect(addr: SocketAddr) -> anyhow::Result<Self> {
+        ensure!(addr.ip().is_loopback(), "the bench only talks to loopback");
+        let stream = tokio::time::timeout(REQUEST_TIMEOUT, TcpStream::connect(addr))
+            .await
+            .map_err(|_| anyhow!("connecting to {addr} timed out"))?
+            .with_context(|| format!("connecting to {addr}"))?;
+        stream.set_nodelay(true)?;
+        Ok(Self {
+            stream: BufReader::new(stream),
+            host: addr.to_string(),
+            closed: false,
+        })
+    }
+
+    /// A request without a body, and its response.
+    pub(super) async fn request(&mut self, method: &str, path: &str) -> anyhow::Result<Response> {
+        let exchange = async {
+            let head = format!("{method} {path} HTTP/1.1\r\nHost: {}\r\n\r\n", self.host);
+            let w = self.stream.get_mut();
+            w.write_all(head.as_bytes()).await?;
+            w.flush().await?;
+            self.read_response().await
+        };
+        let r = tokio::time::timeout(REQUEST_TIMEOUT, exchange).await;
+        match r {
+            Ok(Ok(r)) => Ok(r),
+            Ok(Err(e)) => {
+                self.closed = true;
+                Err(e.context(format!("{method} {path}")))
+            }
+            Err(_) => {
+                self.closed = true;
+                bail!("{method} {path}: no answer within {REQUEST_TIMEOUT:?}")
+            }
+        }
+    }
+
+    /// Read one response: status line, headers, then a Content-Length or chunked body.
+    pub(super) async fn read_response(&mut self) -> anyhow::Result<Response> {
+        let head = self.read_until_blank_line().await?;
+        let head = String::from_utf8(head).context("response head is not UTF-8")?;
+        let mut lines = head.split("\r\n");
+        let status_line = lines.next().unwrap_or_default();
+        let status: u16 = status_line
+            .split_whitespace()
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .ok_or_else(|| anyhow!("bad status line {status_line:?}"))?;
+        let mut length = None;
+        let mut chunked = false;
+        for line in lines.filter(|l| !l.is_empty()) {
+            let Some((name, value)) = line.split_once(':') else {
+                bail!("bad header line {line:?}");
+            };
+            let value = value.trim();
+            if name.eq_ignore_ascii_case("content-length") {
+                length = Some(value.parse::<usize>().context("Content-Length")?);
+            } else if name.eq_ignore_ascii_case("transfer-encoding") {
+                chunked = value.to_ascii_lowercase().contains("chunked");
+            } else if name.eq_ignore_ascii_case("connection") && value.eq_ignore_ascii_case("close")
+            {
+                self.closed = true;
+            }
+        }
+        let mut body = Vec::new();
+        if status == 204 || status == 304 || (100..200).contains(&status) {
+            // No body.
+        } else if chunked {
+            loop {
+                let line = self.read_line().await?;
+                let size_text = line.split(';').next().unwrap_or_default().trim();
+                let size = usize::from_str_radix(size_text, 16)
+                    .with_context(|| format!("bad chunk size {size_text:?}"))?;
+                if size == 0 {
+                    // Trailers, then the blank line.
+                    self.skip_trailers().await?;
+                    break;
+                }
+                ensure!(body.len() + size <= MAX_BODY, "response body too large");
+                let at = body.len();
+                body.resize(at + size, 0);
+                self.stream.read_exact(&mut body[at..]).await?;
+                let mut crlf = [0u8; 2];
+                self.stream.read_exact(&mut crlf).await?;
+                ensure!(&crlf == b"\r\n", "chunk not followed by CRLF");
+            }
+        } else if let Some(n) = length {
+            ensure!(n <= MAX_BODY, "response body too large ({n} bytes)");
+            body.resize(n, 0);
+            self.stream.read_exact(&mut body).await?;
+        } else {
+            // Delimited by the end of the connection.
+            self.closed = true;
+            (&mut self.stream)
+                .take(MAX_BODY as u64)
+                .read_to_end(&mut body)
+                .await?;
+        }
+        Ok(Response { status, body })
+    }
+
+    /// Bytes up to and including the first empty line (`\r\n\r\n`), at most 64 KiB.
+    async fn read_until_blank_line(&mut self) -> anyhow::Result<Vec<u8>> {
+        let mut head: Vec<u8> = Vec::new();
+        loop {
+            let (used, found) = {
+                let buf = self.stream.fill_buf().await?;
+                if buf.is_empty() {
+                    self.closed = true;
+                    bail!("the server closed the connection");
+                }
+                let from = head.len().saturating_sub(3);
+                let before = head.len();
+                head.extend_from_slice(buf);
+                match head[from..].windows(4).position(|w| w == b"\r\n\r\n") {
+                    Some(pos) => {
+                        let end = from + pos + 4;
+                        head.truncate(end);
+                        (end - before, true)
+                    }
+                    None => (buf.len(), false),
+                }
+            };
+            self.stream.consume(used);
+            if found {
+                return Ok(head);
+            }
+            ensure!(head.len() <= 64 << 10, "response head over 64 KiB");
+        }
+    }
+
+    /// One CRLF-terminated line (without the CRLF), at most 4 KiB.
+    async fn read_line(&mut self) -> anyhow::Result<String> {
+        let mut line = Vec::new();
+        let n = (&mut self.stream)
+            .take(4096)
+            .read_until(b'\n', &mut line)
+            .await?;
+        ensure!(
+            n > 0 && line.ends_with(b"\n"),
+            "truncated line in the response"
+        );
+        line.pop();
+        if line.ends_with(b"\r") {
+            line.pop();
+        }
+        String::from_utf8(line).context("line is not UTF-8")
+    }
+
+    /// After the last chunk: trailer lines up to the empty line.
+    async fn skip_trailers(&mut self) -> anyhow::Result<()> {
+        for _ in 0..100 {
+            if self.read_line().await?.is_empty() {
+                return Ok(());
+            }
+        }
+        bail!("too many trailer lines")
+    }
+}

@@ -1,0 +1,172 @@
+//! `photostereo bench`: render synthetic sets, time the core and (optionally) the HTTP
+//! service on them in this one process, and print the figures as Markdown tables next to
+//! the project's performance targets.
+//!
+//! Everything lives in a temporary directory that is removed at the end (also on errors).
+//! The HTTP side is a small HTTP/1.1 client written here on `tokio::net::TcpStream`
+//! (multipart uploads streamed from disk, keep-alive status requests); it only ever talks
+//! to the in-process server on 127.0.0.1, and every network wait has a timeout.
+//!
+//! The module reads downward: [`args`] holds the flags, [`sets`] renders the image sets,
+//! [`timing`] times the core jobs on them (and measures their memory through [`memory`]),
+//! [`http`] drives the in-process server with the small client in [`client`], and
+//! [`tables`] prints what was measured; [`stats`] holds the medians and percentiles they
+//! share.
+
+mod args;
+mod client;
+mod http;
+mod memory;
+mod sets;
+mod stats;
+mod tables;
+mod timing;
+
+use std::path::{Path, PathBuf};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use anyhow::Context;
+
+pub use args::BenchArgs;
+use http::{LoadResult, Server};
+use sets::SizeResult;
+
+/// Render the sets, measure them, print the tables; the temporary directory goes either way.
+pub fn run(args: BenchArgs) -> anyhow::Result<()> {
+    args.check()?;
+    let parent = match &args.tmp_dir {
+        Some(p) => p.clone(),
+        None => std::env::temp_dir(),
+    };
+    let tmp = TempDir::new(&parent)?;
+    eprintln!("bench: working in {}", tmp.0.display());
+
+    let machine = machine();
+    let load_at_start = load_average();
+
+    let mut sets = sets::render(&args.sizes, args.lights, &tmp.0)?;
+
+    let server = if args.http || args.load {
+        Some(Server::start(&args, &sets, &tmp.0)?)
+    } else {
+        None
+    };
+    let outcome = measure(&args, &mut sets, server.as_ref(), &tmp.0);
+    if let Some(server) = server {
+        server.stop();
+    }
+    let load = outcome?;
+
+    let load_at_end = load_average();
+    print!(
+        "{}",
+        tables::tables(
+            &args,
+            &machine,
+            (&load_at_start, &load_at_end),
+            &sets,
+            load.as_ref()
+        )
+    );
+    Ok(())
+}
+
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
+}
+
+/// Per set: integration alone; core and HTTP runs alternating (core, HTTP, core, HTTP, …)
+/// so that a change in the machine's background load hits both alike; the l2 and default
+/// jobs, one after the other in each round. Then the load test.
+fn measure(
+    args: &BenchArgs,
+    sets: &mut [SizeResult],
+    server: Option<&Server>,
+    tmp: &Path,
+) -> anyhow::Result<Option<LoadResult>> {
+    for set in sets.iter_mut() {
+        // Before the jobs, and dropped before them, so it stays out of their peak memory.
+        let gradients = timing::Gradients::of_sphere(set.size);
+        for _ in 0..args.runs {
+            timing::integration_run(set, &gradients);
+        }
+        drop(gradients);
+        for run in 0..args.runs {
+            timing::core_run(set, run, args.runs, tmp)?;
+            if let (true, Some(server)) = (args.http, server) {
+                server
+                    .rt
+                    .block_on(http::http_run(set, run, args.runs, server.addr))?;
+            }
+        }
+        for run in 0..args.runs {
+            timing::default_against_l2_run(set, run, args.runs, tmp)?;
+        }
+    }
+    match (args.load, server, sets.iter().max_by_key(|s| s.size)) {
+        (true, Some(server), Some(big)) => server
+            .rt
+            .block_on(http::load_test(args, big, server.addr, server.workers))
+            .map(Some),
+        _ => Ok(None),
+    }
+}
+
+/// A directory removed with everything in it when dropped.
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(parent: &Path) -> anyhow::Result<Self> {
+        let stamp = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or_default();
+        let path = parent.join(format!(
+            "photostereo-bench-{}-{stamp:x}",
+            std::process::id()
+        ));
+        std::fs::create_dir(&path)
+            .with_context(|| format!("creating the temporary directory {}", path.display()))?;
+        Ok(Self(path))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        if let Err(e) = std::fs::remove_dir_all(&self.0) {
+            eprintln!("bench: could not remove {}: {e}", self.0.display());
+        }
+    }
+}
+
+/// "N × model, M GiB RAM".
+fn machine() -> String {
+    let cores = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1);
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let mem = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("MemTotal:"))
+                .and_then(|v| v.split_whitespace().next()?.parse::<f64>().ok())
+        })
+        .map(|kb| format!("{:.1} GiB RAM", kb / (1024.0 * 1024.0)))
+        .unwrap_or_else(|| "unknown RAM".into());
+    format!(
+        "{cores} cores (nproc), {model}, {mem}, {} {}",
+        std::env::consts::OS,
+        std::env::consts::ARCH
+    )
+}

@@ -1,0 +1,47 @@
+//! The seed's real data (../shared/seed-data, or `PHOTOSTEREO_SEED_DATA`), which is not in
+//! the repository: a test that needs it skips on a fresh clone, saying so in one line, and
+//! fails instead when `CI=true`, so that CI can never pass without running it.
+
+#![allow(dead_code)]
+
+use std::io::Write;
+use std::path::PathBuf;
+
+pub const SEED_SETS: [&str; 3] = ["synth-images", "sphere-images", "dog-images"];
+
+/// A seed data set, or `None` (after printing the skip line) when it is missing outside CI.
+pub fn seed_or_skip(name: &str) -> Option<PathBuf> {
+    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
+    let dir = root.join(name);
+    if dir.join("light_directions.csv").is_file() {
+        return Some(dir);
+    }
+    assert!(
+        std::env::var("CI").as_deref() != Ok("true"),
+        "seed data missing: {} (CI=true needs it; set PHOTOSTEREO_SEED_DATA=/path/to/seed-data)",
+        dir.display()
+    );
+    let thread = std::thread::current();
+    let test = thread.name().unwrap_or("a test");
+    // Straight to the stderr handle: libtest captures eprintln! of passing tests, and a
+    // skip nobody sees looks like a pass.
+    let _ = writeln!(
+        std::io::stderr(),
+        "SKIPPED {test}: no seed data at {} (set PHOTOSTEREO_SEED_DATA=/path/to/seed-data)",
+        root.display()
+    );
+    None
+}
+
+/// `seed!("synth-images")`: the set's path, or return from the test (skipped).
+macro_rules! seed {
+    ($name:expr) => {
+        match $crate::seed::seed_or_skip($name) {
+            Some(dir) => dir,
+            None => return,
+        }
+    };
+}
+pub(crate) use seed;
