@@ -13,7 +13,7 @@ use photostereo::core::synth::{self, Capture, Scene};
 use photostereo::core::{Options, Reconstruction, RunToEnd, reconstruct};
 
 fn run(dir: &Path, opts: &Options, mask: &Array2<bool>) -> Reconstruction {
-    let mut set = intake::load_dir(dir, None, &Limits::default()).unwrap();
+    let mut set = intake::load_dir(dir, intake::DirMask::Folder, &Limits::default()).unwrap();
     set.mask = Some(mask.clone());
     reconstruct(&set, opts, &mut RunToEnd).unwrap()
 }
@@ -37,7 +37,10 @@ fn exposed_set(dir: &Path, exposure: f64) -> Array2<bool> {
     let mut scene = Scene::sphere(96);
     scene.albedo.mapv_inplace(|a| a * 0.12 * exposure);
     let capture = Capture {
-        specular: Some((0.06 * exposure, 40.0)),
+        specular: Some(synth::Specular::BlinnPhong {
+            strength: 0.06 * exposure,
+            shininess: 40.0,
+        }),
         seed: 9,
         ..Capture::default()
     };
