@@ -16,9 +16,11 @@
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 
+mod lanes;
+
 use super::intake::ImageSet;
 use super::progress::Halt;
-use super::solve::{invert3, render_observation};
+use super::solve::{invert3, pseudo_inverse, render_observation};
 
 const SCALE: f32 = 1.0 / 65535.0;
 /// Re-fits per pixel at most; the inlier set almost always settles in two.
@@ -59,6 +61,8 @@ pub struct RobustSurface {
 
 struct Model {
     lights: Vec<[f32; 3]>,
+    /// (LᵀL)⁻¹Lᵀ, per light: least squares over every observation as one sum.
+    pinv: Vec<[f32; 3]>,
     /// Each light's outer product lᵢlᵢᵀ, packed (xx, xy, xz, yy, yz, zz).
     outer: Vec<[f64; 6]>,
     /// Σ lᵢlᵢᵀ over every light, packed, and its inverse.
@@ -71,6 +75,7 @@ struct Model {
     light_scale: f32,
 }
 
+#[derive(Clone)]
 struct Fit {
     g: [f32; 3],
     inliers: usize,
@@ -92,6 +97,7 @@ impl Model {
         let floor = sigma.max(quantum);
         let light_scale = lights.iter().map(|l| norm(*l)).sum::<f32>() / lights.len().max(1) as f32;
         Self {
+            pinv: pseudo_inverse(&lights),
             light_scale,
             full_inverse: invert3(&unpack(&full)),
             lights,
@@ -279,9 +285,7 @@ impl Model {
         if robust <= self.tol(fit.g) {
             return fit; // most observations fit within the tolerance: trusted
         }
-        let plain = self
-            .solve(&b.y, &vec_false(&mut b.next))
-            .unwrap_or([0.0; 3]);
+        let plain = self.solve(&b.y, vec_false(&mut b.next)).unwrap_or([0.0; 3]);
         self.residuals(plain, obs, &mut b.spare);
         if median_abs(&mut b.spare) < robust {
             return self.fallback(obs, &b.y, &mut b.out, &mut b.r);
@@ -447,6 +451,9 @@ fn gather(rows: &[ndarray::ArrayView1<'_, u16>], c: usize, obs: &mut [f32]) {
     }
 }
 
+/// Columns the fast path works on at once: its ~20 lanes of f32 then fit in L1.
+const LANE_BLOCK: usize = 256;
+
 /// Pixels the pre-pass samples: enough for stable medians, a small cost next to the solve.
 const SAMPLE_PIXELS: f64 = 12_000.0;
 
@@ -570,9 +577,30 @@ pub fn solve(set: &ImageSet, halt: Halt) -> RobustSurface {
                 }
                 let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
                 let rows = plane_rows(set, r);
+                // Most pixels are settled by the row-wide fast path; the rest, and every
+                // pixel of a set of 4 lights or fewer (nothing to test outliers with),
+                // by the per-pixel fit.
+                let slices: Option<Vec<&[u16]>> = rows.iter().map(|v| v.to_slice()).collect();
+                let mut settled = Vec::with_capacity(cols);
+                if let Some(slices) = slices.filter(|_| n > 4) {
+                    // In blocks of columns whose lanes stay in the L1 cache.
+                    let mut l = lanes::Lanes::new(LANE_BLOCK.min(cols), n);
+                    let mut part = Vec::with_capacity(LANE_BLOCK);
+                    for c0 in (0..cols).step_by(LANE_BLOCK) {
+                        let c1 = (c0 + LANE_BLOCK).min(cols);
+                        let block: Vec<&[u16]> = slices.iter().map(|s| &s[c0..c1]).collect();
+                        lanes::settle_row(&model, &block, &mut l, &mut part);
+                        settled.append(&mut part);
+                    }
+                }
                 for c in 0..cols {
-                    gather(&rows, c, &mut obs);
-                    let fit = model.judged(&obs, &mut b);
+                    let fit = match settled.get_mut(c) {
+                        Some(lanes::Settled::Fit(fit)) => fit.clone(),
+                        _ => {
+                            gather(&rows, c, &mut obs);
+                            model.judged(&obs, &mut b)
+                        }
+                    };
                     let rho = norm(fit.g);
                     a_row[c] = rho;
                     if rho > 0.0 && rho.is_finite() {
