@@ -97,10 +97,12 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
         let [a0, a1, a2] = &mut s.g_all;
         let (a0, a1, a2) = (&mut a0[..cols], &mut a1[..cols], &mut a2[..cols]);
         let count = &mut s.count[..cols];
+        let keep = &mut s.keep[k * cols..(k + 1) * cols];
         for c in 0..cols {
             let v = row[c] as f32 * SCALE;
             let y = v - black;
             let w = if y > dark && v < SATURATED { 1.0 } else { 0.0 };
+            keep[c] = w;
             let wy = w * y;
             m0[c] += w * o[0];
             m1[c] += w * o[1];
@@ -174,7 +176,7 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
                 count[c] += w;
             }
         }
-        if round > 1 && s.changed.iter().all(|&d| d == 0.0) {
+        if s.changed.iter().all(|&d| d == 0.0) {
             break; // every column's set repeated: the fits are final
         }
         if round < MAX_ROUNDS.min(3) {
