@@ -16,7 +16,7 @@ const TARGET_LINEARITY: f64 = 0.25;
 const TARGET_STATUS_P99_MS: f64 = 50.0;
 const TARGET_POISSON_OVER_FC: f64 = 3.0;
 const TARGET_SIZE: usize = 2048;
-// The target of issue 18, judged at TARGET_SIZE × TARGET_LIGHTS.
+// The default solve's cost target, judged at TARGET_SIZE × TARGET_LIGHTS.
 const TARGET_DEFAULT_OVER_L2: f64 = 1.25;
 const TARGET_LIGHTS: usize = 24;
 
@@ -264,7 +264,7 @@ pub(super) fn tables(
     let _ = writeln!(
         o,
         "\n(l2 job = `Options {{ solver: l2, integration: poisson, ..default }}`, the default \
-         job before issue 18; default job = `Options::default()`; each is decode + \
+         job before the robust solve became the default; default job = `Options::default()`; each is decode + \
          `pipeline::run` with the default artifacts; {} round(s), the two jobs one after \
          the other, l2 first in odd rounds and default first in even ones)",
         args.runs
@@ -412,7 +412,7 @@ pub(super) fn tables(
     o
 }
 
-/// The default job's median time over the l2 job's at the size and light count issue 18
+/// The default job's median time over the l2 job's at the size and light count the target
 /// judges.
 fn default_over_l2(sets: &[SizeResult]) -> Option<f64> {
     let s = (sets.iter()).find(|s| s.size == TARGET_SIZE && s.lights == TARGET_LIGHTS)?;
