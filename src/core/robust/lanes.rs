@@ -8,7 +8,11 @@
 //!
 //! The column loops have no branches and run over contiguous rows, so they vectorise.
 
-use super::{Fit, MAX_ROUNDS, Model, SATURATED, SCALE, implausible};
+use super::{Fit, Model, SATURATED, SCALE, implausible};
+
+/// Re-fits the fast path tries; a column whose set still changes after them is left to
+/// the per-pixel fit, which has the full search.
+const ROUNDS: usize = 3;
 
 /// Per-thread buffers for one row, `cols` lanes each (`keep`: `lights × cols`).
 pub(super) struct Lanes {
@@ -17,6 +21,8 @@ pub(super) struct Lanes {
     m: [Vec<f32>; 6],
     rhs: [Vec<f32>; 3],
     count: Vec<f32>,
+    /// Round 0's count: observations above the dark level and below saturation.
+    lit: Vec<f32>,
     keep: Vec<f32>,
     tol: Vec<f32>,
     changed: Vec<f32>,
@@ -38,6 +44,7 @@ impl Lanes {
             m: [v(), v(), v(), v(), v(), v()],
             rhs: [v(), v(), v()],
             count: v(),
+            lit: v(),
             keep: vec![0.0; cols * lights],
             tol: v(),
             changed: v(),
@@ -121,9 +128,9 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
     }
     // Fewer than 3 lit observations: the per-pixel fit's answer is least squares over
     // all, flagged; more than 4 are needed for the per-pixel fit to test outliers at all.
-    let lit0: Vec<f32> = s.count.clone();
+    s.lit.copy_from_slice(&s.count);
     solve_lanes(s);
-    for round in 1..=MAX_ROUNDS.min(3) {
+    for round in 1..=ROUNDS {
         // Tolerances of the current fit, then the observations it explains.
         for c in 0..cols {
             let g = [s.g[0][c], s.g[1][c], s.g[2][c]];
@@ -179,7 +186,7 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
         if s.changed.iter().all(|&d| d == 0.0) {
             break; // every column's set repeated: the fits are final
         }
-        if round < MAX_ROUNDS.min(3) {
+        if round < ROUNDS {
             solve_lanes(s);
         }
     }
@@ -236,7 +243,7 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
     out.clear();
     out.extend((0..cols).map(|c| {
         let g_all = [s.g_all[0][c], s.g_all[1][c], s.g_all[2][c]];
-        if lit0[c] < 3.0 {
+        if s.lit[c] < 3.0 {
             return Settled::Fit(Fit {
                 g: g_all,
                 inliers: 0,
@@ -247,7 +254,7 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
         }
         let g = [s.g[0][c], s.g[1][c], s.g[2][c]];
         let kept = s.count[c] as usize;
-        let clean = lit0[c] > 4.0
+        let clean = s.lit[c] > 4.0
             && s.changed[c] == 0.0
             && s.bad[c] == 0.0
             && kept >= 3

@@ -81,7 +81,7 @@ struct Model {
     light_scale: f32,
 }
 
-#[derive(Clone)]
+#[derive(Clone, Copy)]
 struct Fit {
     g: [f32; 3],
     inliers: usize,
@@ -600,8 +600,8 @@ pub fn solve(set: &ImageSet, halt: Halt) -> RobustSurface {
                     }
                 }
                 for c in 0..cols {
-                    let fit = match settled.get_mut(c) {
-                        Some(lanes::Settled::Fit(fit)) => fit.clone(),
+                    let fit = match settled.get(c) {
+                        Some(&lanes::Settled::Fit(fit)) => fit,
                         _ => {
                             gather(&rows, c, &mut obs);
                             model.judged(&obs, &mut b)
