@@ -1108,17 +1108,79 @@ async fn operations_endpoints_and_request_ids() {
     let r = s.client.get(s.url("/docs/")).send().await.unwrap();
     assert_eq!(r.status(), 200);
     assert!(r.text().await.unwrap().contains("swagger"));
-    // A browser at the root lands on the Swagger UI: 303 to /docs/ (the client follows it).
+    // The root is the browser app: its page, script and style, compiled in, under a strict
+    // Content-Security-Policy, revalidated by ETag; the page links the API reference.
     let r = s.client.get(s.url("/")).send().await.unwrap();
-    assert_eq!(r.url().path(), "/docs/");
-    assert!(r.text().await.unwrap().contains("swagger"));
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "text/html; charset=utf-8");
+    let csp = r.headers()["content-security-policy"]
+        .to_str()
+        .unwrap()
+        .to_string();
+    for directive in [
+        "default-src 'none'",
+        "script-src 'self'",
+        "style-src 'self'",
+        "connect-src 'self'",
+    ] {
+        assert!(csp.contains(directive), "{csp}");
+    }
+    assert!(!csp.contains("unsafe"), "{csp}");
+    assert_eq!(r.headers()["x-content-type-options"], "nosniff");
+    assert_eq!(r.headers()["cache-control"], "no-cache");
+    let etag = r.headers()["etag"].to_str().unwrap().to_string();
+    let page = r.text().await.unwrap();
+    assert!(
+        page.contains("href=\"/docs/\""),
+        "the app links the API reference"
+    );
+    assert!(
+        !page.contains("<script>") && !page.contains("style="),
+        "nothing inline"
+    );
+    let r = s
+        .client
+        .get(s.url("/"))
+        .header("if-none-match", &etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 304);
+    for (file, kind) in [
+        ("app.js", "text/javascript"),
+        ("app.css", "text/css"),
+        ("mesh.js", "text/javascript"),
+    ] {
+        let r = s
+            .client
+            .get(s.url(&format!("/app/{file}")))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{file}");
+        assert!(
+            r.headers()["content-type"]
+                .to_str()
+                .unwrap()
+                .starts_with(kind),
+            "{file}"
+        );
+        assert!(
+            page.contains(&format!("/app/{file}")) || file.ends_with(".js"),
+            "{file}"
+        );
+    }
+    let r = s
+        .client
+        .get(s.url("/app/secrets.txt"))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["secrets.txt"]).await;
     let no_follow = reqwest::Client::builder()
         .redirect(reqwest::redirect::Policy::none())
         .build()
         .unwrap();
-    let r = no_follow.get(s.url("/")).send().await.unwrap();
-    assert_eq!(r.status(), 303);
-    assert_eq!(r.headers()["location"], "/docs/");
     let r = no_follow.post(s.url("/")).send().await.unwrap();
     expect_problem(r, 405, &[]).await;
 
@@ -1189,7 +1251,7 @@ async fn served_openapi_document_is_the_checked_in_one() {
         assert!(doc["paths"][path].is_object(), "{path} missing");
     }
     // The browser's pages are not API operations.
-    for path in ["/", "/docs", "/docs/"] {
+    for path in ["/", "/app/{name}", "/docs", "/docs/"] {
         assert!(doc["paths"].get(path).is_none(), "{path} documented");
     }
     for schema in ["Problem", "JobView", "JobList", "Options", "JobStatus"] {

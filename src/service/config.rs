@@ -147,6 +147,8 @@ pub struct Config {
     pub sweep_interval: Duration,
     /// Test hook: a pause at the start of every stage (cancellable), to make jobs last.
     pub stage_delay: Duration,
+    /// How often a job's event stream reads the job's record.
+    pub event_interval: Duration,
 }
 
 /// Largest light table accepted (bytes).
@@ -180,6 +182,7 @@ impl Config {
             decode_ahead: workers,
             sweep_interval: Duration::from_secs(60),
             stage_delay: Duration::ZERO,
+            event_interval: Duration::from_millis(250),
         }
     }
 

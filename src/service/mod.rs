@@ -1,7 +1,9 @@
 //! The HTTP service: an axum shell around [`crate::core`].
 //!
+//! - [`app`]: the browser app at `/`, compiled in.
 //! - [`routes`]: the handlers (typed extractors in, `Result<impl IntoResponse, ApiError>`
 //!   out), documented with `#[utoipa::path]`.
+//! - [`events`]: a job's server-sent event stream.
 //! - [`jobs`]: the bounded queue and worker pool that run reconstructions.
 //! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite).
 //! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory).
@@ -10,9 +12,11 @@
 //!
 //! [`router`] is what tests call; [`serve`] is `photostereo serve`.
 
+mod app;
 pub mod blobs;
 pub mod config;
 pub mod error;
+mod events;
 mod health;
 pub mod jobs;
 mod metrics;
@@ -468,6 +472,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .routes(routes!(routes::create_job, routes::list_jobs))
         .routes(routes!(routes::get_job, routes::delete_job))
         .routes(routes!(routes::get_artifact))
+        .routes(routes!(events::job_events))
 }
 
 /// Health, readiness, metrics, the OpenAPI document (always open).
@@ -504,7 +509,8 @@ pub fn router(state: AppState) -> Router {
     ));
     let (app, _) = api.merge(operations_routes()).split_for_parts();
     app.merge(SwaggerUi::new("/docs").config(utoipa_swagger_ui::Config::new(["/openapi.json"])))
-        .route("/", axum::routing::get(routes::root))
+        .route("/", axum::routing::get(app::page))
+        .route("/app/{name}", axum::routing::get(app::asset))
         .fallback(routes::not_found)
         .method_not_allowed_fallback(routes::method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), track_http))

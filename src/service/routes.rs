@@ -241,7 +241,7 @@ impl JobView {
     }
 }
 
-async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
+pub(super) async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
     state
         .repo(move |r| r.get(id))
         .await?
@@ -669,7 +669,7 @@ fn parse_light(raw: &str) -> Result<[f64; 3], ApiError> {
     Ok(v)
 }
 
-fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
+pub(super) fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
     let bare = |t: &str| t.trim().trim_start_matches("W/").to_string();
     headers
         .get_all(header::IF_NONE_MATCH)
@@ -782,13 +782,6 @@ pub async fn openapi_doc() -> Response {
         super::openapi_json(),
     )
         .into_response()
-}
-
-/// `GET /` sends a browser to the Swagger UI (there is no web app yet). 303 See Other, as
-/// `/docs` → `/docs/` answers: the follow-up is a GET whatever the method was, and nothing
-/// caches it. Like `/docs`, it is not part of the API, so not in the OpenAPI document.
-pub async fn root() -> axum::response::Redirect {
-    axum::response::Redirect::to("/docs/")
 }
 
 /// Unknown routes.
