@@ -108,6 +108,8 @@ try {
 
   if (shots) {
     await page.locator("#result").screenshot({ path: join(shots, "result.png") });
+    await page.getByRole("button", { name: "Raking from left" }).click();
+    await page.locator("#intensity").fill("2.5");
     await page.getByTestId("relight-canvas").screenshot({ path: join(shots, "relight.png") });
     await page.getByTestId("mesh-canvas").screenshot({ path: join(shots, "mesh.png") });
     await page.screenshot({ path: join(shots, "page.png"), fullPage: true });

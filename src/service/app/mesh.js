@@ -127,7 +127,7 @@ export class MeshView {
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     if (!this.mesh || !this.params) return;
     const o = this.orbit;
-    const dist = (this.radius * 2.6) / o.zoom;
+    const dist = (this.radius * 1.9) / o.zoom;
     // Camera: back along z, tilted by pitch about x, turned by yaw about the model's z.
     const model = mat4.multiply(mat4.rotateZ(o.yaw), mat4.translate(this.centre.map((v) => -v)));
     const viewM = mat4.multiply(
