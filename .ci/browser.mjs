@@ -5,7 +5,8 @@
 //
 // Submits the folder's images and light table through the page, waits for the job to
 // succeed, then checks that the relighting canvas draws, that it changes when the light is
-// dragged, that the 3-D canvas draws, and that the page logged no console errors.
+// dragged, that the 3-D canvas draws, and that the page logged no console errors; then
+// that a refused light table is shown as the problem's title and detail beside it.
 // Screenshots go to the given directory only (never into the repository).
 import { chromium } from "playwright-core";
 import { mkdtempSync, readdirSync, rmSync } from "node:fs";
@@ -70,11 +71,13 @@ try {
       const p = g.getImageData(0, 0, c.width, c.height).data;
       let lit = 0;
       let sum = 0;
+      const half = [0, 0]; // brightness of the left and the right half
       for (let i = 0; i < p.length; i += 4) {
         if (p[i] > 30) lit++;
         sum += p[i] * ((i / 4) % 251);
+        half[(i / 4) % c.width < c.width / 2 ? 0 : 1] += p[i];
       }
-      return { lit, total: p.length / 4, sum };
+      return { lit, total: p.length / 4, sum, half };
     }, id);
   const drawn = async (id) => {
     for (let i = 0; i < 100; i++) {
@@ -98,8 +101,12 @@ try {
   await page.mouse.up();
   const after = await stats("relight-canvas");
   check(after.sum !== before.sum && after.lit > 0, `the relighting changes when the light is dragged (${before.lit} -> ${after.lit} lit pixels)`);
+  check(after.half[0] > 1.2 * after.half[1], `lit from the left, the left half is the brighter (${after.half})`);
   const azimuth = await page.locator("#azimuth").inputValue();
   check(Math.abs(Math.abs(+azimuth) - 180) < 20, `the drag moved the light to the left (azimuth ${azimuth}°)`);
+  await page.getByRole("button", { name: "from right" }).click();
+  const right = await stats("relight-canvas");
+  check(right.half[1] > 1.2 * right.half[0], `raking from the right, the right half is the brighter (${right.half})`);
 
   const mesh = await drawn("mesh-canvas");
   check(mesh.lit > mesh.total / 50, `the 3-D canvas draws (${mesh.lit} of ${mesh.total} pixels lit)`);
@@ -115,6 +122,20 @@ try {
     await page.screenshot({ path: join(shots, "page.png"), fullPage: true });
   }
   check(errors.length === 0, `no console errors${errors.length ? ": " + errors.join(" | ") : ""}`);
+
+  // A refused submission: the problem's title and detail next to the light table. The
+  // browser itself logs the 422 response; nothing else may show.
+  await page.getByTestId("file-input").setInputFiles(files);
+  const table = await page.locator("#lights").inputValue();
+  await page.locator("#lights").fill(table.replace(/^([^,\n]+),[^,\n]+,/, "$1, east,"));
+  await page.getByTestId("submit").click();
+  const problem = page.locator("#problem-lights");
+  await problem.waitFor();
+  const shown = await problem.textContent();
+  check(/^Invalid input/.test(shown) && /east/.test(shown) && !shown.includes("{"), `a refused light table is shown next to it (${shown})`);
+
+  const others = errors.filter((e) => !/status of 422/.test(e));
+  check(others.length === 0, `no other console errors${others.length ? ": " + others.join(" | ") : ""}`);
 } finally {
   await browser.close();
   rmSync(profile, { recursive: true, force: true });

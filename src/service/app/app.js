@@ -26,7 +26,9 @@ function showProblem(field, title, detail) {
   el.replaceChildren();
   const t = document.createElement("strong");
   t.textContent = title;
-  el.append(t, document.createTextNode(detail || ""));
+  const d = document.createElement("span");
+  d.textContent = (detail || "").trim();
+  el.append(t, d);
   el.hidden = false;
 }
 
@@ -122,7 +124,10 @@ function wireDrop() {
     takeFiles(await droppedFiles(e.dataTransfer));
   });
   for (const id of ["file-input", "folder-input"]) {
-    $(id).addEventListener("change", (e) => takeFiles([...e.target.files]));
+    $(id).addEventListener("change", async (e) => {
+      await takeFiles([...e.target.files]);
+      e.target.value = ""; // so that picking the same files again is a change too
+    });
   }
 }
 
