@@ -609,7 +609,7 @@ impl Robust {
                         for c0 in (0..cols).step_by(LANE_BLOCK) {
                             let c1 = (c0 + LANE_BLOCK).min(cols);
                             let block: Vec<&[u16]> = slices.iter().map(|s| &s[c0..c1]).collect();
-                            lanes::settle_row(&model, &block, &mut l, &mut part);
+                            lanes::settle_row(model, &block, &mut l, &mut part);
                             settled.append(&mut part);
                         }
                     }
