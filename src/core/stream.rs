@@ -420,7 +420,7 @@ impl PngKind {
 /// A row reader for the file, and its layout when rows can be taken as they come.
 fn open_png(file: &NamedFile) -> Result<(PngRows, Option<PngKind>), InputError> {
     let f = File::open(&file.path).map_err(|e| InputError::io(&file.path, e))?;
-    let mut decoder = png::Decoder::new(BufReader::with_capacity(1 << 16, f));
+    let mut decoder = png::Decoder::new(BufReader::with_capacity(16 << 10, f));
     decoder.set_transformations(png::Transformations::EXPAND);
     let reader = decoder.read_info().map_err(|e| png_error(file, e))?;
     let info = reader.info();
