@@ -8,9 +8,10 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
+use photostereo::core::bands::Stack;
 use photostereo::core::intake::{self, DirMask, Limits};
 use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
-use photostereo::core::{Options, metrics, pipeline, synth};
+use photostereo::core::{Options, metrics, pipeline, stream, synth};
 use photostereo::service;
 use serde::de::DeserializeOwned;
 
@@ -180,12 +181,12 @@ impl ReconstructArgs {
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let (mut opts, chosen) = args.options()?;
     let start = std::time::Instant::now();
-    let set = intake::load_dir(&args.dir, args.dir_mask(chosen), &Limits::default())?;
+    let set = stream::open_dir(&args.dir, args.dir_mask(chosen), &Limits::default())?;
     // A folder's own mask.png stands for `--mask given` unless a mode was chosen.
-    if chosen.is_none() && set.mask.is_some() && args.mask_file.is_none() {
+    if chosen.is_none() && set.info().mask.is_some() && args.mask_file.is_none() {
         opts.mask = MaskMode::Given;
     }
-    for note in &set.notes {
+    for note in &set.info().notes {
         eprintln!("note: {note}");
     }
     let decoded = start.elapsed();

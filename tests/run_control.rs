@@ -8,6 +8,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use photostereo::core::Options;
 use photostereo::core::RunError;
+use photostereo::core::bands::InMemory;
 use photostereo::core::intake::{self, ImageSet, Limits};
 use photostereo::core::pipeline;
 use photostereo::core::progress::{Progress, Stage};
@@ -67,7 +68,13 @@ impl Progress for Recorder {
 fn a_full_run_enters_every_stage_and_is_polled_inside_the_long_ones() {
     let out = tempfile::tempdir().unwrap();
     let mut p = Recorder::new(None);
-    pipeline::run(bump(), &Options::default(), out.path(), &mut p).unwrap();
+    pipeline::run(
+        InMemory::new(bump()),
+        &Options::default(),
+        out.path(),
+        &mut p,
+    )
+    .unwrap();
     assert_eq!(
         p.entered,
         [Stage::Solve, Stage::Mask, Stage::Integrate, Stage::Mesh]
@@ -88,7 +95,12 @@ fn halted_as_integration_starts_the_run_writes_nothing_and_is_cancelled() {
     // from its start, neither goes on and no artifact (nor result.json) appears.
     let out = tempfile::tempdir().unwrap();
     let mut p = Recorder::new(Some(Stage::Integrate));
-    let r = pipeline::run(bump(), &Options::default(), out.path(), &mut p);
+    let r = pipeline::run(
+        InMemory::new(bump()),
+        &Options::default(),
+        out.path(),
+        &mut p,
+    );
     assert!(matches!(r, Err(RunError::Cancelled)), "{r:?}");
     assert_eq!(p.entered, [Stage::Solve, Stage::Mask, Stage::Integrate]);
     assert_eq!(files_in(out.path()), Vec::<PathBuf>::new());
@@ -106,10 +118,15 @@ fn halted_during_the_solve_the_run_is_cancelled_before_the_mask() {
 fn a_stage_start_refused_stops_the_run() {
     let out = tempfile::tempdir().unwrap();
     let mut entered = Vec::new();
-    let r = pipeline::run(bump(), &Options::default(), out.path(), &mut |s: Stage| {
-        entered.push(s);
-        s != Stage::Mesh
-    });
+    let r = pipeline::run(
+        InMemory::new(bump()),
+        &Options::default(),
+        out.path(),
+        &mut |s: Stage| {
+            entered.push(s);
+            s != Stage::Mesh
+        },
+    );
     assert!(matches!(r, Err(RunError::Cancelled)), "{r:?}");
     assert_eq!(entered.last(), Some(&Stage::Mesh));
     assert!(!out.path().join("result.json").exists());

@@ -29,6 +29,14 @@ pub struct BenchArgs {
     /// Keep-alive connections the --load status requests are spread over.
     #[arg(long, default_value_t = 4)]
     pub connections: usize,
+    /// Instead of the other measurements: the default job at each of --sizes with each of
+    /// these light counts (comma-separated, 3..=256), each run in a process of its own.
+    #[arg(long, value_delimiter = ',')]
+    pub light_sweep: Vec<usize>,
+    /// With --light-sweep: also run every job with this `photostereo` binary, alternately
+    /// with this one's (e.g. a build of the previous version).
+    #[arg(long)]
+    pub against: Option<PathBuf>,
     /// Where to create the temporary directory [default: the system's temp dir].
     #[arg(long)]
     pub tmp_dir: Option<PathBuf>,
@@ -56,6 +64,12 @@ impl BenchArgs {
             "--lights must be 3..=64 (the service takes at most 64 images)"
         );
         ensure!((1..=100).contains(&self.runs), "--runs must be 1..=100");
+        for &n in &self.light_sweep {
+            ensure!(
+                (3..=256).contains(&n),
+                "--light-sweep: {n} is outside 3..=256 (intake takes at most 256 images)"
+            );
+        }
         ensure!(
             (1..=100_000).contains(&self.requests),
             "--requests must be 1..=100000"

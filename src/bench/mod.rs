@@ -9,8 +9,8 @@
 //!
 //! The module reads downward: [`args`] holds the flags, [`sets`] renders the image sets,
 //! [`timing`] times the core jobs on them (and measures their memory through [`memory`]),
-//! [`http`] drives the in-process server with the small client in [`client`], and
-//! [`tables`] prints what was measured; [`stats`] holds the medians and percentiles they
+//! [`http`] drives the in-process server with the small client in [`client`], [`sweep`]
+//! runs the light-count sweep in child processes, and [`tables`] prints what was measured; [`stats`] holds the medians and percentiles they
 //! share.
 
 mod args;
@@ -19,6 +19,7 @@ mod http;
 mod memory;
 mod sets;
 mod stats;
+mod sweep;
 mod tables;
 mod timing;
 
@@ -43,6 +44,16 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
 
     let machine = machine();
     let load_at_start = load_average();
+    if !args.light_sweep.is_empty() {
+        let against = args.against.as_deref();
+        let points = sweep::run(&args.sizes, &args.light_sweep, args.runs, against, &tmp.0)?;
+        let loads = (load_at_start.as_str(), load_average());
+        print!(
+            "{}",
+            tables::sweep_table(&args, &machine, (loads.0, &loads.1), &points)
+        );
+        return Ok(());
+    }
 
     let mut sets = sets::render(&args.sizes, args.lights, &tmp.0)?;
 

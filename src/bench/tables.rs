@@ -452,3 +452,140 @@ fn with_mark(v: Option<f64>, digits: usize, judged: bool, ok: impl Fn(f64) -> bo
         _ => num(v, digits),
     }
 }
+
+// The light-count sweep's targets: memory that does not grow with the image count, and a
+// cost per pixel-image that stays flat.
+const TARGET_SWEEP_PEAK_RATIO: f64 = 1.3;
+const TARGET_SWEEP_FLAT: f64 = 0.25;
+
+/// The `--light-sweep` table: per size, each light count's median time, time per
+/// pixel-image and peak RSS, against the fewest lights of that size.
+pub(super) fn sweep_table(
+    args: &BenchArgs,
+    machine: &str,
+    (load_at_start, load_at_end): (&str, &str),
+    points: &[super::sweep::Point],
+) -> String {
+    let mut o = String::new();
+    let list = |v: &[usize]| {
+        v.iter()
+            .map(|s| s.to_string())
+            .collect::<Vec<_>>()
+            .join(",")
+    };
+    let _ = writeln!(o, "## photostereo bench: light-count sweep\n");
+    let _ = writeln!(
+        o,
+        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
+         the end"
+    );
+    let _ = writeln!(
+        o,
+        "- command: `photostereo bench --sizes {} --light-sweep {} --runs {}{}`",
+        list(&args.sizes),
+        list(&args.light_sweep),
+        args.runs,
+        args.against
+            .as_ref()
+            .map_or(String::new(), |p| format!(" --against {}", p.display()))
+    );
+    let _ = writeln!(
+        o,
+        "- each run: the default job as `photostereo reconstruct` in a process of its own on \
+         `synth::Scene::sphere(size)` under `light_rings(n, 10, 60)` (16-bit gray PNG); wall \
+         time of the process and its peak RSS (`wait4`); medians of {} run(s); MB = 10⁶ bytes\n",
+        args.runs
+    );
+    let _ = writeln!(
+        o,
+        "| size × lights | job ms | ns per pixel-image | × fewest lights | peak RSS MB | × fewest lights |"
+    );
+    let _ = writeln!(o, "|---|---|---|---|---|---|");
+    let mut verdicts = Vec::new();
+    for &size in &args.sizes {
+        let of_size: Vec<_> = points.iter().filter(|p| p.size == size).collect();
+        let Some(first) = of_size.first() else {
+            continue;
+        };
+        let per = |p: &super::sweep::Point| median(&p.ms).map(|m| p.ns_per_pixel_image(m));
+        let peak = |p: &super::sweep::Point| max_of(&p.peak_bytes);
+        let (per0, peak0) = (per(first), peak(first));
+        let (mut worst_time, mut worst_peak) = (0f64, 0f64);
+        for p in &of_size {
+            let ratio = |a: Option<f64>, b: Option<f64>| match (a, b) {
+                (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+                _ => None,
+            };
+            let (t, m) = (ratio(per(p), per0), ratio(peak(p), peak0));
+            worst_time = worst_time.max(t.map_or(0.0, |t| (t - 1.0).abs()));
+            worst_peak = worst_peak.max(m.unwrap_or(0.0));
+            let f = |v: Option<f64>, d: usize| v.map_or("–".into(), |v| format!("{v:.d$}"));
+            let _ = writeln!(
+                o,
+                "| {size}² × {} | {} | {} | {} | {} | {} |",
+                p.lights,
+                f(median(&p.ms), 0),
+                f(per(p), 2),
+                f(t, 2),
+                f(peak(p).map(|b| b / MB), 0),
+                f(m, 2),
+            );
+        }
+        verdicts.push(format!(
+            "- {size}²: peak RSS at most {worst_peak:.2} × that of {} lights (target ≤ \
+             {TARGET_SWEEP_PEAK_RATIO}: {}); time per pixel-image within {:.0} % of it (target \
+             ≤ {:.0} %: {})",
+            first.lights,
+            if worst_peak <= TARGET_SWEEP_PEAK_RATIO {
+                "met"
+            } else {
+                "not met"
+            },
+            worst_time * 100.0,
+            TARGET_SWEEP_FLAT * 100.0,
+            if worst_time <= TARGET_SWEEP_FLAT {
+                "met"
+            } else {
+                "not met"
+            },
+        ));
+    }
+    let _ = writeln!(o);
+    for v in verdicts {
+        let _ = writeln!(o, "{v}");
+    }
+    if let Some(other) = &args.against {
+        against_table(&mut o, other, points);
+    }
+    o
+}
+
+/// The same jobs by the `--against` binary, run alternately with this one's.
+fn against_table(o: &mut String, other: &std::path::Path, points: &[super::sweep::Point]) {
+    let _ = writeln!(
+        o,
+        "\nAgainst `{}` (each round runs both binaries, which goes first alternating):\n",
+        other.display()
+    );
+    let _ = writeln!(
+        o,
+        "| size × lights | job ms | --against job ms | job / --against | peak RSS MB | --against peak RSS MB |"
+    );
+    let _ = writeln!(o, "|---|---|---|---|---|---|");
+    let f = |v: Option<f64>, d: usize| v.map_or("–".into(), |v| format!("{v:.d$}"));
+    for p in points {
+        let (a, b) = (median(&p.ms), median(&p.against_ms));
+        let ratio = a.zip(b).map(|(a, b)| a / b);
+        let _ = writeln!(
+            o,
+            "| {}² × {} | {} | {} | {} | {} | {} |",
+            p.size,
+            p.lights,
+            f(a, 0),
+            f(b, 0),
+            f(ratio, 2),
+            f(max_of(&p.peak_bytes).map(|b| b / MB), 0),
+            f(max_of(&p.against_peak_bytes).map(|b| b / MB), 0),
+        );
+    }
+}

@@ -7,7 +7,7 @@ use std::time::Instant;
 use anyhow::{Context, bail, ensure};
 use photostereo::core::intake::{self, Limits};
 use photostereo::core::options::{Integration, Solver};
-use photostereo::core::{Options, integrate, outputs, pipeline, synth};
+use photostereo::core::{Options, integrate, outputs, pipeline, stream, synth};
 use photostereo::service::release_free_heap;
 
 use super::memory::{MB, reset_peak, status_bytes, wait_with_peak};
@@ -180,7 +180,7 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
     let base = status_bytes("VmRSS");
     let reset = reset_peak();
     let start = Instant::now();
-    let decoded = intake::load_dir(&set.dir, intake::DirMask::Folder, &limits)
+    let decoded = stream::open_dir(&set.dir, intake::DirMask::Folder, &limits)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_ms = ms(start.elapsed());
     let report = pipeline::run(decoded, opts, out, &mut photostereo::core::RunToEnd)

@@ -91,6 +91,22 @@ pub enum DirMask<'a> {
 /// `filenames.txt`): the images its table names. Image files it does not name are
 /// ignored and listed in the set's notes.
 pub fn load_dir(dir: &Path, mask: DirMask<'_>, limits: &Limits) -> Result<ImageSet, InputError> {
+    let found = dir_files(dir, mask)?;
+    let mut set = load(found.lights, &found.files, found.mask.as_ref(), limits)?;
+    set.notes = found.notes;
+    Ok(set)
+}
+
+/// What a folder holds for a set: its light table, the files it names, the mask chosen.
+pub(super) struct DirFiles {
+    pub lights: Vec<Light>,
+    pub files: Vec<NamedFile>,
+    pub mask: Option<NamedFile>,
+    pub notes: Vec<String>,
+}
+
+/// The light table, image files and mask of a folder (see [`load_dir`]).
+pub(super) fn dir_files(dir: &Path, mask: DirMask<'_>) -> Result<DirFiles, InputError> {
     let mut names = Vec::new();
     for entry in std::fs::read_dir(dir).map_err(|e| InputError::io(dir, e))? {
         let entry = entry.map_err(|e| InputError::io(dir, e))?;
@@ -134,9 +150,12 @@ pub fn load_dir(dir: &Path, mask: DirMask<'_>, limits: &Limits) -> Result<ImageS
             None
         }
     };
-    let mut set = load(table.lights, &files, mask.as_ref(), limits)?;
-    set.notes = notes;
-    Ok(set)
+    Ok(DirFiles {
+        lights: table.lights,
+        files,
+        mask,
+        notes,
+    })
 }
 
 /// Decode the images a light table names, in the table's order.
@@ -179,18 +198,7 @@ pub fn load_with(
     limits: &Limits,
     predecoded: impl Fn(usize) -> Option<Result<Decoded, InputError>> + Sync,
 ) -> Result<ImageSet, InputError> {
-    if lights.len() > limits.max_images || files.len() > limits.max_images {
-        return Err(InputError::TooManyImages {
-            count: lights.len().max(files.len()),
-            limit: limits.max_images,
-        });
-    }
-    if lights.len() < 3 {
-        return Err(InputError::TooFewImages {
-            count: lights.len(),
-        });
-    }
-    let ordered = match_files(&lights, files)?;
+    let ordered = check_files(&lights, files, limits)?;
     let mut lights = lights;
 
     let moments: Mutex<Option<Array3<f32>>> = Mutex::new(None);
@@ -227,30 +235,10 @@ pub fn load_with(
         })
         .collect();
 
-    let (rows, cols) = decoded[0].plane.dim();
-    let first_depth = decoded[0].depth;
-    for (i, Decoded { plane, depth }) in decoded.iter().enumerate() {
-        let (r, c) = plane.dim();
-        if (r, c) != (rows, cols) {
-            return Err(InputError::SizeMismatch {
-                name: lights[i].name.clone(),
-                width: c as u32,
-                height: r as u32,
-                first: lights[0].name.clone(),
-                expected_width: cols as u32,
-                expected_height: rows as u32,
-            });
-        }
-        if *depth != first_depth {
-            return Err(InputError::BitDepthMismatch {
-                name: lights[i].name.clone(),
-                depth: *depth,
-                first: lights[0].name.clone(),
-                expected: first_depth,
-            });
-        }
-    }
-    let bit_depth = first_depth;
+    let sizes: Vec<_> = decoded.iter().map(|d| (d.plane.dim(), d.depth)).collect();
+    check_sizes(&lights, &sizes)?;
+    let (rows, cols) = sizes[0].0;
+    let bit_depth = sizes[0].1;
     let mask_file = mask;
     let mask = mask.map(|m| load_mask(m, rows, cols, limits)).transpose()?;
     let colour_moments = moments.into_inner().unwrap_or_else(|p| p.into_inner());
@@ -268,6 +256,57 @@ pub fn load_with(
         mask_file: mask_file.map(|m| m.name.clone()),
         notes: Vec::new(),
     })
+}
+
+/// The checks before any decoding: image count, and each table row paired with its file
+/// (indices into `files`, in table order).
+pub(super) fn check_files(
+    lights: &[Light],
+    files: &[NamedFile],
+    limits: &Limits,
+) -> Result<Vec<usize>, InputError> {
+    if lights.len() > limits.max_images || files.len() > limits.max_images {
+        return Err(InputError::TooManyImages {
+            count: lights.len().max(files.len()),
+            limit: limits.max_images,
+        });
+    }
+    if lights.len() < 3 {
+        return Err(InputError::TooFewImages {
+            count: lights.len(),
+        });
+    }
+    match_files(lights, files)
+}
+
+/// Every image the size and depth of the first: `sizes[i]` is image i's (rows, cols)
+/// and bits per sample.
+pub(super) fn check_sizes(
+    lights: &[Light],
+    sizes: &[((usize, usize), u8)],
+) -> Result<(), InputError> {
+    let ((rows, cols), first_depth) = sizes[0];
+    for (i, &((r, c), depth)) in sizes.iter().enumerate() {
+        if (r, c) != (rows, cols) {
+            return Err(InputError::SizeMismatch {
+                name: lights[i].name.clone(),
+                width: c as u32,
+                height: r as u32,
+                first: lights[0].name.clone(),
+                expected_width: cols as u32,
+                expected_height: rows as u32,
+            });
+        }
+        if depth != first_depth {
+            return Err(InputError::BitDepthMismatch {
+                name: lights[i].name.clone(),
+                depth,
+                first: lights[0].name.clone(),
+                expected: first_depth,
+            });
+        }
+    }
+    Ok(())
 }
 
 /// Pair each table row with its file (an index into `files`); every row needs a file and
@@ -331,20 +370,36 @@ fn decode_bytes(
 ) -> Result<(Decoded, Option<Colour>), InputError> {
     let img = decode(name, bytes, limits)?;
     let depth = bit_depth(&img);
-    let Some(mut rgb) = colour_content(&img) else {
+    if !has_colour(&img) {
         let plane = to_luma16(img);
         return Ok((Decoded { plane, depth }, None));
+    }
+    let (plane, rgb) = band_plane(img, true, light_rgb, true);
+    let colour = Colour {
+        rgb: rgb.expect("asked for"),
+        balanced: light_rgb.map(|g| g.iter().copied().fold(f64::INFINITY, f64::min)),
     };
-    let Some(gains) = light_rgb else {
-        let plane = to_luma16(img);
-        return Ok((
-            Decoded { plane, depth },
-            Some(Colour {
-                rgb,
-                balanced: None,
-            }),
-        ));
+    Ok((Decoded { plane, depth }, Some(colour)))
+}
+
+/// An image's (or a band of its rows') plane, given whether the whole image carries
+/// colour: with a per-channel light intensity `gains`, a colour image is balanced by it
+/// before its luminance is taken (see the module docs). With `with_rgb`, also the RGB
+/// values (balanced) its colour moments are summed from.
+pub(super) fn band_plane(
+    img: DynamicImage,
+    colour: bool,
+    gains: Option<[f64; 3]>,
+    with_rgb: bool,
+) -> (Array2<u16>, Option<image::Rgb32FImage>) {
+    if !colour {
+        return (to_luma16(img), None);
+    }
+    let Some(gains) = gains else {
+        let rgb = with_rgb.then(|| img.to_rgb32f());
+        return (to_luma16(img), rgb);
     };
+    let mut rgb = img.to_rgb32f();
     let s = gains.iter().copied().fold(f64::INFINITY, f64::min);
     let factor = gains.map(|g| (s / g) as f32);
     for p in rgb.pixels_mut() {
@@ -352,12 +407,18 @@ fn decode_bytes(
             p.0[c] *= factor[c];
         }
     }
-    let plane = luma_plane(&rgb);
-    let colour = Colour {
-        rgb,
-        balanced: Some(s),
-    };
-    Ok((Decoded { plane, depth }, Some(colour)))
+    (luma_plane(&rgb), with_rgb.then_some(rgb))
+}
+
+/// Whether the image has colour channels whose values actually differ somewhere (a gray
+/// picture stored as RGB is gray).
+pub(super) fn has_colour(img: &DynamicImage) -> bool {
+    if !img.color().has_color() {
+        return false;
+    }
+    let rgb = img.to_rgb32f();
+    rgb.pixels()
+        .any(|p| (p.0[0] - p.0[1]).abs() > 1e-6 || (p.0[1] - p.0[2]).abs() > 1e-6)
 }
 
 /// Decode one image, refusing unknown formats and oversized headers before allocating.
@@ -443,7 +504,7 @@ fn png_palette_problem(bytes: &[u8]) -> Option<String> {
     None
 }
 
-fn bit_depth(img: &DynamicImage) -> u8 {
+pub(super) fn bit_depth(img: &DynamicImage) -> u8 {
     match img {
         DynamicImage::ImageLuma8(_)
         | DynamicImage::ImageLumaA8(_)
@@ -492,19 +553,6 @@ fn luma_of(pixels: impl Iterator<Item = [f32; 3]>) -> Vec<u16> {
         .collect()
 }
 
-/// The image as RGB in [0, 1] if it has colour channels whose values actually differ
-/// somewhere (a gray picture stored as RGB is gray).
-fn colour_content(img: &DynamicImage) -> Option<image::Rgb32FImage> {
-    if !img.color().has_color() {
-        return None;
-    }
-    let rgb = img.to_rgb32f();
-    let coloured = rgb
-        .pixels()
-        .any(|p| (p.0[0] - p.0[1]).abs() > 1e-6 || (p.0[1] - p.0[2]).abs() > 1e-6);
-    coloured.then_some(rgb)
-}
-
 /// Add one image's Σ l·I_c, with `scaled` its light as the solve sees it.
 fn accumulate_moments(
     moments: &Mutex<Option<Array3<f32>>>,
@@ -527,7 +575,7 @@ fn accumulate_moments(
     }
 }
 
-fn load_mask(
+pub(super) fn load_mask(
     file: &NamedFile,
     rows: usize,
     cols: usize,

@@ -7,6 +7,7 @@
 #[macro_use]
 mod simd;
 
+pub mod bands;
 pub mod commit;
 pub mod error;
 mod histogram;
@@ -26,6 +27,7 @@ pub mod reconstruction;
 pub mod render;
 pub mod robust;
 pub mod solve;
+pub mod stream;
 pub mod synth;
 
 pub use error::{InputError, RunError};

@@ -1,8 +1,7 @@
-//! From an [`ImageSet`] to a [`Reconstruction`] (`reconstruct`) or to the written
+//! From an image set to a [`Reconstruction`] (`reconstruct`) or to the written
 //! artifacts (`run`, used by the CLI, the job worker and the bench): both are the same
 //! steps (`prepare`, `Slopes`, `Prepared::finish`), `run` overlapping them.
 
-use std::borrow::Cow;
 use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
@@ -11,6 +10,7 @@ use ndarray::{Array2, Array3, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
+use super::bands::{InMemory, Stack};
 use super::commit::{self, Committer};
 use super::error::RunError;
 use super::intake::ImageSet;
@@ -29,7 +29,7 @@ pub fn reconstruct(
     progress: &mut dyn Progress,
 ) -> Result<Reconstruction, RunError> {
     let mut timings = Timings::default();
-    let surface = prepare(Cow::Borrowed(set), opts, progress, &mut timings)?;
+    let surface = prepare(&mut InMemory::new(set), opts, progress, &mut timings)?;
     step(progress, Stage::Integrate)?;
     let polled: &dyn Progress = progress;
     let (slopes, heights) = timings.time(Stage::Integrate, || {
@@ -61,14 +61,14 @@ struct Prepared {
     notes: Vec<String>,
 }
 
-/// The solve and the mask stages. An owned set's image stack is dropped after the solve.
+/// The solve and the mask stages.
 fn prepare(
-    mut set: Cow<'_, ImageSet>,
+    stack: &mut dyn Stack,
     opts: &Options,
     progress: &mut dyn Progress,
     timings: &mut Timings,
 ) -> Result<Prepared, RunError> {
-    let condition = lights::check_solvable(&set.lights, opts.max_condition)?;
+    let condition = lights::check_solvable(&stack.info().lights, opts.max_condition)?;
     if let Some(names) = &opts.outputs {
         outputs::check_selection(names)?;
     }
@@ -76,12 +76,10 @@ fn prepare(
     step(progress, Stage::Solve)?;
     let polled: &dyn Progress = progress;
     let surface = timings.time(Stage::Solve, || {
-        solve::solve(&set, opts.solver, &|| polled.halted())
-    });
+        solve::solve(stack, opts.solver, &|| polled.halted())
+    })?;
     not_halted(polled)?;
-    if let Cow::Owned(owned) = &mut set {
-        drop_aside(std::mem::take(&mut owned.planes));
-    }
+    let set = stack.info();
     let Surface {
         mut albedo,
         mut normals,
@@ -90,6 +88,7 @@ fn prepare(
         inliers,
         mut unreliable,
         estimate,
+        mut albedo_rgb,
     } = surface;
 
     step(progress, Stage::Mask)?;
@@ -123,10 +122,15 @@ fn prepare(
                 (*r, *c, *u) = (0.0, 0.0, false);
             }
         });
-    let albedo_rgb = set
-        .colour_moments
-        .as_ref()
-        .map(|m| colour_albedo(m, &normals, &mask, &set.lights));
+    if let Some(rgb) = &mut albedo_rgb {
+        Zip::from(rgb.rows_mut())
+            .and(&mask)
+            .par_for_each(|mut o, &m| {
+                if !m {
+                    o.fill(0.0);
+                }
+            });
+    }
     Ok(Prepared {
         width: set.width,
         height: set.height,
@@ -328,14 +332,14 @@ impl MaskSums {
 
 /// Reconstruct and write every requested artifact into `dir` (each written under a
 /// temporary name and renamed, `result.json` last). Returns the report. Takes the set by
-/// value so that its 16-bit image stack (the job's largest buffer) is freed right after
-/// the solve.
+/// value so that what it holds (a band per image, or a stack in memory) is freed right
+/// after the solve.
 ///
 /// The pictures that need no heights are written while the integration runs (both
 /// stages start together); then the height pictures, the meshes and the preview go in
 /// one parallel batch (the `mesh` stage).
 pub fn run(
-    set: ImageSet,
+    mut stack: impl Stack + 'static,
     opts: &Options,
     dir: &Path,
     progress: &mut dyn Progress,
@@ -349,7 +353,8 @@ pub fn run(
         .partition(|n| outputs::needs_heights(n));
 
     let mut timings = Timings::default();
-    let surface = prepare(Cow::Owned(set), opts, progress, &mut timings)?;
+    let surface = prepare(&mut stack, opts, progress, &mut timings)?;
+    drop_aside(stack);
     let commits = Committer::new();
     std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
         path: dir.display().to_string(),
@@ -515,47 +520,6 @@ fn not_halted(progress: &dyn Progress) -> Result<(), RunError> {
     } else {
         Ok(())
     }
-}
-
-/// Each channel's albedo fitted against the recovered normals: for shading sᵢ = n·lᵢ,
-/// a_c = Σᵢ Iᵢ,c sᵢ / Σᵢ sᵢ² = n·(Σᵢ lᵢ Iᵢ,c) / nᵀ(LᵀL)n, from moments summed at intake.
-fn colour_albedo(
-    moments: &Array3<f32>,
-    normals: &Array3<f32>,
-    mask: &Array2<bool>,
-    lights: &[Light],
-) -> Array3<f32> {
-    let mut ltl = [[0f32; 3]; 3];
-    for l in lights {
-        let s = l.scaled();
-        for r in 0..3 {
-            for c in 0..3 {
-                ltl[r][c] += (s[r] * s[c]) as f32;
-            }
-        }
-    }
-    let (rows, cols) = mask.dim();
-    let mut out = Array3::<f32>::zeros((rows, cols, 3));
-    Zip::from(out.rows_mut())
-        .and(moments.rows())
-        .and(normals.rows())
-        .and(mask)
-        .par_for_each(|mut o, m, n, &inside| {
-            if !inside {
-                return;
-            }
-            let quad: f32 = (0..3)
-                .map(|r| (0..3).map(|c| n[r] * ltl[r][c] * n[c]).sum::<f32>())
-                .sum();
-            if quad <= 0.0 {
-                return;
-            }
-            for ch in 0..3 {
-                let dot = n[0] * m[ch * 3] + n[1] * m[ch * 3 + 1] + n[2] * m[ch * 3 + 2];
-                o[ch] = (dot / quad).clamp(0.0, 1.0);
-            }
-        });
-    out
 }
 
 #[derive(Default)]

@@ -3,10 +3,14 @@
 //! Images stay 16-bit; each pixel's observations are gathered into registers row by row
 //! and the solve runs in f32/f64 scalars, in parallel over rows.
 
-use ndarray::{Array2, Array3, Axis};
+use std::ops::Range;
+
+use ndarray::{Array2, Array3, ArrayViewMut2, ArrayViewMut3, Axis, s};
 use rayon::prelude::*;
 
-use super::intake::ImageSet;
+use super::InputError;
+use super::bands::{Band, SetInfo, Stack};
+use super::lights::Light;
 use super::options::Solver;
 use super::progress::Halt;
 use super::robust::{self, CaptureEstimate};
@@ -28,26 +32,147 @@ pub struct Surface {
     pub unreliable: Array2<bool>,
     /// Black level and noise, when the solver estimates them.
     pub estimate: Option<CaptureEstimate>,
+    /// For colour sets: each channel's albedo fitted against the normals (see
+    /// [`colour_albedo`]), everywhere; the mask is applied later.
+    pub albedo_rgb: Option<Array3<f32>>,
+}
+
+/// Some rows of a [`Surface`]'s maps, for a band's solve to fill.
+pub struct SurfaceRows<'a> {
+    pub albedo: ArrayViewMut2<'a, f32>,
+    pub normals: ArrayViewMut3<'a, f32>,
+    pub residual: ArrayViewMut2<'a, f32>,
+    pub confidence: ArrayViewMut2<'a, f32>,
+    pub inliers: ArrayViewMut2<'a, u16>,
+    pub unreliable: ArrayViewMut2<'a, bool>,
+}
+
+impl Surface {
+    fn zeros(rows: usize, cols: usize, colour: bool) -> Self {
+        Self {
+            albedo: Array2::zeros((rows, cols)),
+            normals: Array3::zeros((rows, cols, 3)),
+            residual: Array2::zeros((rows, cols)),
+            confidence: Array2::zeros((rows, cols)),
+            inliers: Array2::zeros((rows, cols)),
+            unreliable: Array2::from_elem((rows, cols), false),
+            estimate: None,
+            albedo_rgb: colour.then(|| Array3::zeros((rows, cols, 3))),
+        }
+    }
+
+    fn rows_mut(&mut self, r: Range<usize>) -> SurfaceRows<'_> {
+        let (a, b) = (r.start, r.end);
+        SurfaceRows {
+            albedo: self.albedo.slice_mut(s![a..b, ..]),
+            normals: self.normals.slice_mut(s![a..b, .., ..]),
+            residual: self.residual.slice_mut(s![a..b, ..]),
+            confidence: self.confidence.slice_mut(s![a..b, ..]),
+            inliers: self.inliers.slice_mut(s![a..b, ..]),
+            unreliable: self.unreliable.slice_mut(s![a..b, ..]),
+        }
+    }
 }
 
 const SCALE: f32 = 1.0 / 65535.0;
 
-/// Solve every pixel of `set` with the chosen solver. Once `halt` says stop, the rows not
-/// yet started are left at zero.
-pub fn solve(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
-    if solver == Solver::Robust {
-        let r = robust::solve(set, halt);
-        return Surface {
-            albedo: r.albedo,
-            normals: r.normals,
-            residual: r.residual,
-            confidence: r.confidence,
-            inliers: r.inliers,
-            unreliable: r.unreliable,
-            estimate: Some(r.estimate),
-        };
+/// Solve every pixel of the set with the chosen solver, band by band as `stack` reads
+/// them: each band is solved as it arrives, so only one band of the images is held.
+/// Once `halt` says stop, the bands not yet read are left at zero.
+pub fn solve(stack: &mut dyn Stack, solver: Solver, halt: Halt) -> Result<Surface, InputError> {
+    let info = stack.info().clone_without_mask();
+    let (rows, cols) = (info.height, info.width);
+    let mut surface = Surface::zeros(rows, cols, info.colour);
+    let robust = (solver == Solver::Robust)
+        .then(|| robust::Robust::new(&info.lights, info.bit_depth, stack.samples(), cols));
+    let linear = Linear::new(&info, solver);
+    surface.estimate = robust.as_ref().map(|r| r.estimate);
+    let step = stack.band_rows().max(1);
+    for r0 in (0..rows).step_by(step) {
+        if halt() {
+            break;
+        }
+        let r1 = (r0 + step).min(rows);
+        let band = stack.band(r0..r1)?;
+        let out = surface.rows_mut(r0..r1);
+        match &robust {
+            Some(r) => r.solve_rows(&band.planes, cols, out, halt),
+            None => linear.solve_rows(&band.planes, cols, out, halt),
+        }
+        if let (Some(rgb), Some(_)) = (&mut surface.albedo_rgb, band.moments) {
+            let normals = surface.normals.slice(s![r0..r1, .., ..]);
+            colour_albedo(
+                &band,
+                rgb.slice_mut(s![r0..r1, .., ..]),
+                normals,
+                &info.lights,
+            );
+        }
     }
-    linear(set, solver, halt)
+    Ok(surface)
+}
+
+impl SetInfo {
+    /// The set's description without its mask (which the solve does not need).
+    fn clone_without_mask(&self) -> SetInfo {
+        SetInfo {
+            width: self.width,
+            height: self.height,
+            bit_depth: self.bit_depth,
+            lights: self.lights.clone(),
+            colour: self.colour,
+            mask: None,
+            mask_file: None,
+            notes: Vec::new(),
+        }
+    }
+}
+
+/// Each channel's albedo fitted against the recovered normals: for shading sᵢ = n·lᵢ,
+/// a_c = Σᵢ Iᵢ,c sᵢ / Σᵢ sᵢ² = n·(Σᵢ lᵢ Iᵢ,c) / nᵀ(LᵀL)n, from the band's moments.
+fn colour_albedo(
+    band: &Band<'_>,
+    mut out: ArrayViewMut3<'_, f32>,
+    normals: ndarray::ArrayView3<'_, f32>,
+    lights: &[Light],
+) {
+    let Some(moments) = band.moments else {
+        return;
+    };
+    let mut ltl = [[0f32; 3]; 3];
+    for l in lights {
+        let s = l.scaled();
+        for r in 0..3 {
+            for c in 0..3 {
+                ltl[r][c] += (s[r] * s[c]) as f32;
+            }
+        }
+    }
+    let (rows, cols, _) = normals.dim();
+    let moments = ndarray::ArrayView2::from_shape((rows * cols, 9), moments)
+        .expect("a band's moments are 9 per pixel");
+    let normals = normals
+        .into_shape_with_order((rows * cols, 3))
+        .expect("standard layout");
+    let mut out = out
+        .view_mut()
+        .into_shape_with_order((rows * cols, 3))
+        .expect("standard layout");
+    ndarray::Zip::from(out.rows_mut())
+        .and(moments.rows())
+        .and(normals.rows())
+        .par_for_each(|mut o, m, n| {
+            let quad: f32 = (0..3)
+                .map(|r| (0..3).map(|c| n[r] * ltl[r][c] * n[c]).sum::<f32>())
+                .sum();
+            if quad <= 0.0 {
+                return;
+            }
+            for ch in 0..3 {
+                let dot = n[0] * m[ch * 3] + n[1] * m[ch * 3 + 1] + n[2] * m[ch * 3 + 2];
+                o[ch] = (dot / quad).clamp(0.0, 1.0);
+            }
+        });
 }
 
 /// Every observation counts: plain or intensity-weighted least squares.
@@ -56,72 +181,70 @@ pub fn solve(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
 /// the L2 solve is a streaming accumulation g += pinv_k · I_k over the images, and the
 /// residual a second pass over the same rows while they are still in cache. The inner
 /// loops run over columns and vectorise.
-fn linear(set: &ImageSet, solver: Solver, halt: Halt) -> Surface {
-    let (rows, cols) = (set.height, set.width);
-    let lights: Vec<[f32; 3]> = set
-        .lights
-        .iter()
-        .map(|l| l.scaled().map(|v| v as f32))
-        .collect();
-    let pinv = pseudo_inverse(&lights);
-    let mut albedo = Array2::<f32>::zeros((rows, cols));
-    let mut normals = Array3::<f32>::zeros((rows, cols, 3));
-    let mut residual = Array2::<f32>::zeros((rows, cols));
-    let mut confidence = Array2::<f32>::zeros((rows, cols));
-    let n = lights.len();
-    let quantum = if set.bit_depth <= 8 {
-        1.0 / 255.0
-    } else {
-        SCALE
-    };
-    // Planes from intake are contiguous; anything else is copied once, not per pixel.
-    let owned: Vec<Option<Array2<u16>>> = (set.planes.iter())
-        .map(|p| (!p.is_standard_layout()).then(|| p.as_standard_layout().into_owned()))
-        .collect();
-    let planes: Vec<&[u16]> = (set.planes.iter().zip(&owned))
-        .map(|(p, o)| {
-            o.as_ref()
-                .unwrap_or(p)
-                .as_slice()
-                .expect("standard layout is contiguous")
-        })
-        .collect();
+struct Linear {
+    solver: Solver,
+    lights: Vec<[f32; 3]>,
+    pinv: Vec<[f32; 3]>,
+    quantum: f32,
+}
 
-    let fresh = "a row of a fresh array is contiguous";
-    albedo
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
-        .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
-        .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
-        .enumerate()
-        .with_min_len(4)
-        .for_each_init(
-            || RowScratch::new(cols, n),
-            |s, (r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
-                if halt() {
-                    return;
-                }
-                let rows: Vec<&[u16]> = (planes.iter())
-                    .map(|p| &p[r * cols..(r + 1) * cols])
-                    .collect();
-                let out = RowOut {
-                    albedo: a_row.as_slice_mut().expect(fresh),
-                    normals: n_row.as_slice_mut().expect(fresh),
-                    residual: res_row.as_slice_mut().expect(fresh),
-                    confidence: conf_row.as_slice_mut().expect(fresh),
-                };
-                linear_row(solver, &lights, &pinv, quantum, &rows, s, out);
+impl Linear {
+    fn new(info: &SetInfo, solver: Solver) -> Self {
+        let lights: Vec<[f32; 3]> = (info.lights.iter())
+            .map(|l| l.scaled().map(|v| v as f32))
+            .collect();
+        Self {
+            solver,
+            pinv: pseudo_inverse(&lights),
+            lights,
+            quantum: if info.bit_depth <= 8 {
+                1.0 / 255.0
+            } else {
+                SCALE
             },
-        );
-    Surface {
-        albedo,
-        normals,
-        residual,
-        confidence,
-        inliers: Array2::from_elem((rows, cols), n as u16),
-        unreliable: Array2::from_elem((rows, cols), false),
-        estimate: None,
+        }
+    }
+
+    /// Rows of a band: `planes[k]` holds the band's rows of image `k`.
+    fn solve_rows(&self, planes: &[&[u16]], cols: usize, out: SurfaceRows<'_>, halt: Halt) {
+        let n = self.lights.len();
+        let SurfaceRows {
+            mut albedo,
+            mut normals,
+            mut residual,
+            mut confidence,
+            mut inliers,
+            ..
+        } = out;
+        inliers.fill(n as u16);
+        let fresh = "a row of a standard-layout array is contiguous";
+        albedo
+            .axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
+            .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
+            .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
+            .enumerate()
+            .with_min_len(4)
+            .for_each_init(
+                || RowScratch::new(cols, n),
+                |s, (r, (((mut a_row, mut n_row), mut res_row), mut conf_row))| {
+                    if halt() {
+                        return;
+                    }
+                    let rows: Vec<&[u16]> = (planes.iter())
+                        .map(|p| &p[r * cols..(r + 1) * cols])
+                        .collect();
+                    let out = RowOut {
+                        albedo: a_row.as_slice_mut().expect(fresh),
+                        normals: n_row.as_slice_mut().expect(fresh),
+                        residual: res_row.as_slice_mut().expect(fresh),
+                        confidence: conf_row.as_slice_mut().expect(fresh),
+                    };
+                    let l = (&self.lights, &self.pinv);
+                    linear_row(self.solver, l.0, l.1, self.quantum, &rows, s, out);
+                },
+            );
     }
 }
 
@@ -362,6 +485,8 @@ pub fn sym3_eigenvalues(m: &[[f64; 3]; 3]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::bands::InMemory;
+    use crate::core::intake::ImageSet;
     use crate::core::lights::Light;
     use crate::core::progress::NEVER;
 
@@ -419,7 +544,7 @@ mod tests {
             &pixels,
             0.7,
         );
-        let surf = solve(&set, Solver::L2, NEVER);
+        let surf = solve(&mut InMemory::new(&set), Solver::L2, NEVER).unwrap();
         for (c, n) in pixels.iter().enumerate() {
             assert!(
                 (surf.albedo[[0, c]] - 0.7).abs() < 1e-3,
@@ -441,7 +566,7 @@ mod tests {
             0.0,
         );
         for solver in [Solver::L2, Solver::Weighted] {
-            let surf = solve(&set, solver, NEVER);
+            let surf = solve(&mut InMemory::new(&set), solver, NEVER).unwrap();
             assert_eq!(surf.albedo[[0, 0]], 0.0);
             assert_eq!(surf.normals.sum(), 0.0);
         }

@@ -16,6 +16,7 @@ use std::time::{Duration, Instant};
 use uuid::Uuid;
 
 use crate::core::RunError;
+use crate::core::bands::InMemory;
 use crate::core::error::panic_message;
 use crate::core::intake::{self, NamedFile};
 use crate::core::lights;
@@ -499,7 +500,7 @@ fn execute(
     set.notes = manifest.notes.clone();
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
-    let report = pipeline::run(set, &options, &out, clock);
+    let report = pipeline::run(InMemory::new(set), &options, &out, clock);
     clock.close();
     let report = match report {
         Ok(r) => r,

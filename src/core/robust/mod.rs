@@ -19,13 +19,16 @@
 //! The `lanes` module settles the pixels whose every observation the model explains, a row at a
 //! time, before any of this runs per pixel.
 
-use ndarray::{Array2, Array3, Axis};
+use ndarray::Axis;
 use rayon::prelude::*;
 
 mod lanes;
 
+use super::bands::{InMemory, Samples, Stack};
 use super::intake::ImageSet;
+use super::lights::Light;
 use super::progress::Halt;
+use super::solve::SurfaceRows;
 use super::solve::{invert3, pseudo_inverse, render_observation};
 
 const SCALE: f32 = 1.0 / 65535.0;
@@ -46,23 +49,6 @@ pub struct CaptureEstimate {
     /// Median lit observation, black level removed: the scale the two above are judged
     /// against.
     pub lit_median: f32,
-}
-
-/// The robust solve's products.
-pub struct RobustSurface {
-    pub albedo: Array2<f32>,
-    pub normals: Array3<f32>,
-    pub residual: Array2<f32>,
-    /// How far the pixel's kept observations fit the model, times how many there are.
-    pub confidence: Array2<f32>,
-    /// Observations kept per pixel.
-    pub inliers: Array2<u16>,
-    /// Pixels left with fewer than 3 inliers, or whose fit was implausible (see
-    /// `implausible`); their normals are a least-squares fallback.
-    pub unreliable: Array2<bool>,
-    pub estimate: CaptureEstimate,
-    /// Tolerance used for the inlier test (absolute part).
-    pub tolerance: f32,
 }
 
 struct Model {
@@ -446,12 +432,15 @@ fn median_abs(v: &mut [f32]) -> f32 {
     median(v)
 }
 
-/// Row `r` of every plane, for fast per-pixel gathering along the row.
-fn plane_rows(set: &ImageSet, r: usize) -> Vec<ndarray::ArrayView1<'_, u16>> {
-    set.planes.iter().map(|p| p.row(r)).collect()
+/// Row `r` of every image's rows in `planes` (each `cols` wide).
+fn plane_rows<'a>(planes: &[&'a [u16]], cols: usize, r: usize) -> Vec<&'a [u16]> {
+    planes
+        .iter()
+        .map(|p| &p[r * cols..(r + 1) * cols])
+        .collect()
 }
 
-fn gather(rows: &[ndarray::ArrayView1<'_, u16>], c: usize, obs: &mut [f32]) {
+fn gather(rows: &[&[u16]], c: usize, obs: &mut [f32]) {
     for (o, row) in obs.iter_mut().zip(rows) {
         *o = row[c] as f32 * SCALE;
     }
@@ -460,33 +449,47 @@ fn gather(rows: &[ndarray::ArrayView1<'_, u16>], c: usize, obs: &mut [f32]) {
 /// Columns the fast path works on at once: its ~20 lanes of f32 then fit in L1.
 const LANE_BLOCK: usize = 256;
 
-/// Pixels the pre-pass samples: enough for stable medians, a small cost next to the solve.
-const SAMPLE_PIXELS: f64 = 12_000.0;
-
-/// Estimate black level and noise from a subsample of pixels (at most about 12 000).
+/// Estimate black level and noise of a set in memory (see [`estimate_from`]).
 pub fn estimate(set: &ImageSet) -> CaptureEstimate {
-    let lights: Vec<[f32; 3]> = set
-        .lights
+    let stack = InMemory::new(set);
+    estimate_from(
+        &scaled(&set.lights),
+        quantum(set.bit_depth),
+        stack.samples(),
+        set.width,
+    )
+}
+
+fn scaled(lights: &[Light]) -> Vec<[f32; 3]> {
+    lights
         .iter()
         .map(|l| l.scaled().map(|v| v as f32))
-        .collect();
+        .collect()
+}
+
+/// Estimate black level and noise from the sampled pixels (about 12 000, on a grid of
+/// rows and columns `samples.stride` apart).
+fn estimate_from(
+    lights: &[[f32; 3]],
+    quantum: f32,
+    samples: &Samples,
+    width: usize,
+) -> CaptureEstimate {
     let n = lights.len();
-    let quantum = quantum(set);
-    let stride = (((set.width * set.height) as f64 / SAMPLE_PIXELS)
-        .sqrt()
-        .ceil() as usize)
-        .max(1);
+    let stride = samples.stride;
+    let sampled = samples.planes.first().map_or(0, |p| p.len() / width.max(1));
     let mut black = 0.0f32;
     let mut sigma = quantum;
     let mut lit_median = 0.0f32;
     // Two rounds: the first fit is biased by the unknown black level, the second is not.
     for _ in 0..2 {
-        let model = Model::new(lights.clone(), black, sigma, quantum);
+        let model = Model::new(lights.to_vec(), black, sigma, quantum);
         let (mut shadow, mut resid, mut lit) = (Vec::new(), Vec::new(), Vec::new());
         let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
-        for r in (stride / 2..set.height).step_by(stride) {
-            let rows = plane_rows(set, r);
-            for c in (stride / 2..set.width).step_by(stride) {
+        let planes: Vec<&[u16]> = samples.planes.iter().map(|p| p.as_slice()).collect();
+        for r in 0..sampled {
+            let rows = plane_rows(&planes, width, r);
+            for c in (stride / 2..width).step_by(stride) {
                 gather(&rows, c, &mut obs);
                 // The same robust fit as the solve: a plain fit here would let highlights
                 // drag g, and with it every residual and every "shadowed" observation.
@@ -529,8 +532,8 @@ pub fn estimate(set: &ImageSet) -> CaptureEstimate {
 
 /// The standard deviation of rounding to the set's integer levels (one level / √12): the
 /// noise no capture can be below, and the only intensity-unit constant in this solver.
-fn quantum(set: &ImageSet) -> f32 {
-    let level = if set.bit_depth <= 8 {
+fn quantum(bit_depth: u8) -> f32 {
+    let level = if bit_depth <= 8 {
         1.0 / 255.0
     } else {
         1.0 / 65535.0
@@ -543,96 +546,98 @@ fn median(v: &mut [f32]) -> f32 {
     *v.select_nth_unstable_by(k, f32::total_cmp).1
 }
 
-/// Solve every pixel robustly; once `halt` says stop, the rows not yet started stay zero.
-pub fn solve(set: &ImageSet, halt: Halt) -> RobustSurface {
-    let estimate = estimate(set);
-    let lights: Vec<[f32; 3]> = set
-        .lights
-        .iter()
-        .map(|l| l.scaled().map(|v| v as f32))
-        .collect();
-    let model = Model::new(
-        lights,
-        estimate.black_level,
-        estimate.noise_sigma,
-        quantum(set),
-    );
-    let (rows, cols, n) = (set.height, set.width, set.lights.len());
-    let mut albedo = Array2::<f32>::zeros((rows, cols));
-    let mut normals = Array3::<f32>::zeros((rows, cols, 3));
-    let mut residual = Array2::<f32>::zeros((rows, cols));
-    let mut confidence = Array2::<f32>::zeros((rows, cols));
-    let mut inliers = Array2::<u16>::zeros((rows, cols));
-    let mut unreliable = Array2::from_elem((rows, cols), false);
-    albedo
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
-        .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
-        .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
-        .zip(inliers.axis_iter_mut(Axis(0)).into_par_iter())
-        .zip(unreliable.axis_iter_mut(Axis(0)).into_par_iter())
-        .enumerate()
-        .for_each(
-            |(
-                r,
-                (((((mut a_row, mut n_row), mut res_row), mut conf_row), mut in_row), mut bad_row),
-            )| {
-                if halt() {
-                    return;
-                }
-                let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
-                let rows = plane_rows(set, r);
-                // Most pixels are settled by the row-wide fast path; the rest, and every
-                // pixel of a set of 4 lights or fewer (nothing to test outliers with),
-                // by the per-pixel fit.
-                let slices: Option<Vec<&[u16]>> = rows.iter().map(|v| v.to_slice()).collect();
-                let mut settled = Vec::with_capacity(cols);
-                if let Some(slices) = slices.filter(|_| n > 4) {
-                    // In blocks of columns whose lanes stay in the L1 cache.
-                    let mut l = lanes::Lanes::new(LANE_BLOCK.min(cols), n);
-                    let mut part = Vec::with_capacity(LANE_BLOCK);
-                    for c0 in (0..cols).step_by(LANE_BLOCK) {
-                        let c1 = (c0 + LANE_BLOCK).min(cols);
-                        let block: Vec<&[u16]> = slices.iter().map(|s| &s[c0..c1]).collect();
-                        lanes::settle_row(&model, &block, &mut l, &mut part);
-                        settled.append(&mut part);
+/// The robust solver for one set: its pre-pass estimate and the model it fits with.
+pub struct Robust {
+    model: Model,
+    pub estimate: CaptureEstimate,
+}
+
+impl Robust {
+    /// The pre-pass over `samples` (the set's sampled rows, `width` wide).
+    pub fn new(lights: &[Light], bit_depth: u8, samples: &Samples, width: usize) -> Self {
+        let lights = scaled(lights);
+        let quantum = quantum(bit_depth);
+        let estimate = estimate_from(&lights, quantum, samples, width);
+        let model = Model::new(lights, estimate.black_level, estimate.noise_sigma, quantum);
+        Self { model, estimate }
+    }
+
+    /// Solve the rows of a band (`planes[k]`: the band's rows of image `k`, `cols` wide)
+    /// into `out`; once `halt` says stop, the rows not yet started stay zero.
+    pub fn solve_rows(&self, planes: &[&[u16]], cols: usize, out: SurfaceRows<'_>, halt: Halt) {
+        let model = &self.model;
+        let n = model.lights.len();
+        let SurfaceRows {
+            mut albedo,
+            mut normals,
+            mut residual,
+            mut confidence,
+            mut inliers,
+            mut unreliable,
+        } = out;
+        albedo
+            .axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .zip(normals.axis_iter_mut(Axis(0)).into_par_iter())
+            .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
+            .zip(confidence.axis_iter_mut(Axis(0)).into_par_iter())
+            .zip(inliers.axis_iter_mut(Axis(0)).into_par_iter())
+            .zip(unreliable.axis_iter_mut(Axis(0)).into_par_iter())
+            .enumerate()
+            .for_each(
+                |(
+                    r,
+                    (
+                        ((((mut a_row, mut n_row), mut res_row), mut conf_row), mut in_row),
+                        mut bad_row,
+                    ),
+                )| {
+                    if halt() {
+                        return;
                     }
-                }
-                for c in 0..cols {
-                    let fit = match settled.get(c) {
-                        Some(&lanes::Settled::Fit(fit)) => fit,
-                        _ => {
-                            gather(&rows, c, &mut obs);
-                            model.judged(&obs, &mut b)
-                        }
-                    };
-                    let rho = norm(fit.g);
-                    a_row[c] = rho;
-                    if rho > 0.0 && rho.is_finite() {
-                        for k in 0..3 {
-                            n_row[[c, k]] = fit.g[k] / rho;
+                    let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
+                    let rows = plane_rows(planes, cols, r);
+                    // Most pixels are settled by the row-wide fast path; the rest, and every
+                    // pixel of a set of 4 lights or fewer (nothing to test outliers with),
+                    // by the per-pixel fit.
+                    let mut settled = Vec::with_capacity(cols);
+                    if n > 4 {
+                        let slices = &rows;
+                        // In blocks of columns whose lanes stay in the L1 cache.
+                        let mut l = lanes::Lanes::new(LANE_BLOCK.min(cols), n);
+                        let mut part = Vec::with_capacity(LANE_BLOCK);
+                        for c0 in (0..cols).step_by(LANE_BLOCK) {
+                            let c1 = (c0 + LANE_BLOCK).min(cols);
+                            let block: Vec<&[u16]> = slices.iter().map(|s| &s[c0..c1]).collect();
+                            lanes::settle_row(model, &block, &mut l, &mut part);
+                            settled.append(&mut part);
                         }
                     }
-                    in_row[c] = fit.inliers as u16;
-                    bad_row[c] = !fit.reliable;
-                    // Reprojection over every observation, the shadow model included.
-                    res_row[c] = (fit.sse_all / n as f32).sqrt();
-                    if fit.reliable && fit.inliers >= 3 {
-                        let rms = (fit.sse_inliers / fit.inliers as f32).sqrt();
-                        conf_row[c] = confidence_of(fit.inliers, rms, model.tol(fit.g));
+                    for c in 0..cols {
+                        let fit = match settled.get(c) {
+                            Some(&lanes::Settled::Fit(fit)) => fit,
+                            _ => {
+                                gather(&rows, c, &mut obs);
+                                model.judged(&obs, &mut b)
+                            }
+                        };
+                        let rho = norm(fit.g);
+                        a_row[c] = rho;
+                        if rho > 0.0 && rho.is_finite() {
+                            for k in 0..3 {
+                                n_row[[c, k]] = fit.g[k] / rho;
+                            }
+                        }
+                        in_row[c] = fit.inliers as u16;
+                        bad_row[c] = !fit.reliable;
+                        // Reprojection over every observation, the shadow model included.
+                        res_row[c] = (fit.sse_all / n as f32).sqrt();
+                        if fit.reliable && fit.inliers >= 3 {
+                            let rms = (fit.sse_inliers / fit.inliers as f32).sqrt();
+                            conf_row[c] = confidence_of(fit.inliers, rms, model.tol(fit.g));
+                        }
                     }
-                }
-            },
-        );
-    RobustSurface {
-        albedo,
-        normals,
-        residual,
-        confidence,
-        inliers,
-        unreliable,
-        estimate,
-        tolerance: model.tolerance,
+                },
+            );
     }
 }
