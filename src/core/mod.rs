@@ -7,6 +7,7 @@
 #[macro_use]
 mod simd;
 
+pub mod calibrate;
 pub mod commit;
 pub mod error;
 mod histogram;

@@ -5,6 +5,7 @@
 //! clipping and quantisation.
 
 mod brdf;
+mod chrome;
 mod render;
 mod scene;
 mod sensor;
@@ -12,6 +13,7 @@ mod transport;
 mod write;
 
 pub use brdf::Specular;
+pub use chrome::{ChromeSet, matte_intensities};
 pub use render::{Rendered, render, render_rgb};
 pub use scene::Scene;
 pub use sensor::Exposure;
