@@ -50,7 +50,14 @@ pub fn lights_diagram(directions: &[(usize, [f64; 3])]) -> RgbImage {
                 put(&mut img, x + dx as f64, y + dy as f64, Rgb([200, 30, 30]));
             }
         }
-        text(&mut img, x + 4.0, y + 3.0, &n.to_string(), Rgb([20, 20, 120]), 2);
+        text(
+            &mut img,
+            x + 4.0,
+            y + 3.0,
+            &n.to_string(),
+            Rgb([20, 20, 120]),
+            2,
+        );
     }
     img
 }

@@ -66,9 +66,8 @@ pub fn find(
     clip: u16,
 ) -> Result<Highlight, String> {
     let (h, w) = plane.dim();
-    let inside = |r: usize, c: usize| {
-        (c as f64 - circle.cx).hypot(r as f64 - circle.cy) <= circle.r - 0.5
-    };
+    let inside =
+        |r: usize, c: usize| (c as f64 - circle.cx).hypot(r as f64 - circle.cy) <= circle.r - 0.5;
     let r0 = (circle.cy - circle.r).floor().max(0.0) as usize;
     let r1 = ((circle.cy + circle.r).ceil() as usize).min(h - 1);
     let c0 = (circle.cx - circle.r).floor().max(0.0) as usize;
@@ -163,11 +162,16 @@ fn components(
                 for dy in -1isize..=1 {
                     for dx in -1isize..=1 {
                         let (ny, nx) = (y as isize + dy, x as isize + dx);
-                        if ny < r0 as isize || nx < c0 as isize || ny > r1 as isize || nx > c1 as isize {
+                        if ny < r0 as isize
+                            || nx < c0 as isize
+                            || ny > r1 as isize
+                            || nx > c1 as isize
+                        {
                             continue;
                         }
                         let (ny, nx) = (ny as usize, nx as usize);
-                        if !seen[[ny, nx]] && inside(ny, nx) && plane[[ny, nx]] as f64 >= threshold {
+                        if !seen[[ny, nx]] && inside(ny, nx) && plane[[ny, nx]] as f64 >= threshold
+                        {
                             seen[[ny, nx]] = true;
                             stack.push((ny, nx));
                         }
@@ -180,7 +184,12 @@ fn components(
     blobs
 }
 
-fn measure(plane: &Array2<u16>, pixels: Vec<(usize, usize)>, threshold: f64, circle: &Circle) -> Blob {
+fn measure(
+    plane: &Array2<u16>,
+    pixels: Vec<(usize, usize)>,
+    threshold: f64,
+    circle: &Circle,
+) -> Blob {
     let n = pixels.len() as f64;
     let (mut sx, mut sy) = (0.0, 0.0);
     let (mut peak, mut energy) = (0u16, 0.0);
@@ -203,7 +212,11 @@ fn measure(plane: &Array2<u16>, pixels: Vec<(usize, usize)>, threshold: f64, cir
     // Into radial / tangential axes, scaled by the mirror map there.
     let (ox, oy) = (mx - circle.cx, my - circle.cy);
     let rho = ox.hypot(oy);
-    let (ux, uy) = if rho > 1e-6 { (ox / rho, oy / rho) } else { (1.0, 0.0) };
+    let (ux, uy) = if rho > 1e-6 {
+        (ox / rho, oy / rho)
+    } else {
+        (1.0, 0.0)
+    };
     let (tx, ty) = (-uy, ux);
     let crr = ux * ux * cxx + 2.0 * ux * uy * cxy + uy * uy * cyy;
     let ctt = tx * tx * cxx + 2.0 * tx * ty * cxy + ty * ty * cyy;
@@ -240,7 +253,9 @@ fn refine(
     for &(r, c) in &blob.pixels {
         (r0, r1, c0, c1) = (r0.min(r), r1.max(r), c0.min(c), c1.max(c));
     }
-    let grow = |lo: usize, hi: usize, by: usize, len: usize| (lo.saturating_sub(by), (hi + by).min(len - 1));
+    let grow = |lo: usize, hi: usize, by: usize, len: usize| {
+        (lo.saturating_sub(by), (hi + by).min(len - 1))
+    };
     let (ir0, ir1) = grow(r0, r1, 3, h);
     let (ic0, ic1) = grow(c0, c1, 3, w);
     let (or0, or1) = grow(r0, r1, 6, h);

@@ -29,7 +29,10 @@ pub fn intensities(
         let (mut n, mut ss, mut s1, mut si, mut i1) = (0.0, 0.0, 0.0, 0.0, 0.0);
         for r in 0..h {
             for c in 0..w {
-                let (u, v) = ((c as f64 - circle.cx) / circle.r, (r as f64 - circle.cy) / circle.r);
+                let (u, v) = (
+                    (c as f64 - circle.cx) / circle.r,
+                    (r as f64 - circle.cy) / circle.r,
+                );
                 let rho2 = u * u + v * v;
                 if rho2 > INNER * INNER || plane[[r, c]] >= clip {
                     continue;
@@ -48,11 +51,17 @@ pub fn intensities(
         }
         let det = n * ss - s1 * s1;
         if n < 50.0 || det <= 1e-9 * n * n {
-            return Err((i, "too few lit, unclipped pixels on the matte sphere".into()));
+            return Err((
+                i,
+                "too few lit, unclipped pixels on the matte sphere".into(),
+            ));
         }
         let slope = (n * si - s1 * i1) / det;
         if slope <= 0.0 {
-            return Err((i, "the matte sphere is not brighter where it faces the light".into()));
+            return Err((
+                i,
+                "the matte sphere is not brighter where it faces the light".into(),
+            ));
         }
         k.push(slope);
     }

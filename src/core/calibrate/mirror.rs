@@ -31,9 +31,8 @@ impl Camera {
             } => {
                 // The unit sphere's centre from the circle: on the ray through the circle's
                 // centre, at the distance where it subtends the circle's angular radius.
-                let ray = |px: f64, py: f64| {
-                    normalise([px - principal[0], py - principal[1], -focal_px])
-                };
+                let ray =
+                    |px: f64, py: f64| normalise([px - principal[0], py - principal[1], -focal_px]);
                 let to_centre = ray(circle.cx, circle.cy);
                 // The edge point across the line from the principal point, where the
                 // outline is least stretched by the projection.
@@ -129,7 +128,10 @@ mod tests {
         // The outline's circle: centre projected, radius from the tangent cone.
         let to_c = normalise(c);
         let beta = (1.0 / dot(c, c).sqrt()).asin();
-        let centre = (principal[0] + f * c[0] / -c[2], principal[1] + f * c[1] / -c[2]);
+        let centre = (
+            principal[0] + f * c[0] / -c[2],
+            principal[1] + f * c[1] / -c[2],
+        );
         // The tangential half-width is exact: f·tanβ / cos(axis angle) at the centre's depth.
         let r = f * beta.tan() / to_c[2].abs();
         let circle = Circle {
@@ -155,7 +157,9 @@ mod tests {
             r: 40.0,
         };
         let a = far.light_at(&circle, 345.0, 238.0).unwrap();
-        let b = Camera::Orthographic.light_at(&circle, 345.0, 238.0).unwrap();
+        let b = Camera::Orthographic
+            .light_at(&circle, 345.0, 238.0)
+            .unwrap();
         assert!(angle_deg(a, b) < 0.01);
     }
 }

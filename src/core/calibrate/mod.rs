@@ -47,7 +47,10 @@ pub enum CircleSource {
     Fit,
     Given(Circle),
     /// A mask (true = sphere), its circle fitted to the mask's outline.
-    Mask { name: String, mask: Array2<bool> },
+    Mask {
+        name: String,
+        mask: Array2<bool>,
+    },
 }
 
 /// One decoded sphere image.
@@ -242,12 +245,17 @@ impl Calibration {
         }
         let (w, h) = check_images(matte)?;
         let planes: Vec<Array2<u16>> = matte.iter().map(|i| i.plane.clone()).collect();
-        let fit = fit_outline(&median_image(&planes)).map_err(|reason| CalibrationError::Matte {
-            name: matte[0].name.clone(),
-            reason: format!("no sphere outline found: {reason}"),
-        })?;
+        let fit =
+            fit_outline(&median_image(&planes)).map_err(|reason| CalibrationError::Matte {
+                name: matte[0].name.clone(),
+                reason: format!("no sphere outline found: {reason}"),
+            })?;
         check_circle(&fit.circle, w, h)?;
-        let used: Vec<Array2<u16>> = self.lights.iter().map(|l| planes[l.index].clone()).collect();
+        let used: Vec<Array2<u16>> = self
+            .lights
+            .iter()
+            .map(|l| planes[l.index].clone())
+            .collect();
         let directions: Vec<[f64; 3]> = self.lights.iter().map(|l| l.highlight.direction).collect();
         let k = matte::intensities(&used, &directions, &fit.circle, clip_level(&planes)).map_err(
             |(i, reason)| CalibrationError::Matte {
@@ -266,7 +274,10 @@ impl Calibration {
         let mut out = String::new();
         for l in &self.lights {
             let d = l.highlight.direction;
-            out.push_str(&format!("{}, {:.6}, {:.6}, {:.6}", l.name, d[0], d[1], d[2]));
+            out.push_str(&format!(
+                "{}, {:.6}, {:.6}, {:.6}",
+                l.name, d[0], d[1], d[2]
+            ));
             if let Some(k) = l.intensity {
                 out.push_str(&format!(", {k:.4}"));
             }

@@ -161,9 +161,12 @@ fn gradients(a: &Array2<f32>) -> (Array2<f32>, Array2<f32>) {
     let mut gy = Array2::zeros((h, w));
     for r in 1..h.saturating_sub(1) {
         for c in 1..w.saturating_sub(1) {
-            let p = |dr: isize, dc: isize| a[[(r as isize + dr) as usize, (c as isize + dc) as usize]];
-            gx[[r, c]] = (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
-            gy[[r, c]] = (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
+            let p =
+                |dr: isize, dc: isize| a[[(r as isize + dr) as usize, (c as isize + dc) as usize]];
+            gx[[r, c]] =
+                (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
+            gy[[r, c]] =
+                (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
         }
     }
     (gx, gy)
@@ -268,10 +271,7 @@ fn centre_candidates(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec
     let mut chosen: Vec<(f64, f64)> = Vec::new();
     for (_, r, c) in peaks {
         let (x, y) = (c as f64, r as f64);
-        if chosen
-            .iter()
-            .all(|&(px, py)| (px - x).hypot(py - y) >= 6.0)
-        {
+        if chosen.iter().all(|&(px, py)| (px - x).hypot(py - y) >= 6.0) {
             chosen.push((x, y));
             if chosen.len() == 12 {
                 break;
@@ -313,9 +313,8 @@ fn best_radius(edges: &[Edge], cx: f64, cy: f64, max_radius: f64) -> Option<(usi
         }
         let cover = words.iter().map(|w| w.count_ones() as usize).sum();
         if best.is_none_or(|b| cover > b.0) {
-            let (s, n) = (bin - 1..=bin + 1).fold((0.0, 0), |acc, b| {
-                (acc.0 + sums[b].0, acc.1 + sums[b].1)
-            });
+            let (s, n) =
+                (bin - 1..=bin + 1).fold((0.0, 0), |acc, b| (acc.0 + sums[b].0, acc.1 + sums[b].1));
             best = Some((cover, s / n.max(1) as f64));
         }
     }
@@ -338,7 +337,8 @@ fn refine(image: &Array2<f32>, circle: Circle, window: f64, threshold: f32) -> O
         };
         let (x0, y0) = at(0);
         let (x1, y1) = at(n - 1);
-        let inside = |x: f64, y: f64| x >= 1.0 && y >= 1.0 && x <= (w - 2) as f64 && y <= (h - 2) as f64;
+        let inside =
+            |x: f64, y: f64| x >= 1.0 && y >= 1.0 && x <= (w - 2) as f64 && y <= (h - 2) as f64;
         if !inside(x0, y0) || !inside(x1, y1) {
             continue;
         }
@@ -351,10 +351,7 @@ fn refine(image: &Array2<f32>, circle: Circle, window: f64, threshold: f32) -> O
         let deriv: Vec<f64> = (1..n - 1)
             .map(|i| ((samples[i + 1] - samples[i - 1]) / (2.0 * step)).abs())
             .collect();
-        let (i, &peak) = deriv
-            .iter()
-            .enumerate()
-            .max_by(|a, b| a.1.total_cmp(b.1))?;
+        let (i, &peak) = deriv.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
         if peak < threshold as f64 || i == 0 || i + 1 == deriv.len() {
             continue;
         }
@@ -519,7 +516,10 @@ mod tests {
             let mut cover = 0.0;
             for j in 0..4 {
                 for i in 0..4 {
-                    let (sx, sy) = (x as f64 - 0.375 + 0.25 * i as f64, y as f64 - 0.375 + 0.25 * j as f64);
+                    let (sx, sy) = (
+                        x as f64 - 0.375 + 0.25 * i as f64,
+                        y as f64 - 0.375 + 0.25 * j as f64,
+                    );
                     if (sx - cx).hypot(sy - cy) <= r {
                         cover += 1.0 / 16.0;
                     }
@@ -530,7 +530,10 @@ mod tests {
         });
         let fit = fit_outline(&img).unwrap();
         let c = fit.circle;
-        assert!((c.cx - cx).abs() < 0.1 && (c.cy - cy).abs() < 0.1, "{fit:?}");
+        assert!(
+            (c.cx - cx).abs() < 0.1 && (c.cy - cy).abs() < 0.1,
+            "{fit:?}"
+        );
         assert!((c.r - r).abs() < 0.1, "{fit:?}");
     }
 }

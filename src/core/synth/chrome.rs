@@ -105,7 +105,7 @@ impl ChromeSet {
             .enumerate()
             .map(|(i, &l)| {
                 let light = Light {
-                    direction: l,
+                    direction: normalise(l),
                     level: self.highlight[i],
                     cos_radius: self.light_radius_deg.to_radians().cos(),
                 };
