@@ -108,6 +108,15 @@ pub fn light_colours(count: usize, low: f64, high: f64, seed: u64) -> Vec<[f64; 
         .collect()
 }
 
+/// The chrome-sphere calibration sets `photostereo render` writes into `res/`: a small
+/// 8-bit one (12 lights, 10°–80° off the view axis, distractors, some highlights clipped).
+pub fn chrome_catalogue() -> Vec<(&'static str, ChromeSet)> {
+    let mut chrome = ChromeSet::standard(8, 41);
+    chrome.lights = light_rings(12, 10.0, 80.0);
+    chrome.highlight.truncate(12);
+    vec![("chrome", chrome)]
+}
+
 /// The data sets `photostereo render` writes into `res/`: name, scene, lights, capture.
 pub fn catalogue() -> Vec<(&'static str, Scene, Vec<[f64; 3]>, Capture)> {
     let seed_lights = vec![
