@@ -267,7 +267,7 @@ fn centre_candidates(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec
         .filter(|&(_, &v)| v > 0)
         .map(|((r, c), &v)| (v, r, c))
         .collect();
-    peaks.sort_unstable_by(|a, b| b.0.cmp(&a.0));
+    peaks.sort_unstable_by_key(|p| std::cmp::Reverse(p.0));
     let mut chosen: Vec<(f64, f64)> = Vec::new();
     for (_, r, c) in peaks {
         let (x, y) = (c as f64, r as f64);
