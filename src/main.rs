@@ -128,7 +128,7 @@ struct CalibrateArgs {
     out: PathBuf,
     /// The sphere's circle in pixels, as cx,cy,r (0-based, pixel centres at integers: the
     /// first pixel's centre is 0,0) instead of fitting its outline.
-    #[arg(long, value_parser = xyz, allow_hyphen_values = true)]
+    #[arg(long, value_parser = circle_arg, allow_hyphen_values = true)]
     circle: Option<[f64; 3]>,
     /// A mask image of the sphere (non-zero = sphere) instead of fitting its outline.
     #[arg(long, conflicts_with = "circle")]
@@ -226,6 +226,11 @@ fn xyz(s: &str) -> Result<[f64; 3], String> {
     };
     let num = |v: &str| v.parse::<f64>().map_err(|e| format!("{v:?}: {e}"));
     Ok([num(x)?, num(y)?, num(z)?])
+}
+
+/// `cx,cy,r`: a circle in pixels.
+fn circle_arg(s: &str) -> Result<[f64; 3], String> {
+    xyz(s).map_err(|_| format!("expected cx,cy,r (three numbers, pixels), got {s:?}"))
 }
 
 impl ReconstructArgs {

@@ -401,7 +401,7 @@ fn calibrate_measures_the_lights_of_the_committed_chrome_set() {
     );
     let got = photostereo::core::lights::parse(&std::fs::read_to_string(&table).unwrap()).unwrap();
     let truth = photostereo::core::lights::parse(
-        &std::fs::read_to_string(res("chrome").join("truth/light_directions.csv")).unwrap(),
+        &std::fs::read_to_string(res("chrome").join("truth-lights/light_directions.csv")).unwrap(),
     )
     .unwrap();
     assert_eq!(got.len(), truth.len());

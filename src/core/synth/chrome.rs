@@ -20,6 +20,9 @@ use crate::core::commit::write_atomic;
 use crate::core::error::RunError;
 use crate::core::outputs::png_bytes;
 
+/// The folder of a set's true lights and circle.
+pub const TRUTH: &str = "truth-lights";
+
 /// Samples per pixel side.
 const SUPERSAMPLE: usize = 6;
 
@@ -210,11 +213,12 @@ impl ChromeSet {
     }
 
     /// Write the set: `ball01.png`…, `names.txt` naming the object images `im1.png`… in
-    /// the same order, and the true light table as `truth/light_directions.csv` (with
-    /// the intensities when given) and the ball as `truth/circle.txt` (`cx, cy, r`).
+    /// the same order, and the true light table as `truth-lights/light_directions.csv`
+    /// (with the intensities when given) and the ball as `truth-lights/circle.txt`
+    /// (`cx, cy, r`). Not `truth/`: that holds the maps of the reconstruction sets.
     /// With `matte`, the matte sphere's images go to `<dir>/matte/`.
     pub fn write(&self, dir: &Path, matte: Option<&[f64]>) -> Result<(), RunError> {
-        let truth = dir.join("truth");
+        let truth = dir.join(TRUTH);
         std::fs::create_dir_all(&truth).map_err(|e| RunError::Output {
             path: truth.display().to_string(),
             reason: e.to_string(),
