@@ -37,6 +37,9 @@ enum Command {
     /// Reconstruct a folder: images with light_directions.csv (or .json), or the benchmark
     /// layout (light_directions.txt, filenames.txt, light_intensities.txt, mask.png).
     Reconstruct(ReconstructArgs),
+    /// Measure the lights from a chrome sphere: one image of a mirror ball per light in
+    /// <dir> (every image file, in name order) → a light table `reconstruct` reads.
+    Calibrate(CalibrateArgs),
     /// Render the project's own data sets, with ground truth, into a folder (e.g. res/).
     Render {
         /// Output folder; one sub-folder per data set.
@@ -114,6 +117,103 @@ struct ReconstructArgs {
     mesh_normals: Option<MeshNormals>,
 }
 
+#[derive(Args)]
+struct CalibrateArgs {
+    /// Folder of chrome sphere images, one per light. A light_directions.csv (or .json) or
+    /// names.txt in it gives the light table's names, one per image in the same order
+    /// (only the names are read); without one, rows are named by the image files.
+    dir: PathBuf,
+    /// Where to write the light table (`name, x, y, z[, intensity]`; x = column right,
+    /// y = row down, z towards the camera).
+    #[arg(long, short)]
+    out: PathBuf,
+    /// The sphere's circle in pixels, as cx,cy,r (0-based, pixel centres at integers: the
+    /// first pixel's centre is 0,0) instead of fitting its outline.
+    #[arg(long, value_parser = circle_arg, allow_hyphen_values = true)]
+    circle: Option<[f64; 3]>,
+    /// A mask image of the sphere (non-zero = sphere) instead of fitting its outline.
+    #[arg(long, conflicts_with = "circle")]
+    sphere_mask: Option<PathBuf>,
+    /// Write the overlay picture (circle and numbered highlights over the maximum image).
+    #[arg(long)]
+    overlay: Option<PathBuf>,
+    /// Write the diagram of the light directions on the unit hemisphere.
+    #[arg(long)]
+    lights_png: Option<PathBuf>,
+    /// A perspective camera with this focal length in pixels (principal point at the image
+    /// centre); orthographic without it.
+    #[arg(long)]
+    focal_length: Option<f64>,
+    /// Folder of matte white sphere images under the same lights (same order): fits each
+    /// light's relative intensity, written as the table's fifth column.
+    #[arg(long)]
+    matte: Option<PathBuf>,
+    /// Leave out images without a usable highlight (reported) instead of failing.
+    #[arg(long)]
+    skip_bad: bool,
+}
+
+fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
+    use photostereo::core::calibrate::{self, Camera, Circle, CircleSource, Settings};
+    let (images, names) = calibrate::load_dir(&args.dir)?;
+    let circle = match (args.circle, &args.sphere_mask) {
+        (Some([cx, cy, r]), _) => CircleSource::Given(Circle { cx, cy, r }),
+        (None, Some(mask)) => calibrate::read_mask(mask)?,
+        (None, None) => CircleSource::Fit,
+    };
+    let camera = match args.focal_length {
+        Some(f) if f.is_finite() && f > 0.0 => {
+            let (h, w) = images.first().map_or((1, 1), |i| i.plane.dim());
+            Camera::Perspective {
+                focal_px: f,
+                principal: [(w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0],
+            }
+        }
+        Some(f) => anyhow::bail!("--focal-length must be a positive number of pixels, got {f}"),
+        None => Camera::Orthographic,
+    };
+    let settings = Settings {
+        circle,
+        camera,
+        skip_bad: args.skip_bad,
+    };
+    let mut cal = calibrate::calibrate(&images, names.as_deref(), &settings)?;
+    if let Some(matte) = &args.matte {
+        cal.fit_intensities(&calibrate::load_images(matte)?)?;
+    }
+    let c = cal.circle;
+    match &cal.outline {
+        Some(fit) => eprintln!(
+            "sphere: centre ({:.2}, {:.2}), radius {:.2} px (outline fitted along {:.0} % of the circle, RMS {:.2} px)",
+            c.cx,
+            c.cy,
+            c.r,
+            100.0 * fit.coverage,
+            fit.rms
+        ),
+        None => eprintln!(
+            "sphere: centre ({:.2}, {:.2}), radius {:.2} px (given)",
+            c.cx, c.cy, c.r
+        ),
+    }
+    eprint!("{}", cal.quality_table());
+    for s in &cal.skipped {
+        eprintln!("skipped {}: {}", s.image, s.reason);
+    }
+    let write = |path: &PathBuf, bytes: &[u8]| {
+        std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
+    };
+    write(&args.out, cal.table().as_bytes())?;
+    if let Some(p) = &args.overlay {
+        write(p, &cal.overlay_png())?;
+    }
+    if let Some(p) = &args.lights_png {
+        write(p, &cal.lights_png())?;
+    }
+    println!("{}", args.out.display());
+    Ok(())
+}
+
 /// Parse a flag value by the same kebab-case names the JSON options use.
 fn kebab<T: DeserializeOwned>(s: &str) -> Result<T, String> {
     serde_json::from_value(serde_json::Value::String(s.to_string())).map_err(|e| e.to_string())
@@ -127,6 +227,11 @@ fn xyz(s: &str) -> Result<[f64; 3], String> {
     };
     let num = |v: &str| v.parse::<f64>().map_err(|e| format!("{v:?}: {e}"));
     Ok([num(x)?, num(y)?, num(z)?])
+}
+
+/// `cx,cy,r`: a circle in pixels.
+fn circle_arg(s: &str) -> Result<[f64; 3], String> {
+    xyz(s).map_err(|_| format!("expected cx,cy,r (three numbers, pixels), got {s:?}"))
 }
 
 impl ReconstructArgs {
@@ -224,6 +329,14 @@ fn render(dir: PathBuf, only: Vec<String>) -> anyhow::Result<()> {
         synth::write_set(&out, &scene, &lights, &capture)?;
         println!("{}", out.display());
     }
+    for (name, set) in synth::chrome_catalogue() {
+        if !only.is_empty() && !only.iter().any(|o| o == name) {
+            continue;
+        }
+        let out = dir.join(name);
+        set.write(&out, None)?;
+        println!("{}", out.display());
+    }
     Ok(())
 }
 
@@ -285,6 +398,7 @@ fn main() -> ExitCode {
             runtime().and_then(|rt| rt.block_on(service::healthcheck(&args.url)))
         }
         Command::Reconstruct(args) => reconstruct(args),
+        Command::Calibrate(args) => calibrate(args),
         Command::Render { dir, only } => render(dir, only),
         Command::Evaluate { dir, integration } => evaluate(dir, integration),
         Command::Bench(args) => bench::run(args),

@@ -373,3 +373,59 @@ fn a_folder_in_no_layout_is_refused_naming_the_layouts() {
         assert!(err.contains(name), "{err}");
     }
 }
+
+#[test]
+fn calibrate_measures_the_lights_of_the_committed_chrome_set() {
+    let out = tempfile::tempdir().unwrap();
+    let (table, overlay, diagram) = (
+        out.path().join("lights.csv"),
+        out.path().join("overlay.png"),
+        out.path().join("lights.png"),
+    );
+    let run = bin()
+        .arg("calibrate")
+        .arg(res("chrome"))
+        .arg("--out")
+        .arg(&table)
+        .arg("--overlay")
+        .arg(&overlay)
+        .arg("--lights-png")
+        .arg(&diagram)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("sphere: centre") && stderr.contains("ball12.png"),
+        "{stderr}"
+    );
+    let got = photostereo::core::lights::parse(&std::fs::read_to_string(&table).unwrap()).unwrap();
+    let truth = photostereo::core::lights::parse(
+        &std::fs::read_to_string(res("chrome").join("truth-lights/light_directions.csv")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(got.len(), truth.len());
+    for (g, t) in got.iter().zip(&truth) {
+        assert_eq!(g.name, t.name);
+        let cos: f64 = (0..3).map(|k| g.direction[k] * t.direction[k]).sum();
+        let err = cos.clamp(-1.0, 1.0).acos().to_degrees();
+        assert!(err < 1.0, "{}: {err}°", g.name);
+    }
+    let (w, h) = image::image_dimensions(&overlay).unwrap();
+    assert_eq!((w, h), (320, 240));
+    assert!(image::open(&diagram).is_ok());
+
+    let bad = bin()
+        .arg("calibrate")
+        .arg(res("chrome"))
+        .arg("--out")
+        .arg(&table)
+        .args(["--circle", "400,100,50"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        !bad.status.success() && stderr.contains("outside the 320×240 image"),
+        "{stderr}"
+    );
+}

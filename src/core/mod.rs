@@ -1,13 +1,15 @@
 //! The reconstruction core: intake → solve → mask → integrate → outputs / mesh.
 //!
 //! Every stage is a plain function over owned or borrowed arrays; only `intake`,
-//! `outputs` and `commit` (and `synth`, which writes the rendered sets) touch files or bytes.
+//! `outputs` and `commit` (and `synth`, which writes the rendered sets, and `calibrate`'s
+//! folder and mask readers) touch files or bytes.
 
 // First: its macro is used by the modules after it.
 #[macro_use]
 mod simd;
 
 pub mod bands;
+pub mod calibrate;
 pub mod commit;
 pub mod error;
 mod histogram;

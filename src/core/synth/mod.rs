@@ -5,6 +5,7 @@
 //! clipping and quantisation.
 
 mod brdf;
+mod chrome;
 mod render;
 mod scene;
 mod sensor;
@@ -12,6 +13,7 @@ mod transport;
 mod write;
 
 pub use brdf::Specular;
+pub use chrome::{ChromeSet, matte_intensities};
 pub use render::{Rendered, render, render_rgb};
 pub use scene::Scene;
 pub use sensor::Exposure;
@@ -104,6 +106,15 @@ pub fn light_colours(count: usize, low: f64, high: f64, seed: u64) -> Vec<[f64; 
     (0..count)
         .map(|_| [0; 3].map(|_| low + (high - low) * rng.uniform()))
         .collect()
+}
+
+/// The chrome-sphere calibration sets `photostereo render` writes into `res/`: a small
+/// 8-bit one (12 lights, 10°–80° off the view axis, distractors, some highlights clipped).
+pub fn chrome_catalogue() -> Vec<(&'static str, ChromeSet)> {
+    let mut chrome = ChromeSet::standard(8, 41);
+    chrome.lights = light_rings(12, 10.0, 80.0);
+    chrome.highlight.truncate(12);
+    vec![("chrome", chrome)]
 }
 
 /// The data sets `photostereo render` writes into `res/`: name, scene, lights, capture.

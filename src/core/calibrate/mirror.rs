@@ -1,0 +1,165 @@
+//! Mirror reflection on the sphere: the light direction a highlight at an image point
+//! stands for, for an orthographic or a perspective (pinhole) camera.
+//!
+//! Frame: x = column right, y = row down, z towards the camera; pixel centres at integers.
+
+use super::Circle;
+
+/// The camera that took the sphere images.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Camera {
+    /// Parallel view rays along −z (a long lens far away).
+    Orthographic,
+    /// A pinhole with this focal length in pixels, its principal point at the image
+    /// centre ((width − 1) / 2, (height − 1) / 2).
+    Perspective { focal_px: f64, principal: [f64; 2] },
+}
+
+impl Camera {
+    /// The unit direction towards the light that a mirror highlight at (x, y) reflects
+    /// into the camera, or None when (x, y) is off the sphere.
+    pub fn light_at(&self, circle: &Circle, x: f64, y: f64) -> Option<[f64; 3]> {
+        match *self {
+            Self::Orthographic => {
+                let (u, v) = ((x - circle.cx) / circle.r, (y - circle.cy) / circle.r);
+                let h = 1.0 - u * u - v * v;
+                (h >= 0.0).then(|| reflect([0.0, 0.0, -1.0], [u, v, h.sqrt()]))
+            }
+            Self::Perspective {
+                focal_px,
+                principal,
+            } => {
+                // The unit sphere's centre from the circle: on the ray through the circle's
+                // centre, at the distance where it subtends the circle's angular radius.
+                let ray =
+                    |px: f64, py: f64| normalise([px - principal[0], py - principal[1], -focal_px]);
+                let to_centre = ray(circle.cx, circle.cy);
+                // The edge point across the line from the principal point, where the
+                // outline is least stretched by the projection.
+                let (ox, oy) = (circle.cx - principal[0], circle.cy - principal[1]);
+                let len = (ox * ox + oy * oy).sqrt();
+                let (tx, ty) = if len > 1e-9 {
+                    (-oy / len, ox / len)
+                } else {
+                    (1.0, 0.0)
+                };
+                let edge = ray(circle.cx + circle.r * tx, circle.cy + circle.r * ty);
+                let half_angle = dot(to_centre, edge).clamp(-1.0, 1.0).acos();
+                let distance = 1.0 / half_angle.sin();
+                let c = to_centre.map(|v| v * distance);
+                let d = ray(x, y);
+                let b = dot(d, c);
+                let disc = b * b - (dot(c, c) - 1.0);
+                if disc < 0.0 {
+                    return None;
+                }
+                let t = b - disc.sqrt();
+                let n = normalise([t * d[0] - c[0], t * d[1] - c[1], t * d[2] - c[2]]);
+                Some(reflect(d, n))
+            }
+        }
+    }
+
+    /// Local scale of the mirror map at (x, y): radians of reflected direction per pixel
+    /// along the radius and along the outline (orthographic model; a close enough
+    /// stand-in for a perspective camera, used only to judge a blob's shape).
+    pub fn scales(circle: &Circle, x: f64, y: f64) -> (f64, f64) {
+        let rho = ((x - circle.cx).powi(2) + (y - circle.cy).powi(2)).sqrt() / circle.r;
+        let nz = (1.0 - rho * rho).max(0.01).sqrt();
+        (2.0 / (circle.r * nz), 2.0 * nz / circle.r)
+    }
+}
+
+/// `d` (a ray travelling towards the surface) reflected about unit normal `n`.
+fn reflect(d: [f64; 3], n: [f64; 3]) -> [f64; 3] {
+    let k = 2.0 * dot(d, n);
+    normalise([d[0] - k * n[0], d[1] - k * n[1], d[2] - k * n[2]])
+}
+
+pub(super) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+pub(super) fn normalise(v: [f64; 3]) -> [f64; 3] {
+    let n = dot(v, v).sqrt();
+    v.map(|c| c / n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+        dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
+    }
+
+    #[test]
+    fn orthographic_centre_reflects_the_view_and_halfway_normal_the_light() {
+        let c = Circle {
+            cx: 50.0,
+            cy: 40.0,
+            r: 20.0,
+        };
+        let cam = Camera::Orthographic;
+        let l = cam.light_at(&c, 50.0, 40.0).unwrap();
+        assert!(angle_deg(l, [0.0, 0.0, 1.0]) < 1e-9);
+        // A light 60° off axis to the right: highlight where the normal is 30° off axis.
+        let x = 50.0 + 20.0 * 30f64.to_radians().sin();
+        let l = cam.light_at(&c, x, 40.0).unwrap();
+        let want = [60f64.to_radians().sin(), 0.0, 60f64.to_radians().cos()];
+        assert!(angle_deg(l, want) < 1e-9, "{l:?}");
+        assert!(cam.light_at(&c, 71.0, 40.0).is_none());
+    }
+
+    #[test]
+    fn perspective_agrees_with_the_reflection_law_and_tends_to_orthographic() {
+        // A unit sphere at a known place in front of a pinhole; a point on it facing the
+        // camera, the light its mirror shows there (by the reflection law), projected.
+        let (f, principal) = (800.0, [320.0, 240.0]);
+        let c = [0.9, -0.4, -9.0];
+        let n = normalise([0.3, -0.2, 0.9]);
+        let p = [c[0] + n[0], c[1] + n[1], c[2] + n[2]];
+        assert!(dot(normalise(p), n) < 0.0, "the point faces the camera");
+        let l = reflect(normalise(p), n);
+        let (x, y) = (
+            principal[0] + f * p[0] / -p[2],
+            principal[1] + f * p[1] / -p[2],
+        );
+        // The outline's circle: centre projected, radius from the tangent cone.
+        let to_c = normalise(c);
+        let beta = (1.0 / dot(c, c).sqrt()).asin();
+        let centre = (
+            principal[0] + f * c[0] / -c[2],
+            principal[1] + f * c[1] / -c[2],
+        );
+        // The tangential half-width is exact: f·tanβ / cos(axis angle) at the centre's depth.
+        let r = f * beta.tan() / to_c[2].abs();
+        let circle = Circle {
+            cx: centre.0,
+            cy: centre.1,
+            r,
+        };
+        let cam = Camera::Perspective {
+            focal_px: f,
+            principal,
+        };
+        let got = cam.light_at(&circle, x, y).unwrap();
+        let err = angle_deg(got, l);
+        assert!(err < 0.3, "perspective error {err}°");
+        // Far away with a long lens the two models agree.
+        let far = Camera::Perspective {
+            focal_px: 1e7,
+            principal,
+        };
+        let circle = Circle {
+            cx: 330.0,
+            cy: 250.0,
+            r: 40.0,
+        };
+        let a = far.light_at(&circle, 345.0, 238.0).unwrap();
+        let b = Camera::Orthographic
+            .light_at(&circle, 345.0, 238.0)
+            .unwrap();
+        assert!(angle_deg(a, b) < 0.01);
+    }
+}

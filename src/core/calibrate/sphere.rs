@@ -1,0 +1,539 @@
+//! Finding the sphere: its outline (centre and radius, sub-pixel) from the images
+//! themselves, or from a mask.
+//!
+//! The per-pixel median over the set keeps what every image shares (the ball's outline,
+//! the backdrop) and drops the highlights, each of which is in one image only. On it,
+//! lightly smoothed:
+//!
+//! 1. Edge points: gradient maxima along the gradient (non-maximum suppression) above a
+//!    threshold relative to the image's own gradients.
+//! 2. Candidates: each edge point votes along its gradient line, both ways, for the centres
+//!    of circles it could lie on (a Hough transform over centres); the strongest
+//!    accumulator peaks are candidate centres.
+//! 3. Per candidate, the radius whose edge points (at that distance, gradient pointing
+//!    radially) cover the most of the circumference, in 1° sectors. Counting sectors, not
+//!    points, is what keeps a textured backdrop's many short or straight edges from
+//!    outvoting one long round outline.
+//! 4. Refinement: along 720 rays from the centre, the strongest intensity step within a
+//!    few pixels of the circle, to sub-pixel by a parabola; a geometric circle fit with
+//!    Tukey weights over those points; repeated with a narrowing window.
+//!
+//! Limits: the outline must differ in brightness from what surrounds it over a good part
+//! of its length (a chrome ball that mirrors a backdrop identical to the one around it
+//! has no outline to find), at least a fifth of it must lie in the frame, and a lens that
+//! stretches the ball into a visible ellipse is fitted by a circle.
+
+use ndarray::Array2;
+
+use super::Circle;
+
+/// Smallest radius searched, pixels.
+const MIN_RADIUS: f64 = 8.0;
+/// Rays of the refinement and sectors of the coverage count (per full turn).
+const RAYS: usize = 720;
+const SECTORS: usize = 360;
+/// Most edge points kept (the strongest).
+const MAX_EDGES: usize = 60_000;
+
+/// A fitted outline and how well the images support it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OutlineFit {
+    pub circle: Circle,
+    /// Fraction of the refinement's rays that found the outline.
+    pub coverage: f64,
+    /// RMS distance of the kept outline points from the circle, pixels.
+    pub rms: f64,
+}
+
+/// The per-pixel median of the planes, as fractions of full scale.
+pub fn median_image(planes: &[Array2<u16>]) -> Array2<f32> {
+    let (h, w) = planes[0].dim();
+    let mut out = Array2::zeros((h, w));
+    let mut v = Vec::with_capacity(planes.len());
+    for ((r, c), o) in out.indexed_iter_mut() {
+        v.clear();
+        v.extend(planes.iter().map(|p| p[[r, c]]));
+        let k = v.len() / 2;
+        *o = *v.select_nth_unstable(k).1 as f32 / 65535.0;
+    }
+    out
+}
+
+/// Fit the sphere's outline in `image` (e.g. [`median_image`]); the error says why none
+/// was found.
+pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
+    let smooth = gaussian(image, 1.0);
+    let (gx, gy) = gradients(&smooth);
+    let (edges, threshold) = edge_points(&gx, &gy);
+    if edges.len() < 20 {
+        return Err("the images have almost no edges".into());
+    }
+    let (h, w) = image.dim();
+    let max_radius = w.max(h) as f64;
+    let mut best: Option<(usize, Circle)> = None;
+    for (cx, cy) in centre_candidates(&edges, w, h, max_radius) {
+        if let Some((cover, r)) = best_radius(&edges, cx, cy, max_radius)
+            && best.is_none_or(|b| cover > b.0)
+        {
+            best = Some((cover, Circle { cx, cy, r }));
+        }
+    }
+    let Some((cover, rough)) = best else {
+        return Err("no round outline among the edges".into());
+    };
+    if cover < SECTORS / 5 {
+        return Err(format!(
+            "the roundest outline found covers only {:.0} % of a circle",
+            100.0 * cover as f64 / SECTORS as f64
+        ));
+    }
+    let mut fit = OutlineFit {
+        circle: rough,
+        coverage: 0.0,
+        rms: 0.0,
+    };
+    for window in [4.0, 3.0, 2.0, 2.0] {
+        fit = refine(&smooth, fit.circle, window, threshold)
+            .ok_or("the outline could not be traced to sub-pixel accuracy")?;
+    }
+    if fit.coverage < 0.2 {
+        return Err(format!(
+            "the outline was traced along only {:.0} % of the circle",
+            100.0 * fit.coverage
+        ));
+    }
+    Ok(fit)
+}
+
+/// The circle of a sphere mask (true = sphere): a least-squares circle through the
+/// midpoints of the mask's boundary edges, leaving out the image border.
+pub fn circle_of_mask(mask: &Array2<bool>) -> Result<Circle, String> {
+    let (h, w) = mask.dim();
+    let mut points = Vec::new();
+    for r in 0..h {
+        for c in 0..w {
+            if c + 1 < w && mask[[r, c]] != mask[[r, c + 1]] {
+                points.push((c as f64 + 0.5, r as f64));
+            }
+            if r + 1 < h && mask[[r, c]] != mask[[r + 1, c]] {
+                points.push((c as f64, r as f64 + 0.5));
+            }
+        }
+    }
+    if points.len() < 12 {
+        return Err("it has no outline to fit a circle to".into());
+    }
+    let c = kasa(&points).ok_or("its outline is not round")?;
+    Ok(geometric_fit(&points, c, &vec![1.0; points.len()]))
+}
+
+/// Separable Gaussian blur, clamped at the borders.
+fn gaussian(a: &Array2<f32>, sigma: f64) -> Array2<f32> {
+    let radius = (3.0 * sigma).ceil() as isize;
+    let kernel: Vec<f32> = (-radius..=radius)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
+    let sum: f32 = kernel.iter().sum();
+    let kernel: Vec<f32> = kernel.iter().map(|k| k / sum).collect();
+    let (h, w) = a.dim();
+    let pass = |src: &Array2<f32>, along_rows: bool| {
+        Array2::from_shape_fn((h, w), |(r, c)| {
+            let mut acc = 0.0;
+            for (k, &g) in kernel.iter().enumerate() {
+                let o = k as isize - radius;
+                let v = if along_rows {
+                    src[[r, (c as isize + o).clamp(0, w as isize - 1) as usize]]
+                } else {
+                    src[[(r as isize + o).clamp(0, h as isize - 1) as usize, c]]
+                };
+                acc += g * v;
+            }
+            acc
+        })
+    };
+    pass(&pass(a, true), false)
+}
+
+/// Sobel gradients per pixel (units: full scale per pixel), zero on the border.
+fn gradients(a: &Array2<f32>) -> (Array2<f32>, Array2<f32>) {
+    let (h, w) = a.dim();
+    let mut gx = Array2::zeros((h, w));
+    let mut gy = Array2::zeros((h, w));
+    for r in 1..h.saturating_sub(1) {
+        for c in 1..w.saturating_sub(1) {
+            let p =
+                |dr: isize, dc: isize| a[[(r as isize + dr) as usize, (c as isize + dc) as usize]];
+            gx[[r, c]] =
+                (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
+            gy[[r, c]] =
+                (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
+        }
+    }
+    (gx, gy)
+}
+
+/// An edge point: sub-pixel position and unit gradient direction.
+#[derive(Debug, Clone, Copy)]
+struct Edge {
+    x: f32,
+    y: f32,
+    ux: f32,
+    uy: f32,
+}
+
+/// Gradient maxima along the gradient above the threshold, and the threshold: a tenth of
+/// the 99th percentile of the gradient magnitude, and at least three times its median
+/// (the noise).
+fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>) -> (Vec<Edge>, f32) {
+    let (h, w) = gx.dim();
+    let mag = Array2::from_shape_fn((h, w), |i| gx[i].hypot(gy[i]));
+    let mut sorted: Vec<f32> = mag.iter().cloned().filter(|&m| m > 0.0).collect();
+    if sorted.is_empty() {
+        return (Vec::new(), 0.0);
+    }
+    sorted.sort_unstable_by(f32::total_cmp);
+    let q = |f: f64| sorted[((sorted.len() - 1) as f64 * f) as usize];
+    let threshold = (0.1 * q(0.99)).max(3.0 * q(0.5));
+    let mut edges: Vec<(f32, Edge)> = Vec::new();
+    for r in 2..h.saturating_sub(2) {
+        for c in 2..w.saturating_sub(2) {
+            let m = mag[[r, c]];
+            if m < threshold {
+                continue;
+            }
+            let (ux, uy) = (gx[[r, c]] / m, gy[[r, c]] / m);
+            // The neighbour along the gradient, quantised to 45°.
+            let (dc, dr) = (ux.round() as isize, uy.round() as isize);
+            let before = mag[[(r as isize - dr) as usize, (c as isize - dc) as usize]];
+            let after = mag[[(r as isize + dr) as usize, (c as isize + dc) as usize]];
+            if m < before || m <= after {
+                continue;
+            }
+            let curvature = before - 2.0 * m + after;
+            let t = if curvature < 0.0 {
+                (0.5 * (before - after) / curvature).clamp(-0.5, 0.5)
+            } else {
+                0.0
+            };
+            edges.push((
+                m,
+                Edge {
+                    x: c as f32 + t * dc as f32,
+                    y: r as f32 + t * dr as f32,
+                    ux,
+                    uy,
+                },
+            ));
+        }
+    }
+    if edges.len() > MAX_EDGES {
+        edges.select_nth_unstable_by(MAX_EDGES, |a, b| b.0.total_cmp(&a.0));
+        edges.truncate(MAX_EDGES);
+    }
+    (edges.into_iter().map(|e| e.1).collect(), threshold)
+}
+
+/// Centres voted for by the edge points' gradient lines: the strongest peaks of the
+/// (3×3-smoothed) accumulator, at least 6 px apart.
+fn centre_candidates(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64, f64)> {
+    let mut acc = Array2::<u32>::zeros((h, w));
+    for e in edges {
+        for sign in [-1.0f32, 1.0] {
+            let mut t = MIN_RADIUS as f32;
+            while t <= max_radius as f32 {
+                let (x, y) = (e.x + sign * t * e.ux, e.y + sign * t * e.uy);
+                if x < 0.0 || y < 0.0 || x > (w - 1) as f32 || y > (h - 1) as f32 {
+                    break;
+                }
+                acc[[y.round() as usize, x.round() as usize]] += 1;
+                t += 1.0;
+            }
+        }
+    }
+    let mut smooth = Array2::<u32>::zeros((h, w));
+    for r in 1..h - 1 {
+        for c in 1..w - 1 {
+            let mut s = 0;
+            for dr in 0..3 {
+                for dc in 0..3 {
+                    s += acc[[r + dr - 1, c + dc - 1]];
+                }
+            }
+            smooth[[r, c]] = s;
+        }
+    }
+    let mut peaks: Vec<(u32, usize, usize)> = smooth
+        .indexed_iter()
+        .filter(|&(_, &v)| v > 0)
+        .map(|((r, c), &v)| (v, r, c))
+        .collect();
+    peaks.sort_unstable_by_key(|p| std::cmp::Reverse(p.0));
+    let mut chosen: Vec<(f64, f64)> = Vec::new();
+    for (_, r, c) in peaks {
+        let (x, y) = (c as f64, r as f64);
+        if chosen.iter().all(|&(px, py)| (px - x).hypot(py - y) >= 6.0) {
+            chosen.push((x, y));
+            if chosen.len() == 12 {
+                break;
+            }
+        }
+    }
+    chosen
+}
+
+/// The radius about (cx, cy) whose radially oriented edge points cover the most 1°
+/// sectors (counting a ±1 px band), and that count.
+fn best_radius(edges: &[Edge], cx: f64, cy: f64, max_radius: f64) -> Option<(usize, f64)> {
+    let bins = max_radius.ceil() as usize + 2;
+    let mut sectors = vec![[0u64; SECTORS.div_ceil(64)]; bins];
+    let mut sums = vec![(0.0f64, 0usize); bins];
+    for e in edges {
+        let (dx, dy) = (e.x as f64 - cx, e.y as f64 - cy);
+        let d = dx.hypot(dy);
+        if d < MIN_RADIUS || d > max_radius {
+            continue;
+        }
+        if ((e.ux as f64 * dx + e.uy as f64 * dy) / d).abs() < 0.9 {
+            continue;
+        }
+        let bin = d.round() as usize;
+        let angle = dy.atan2(dx).rem_euclid(std::f64::consts::TAU);
+        let s = ((angle / std::f64::consts::TAU * SECTORS as f64) as usize).min(SECTORS - 1);
+        sectors[bin][s / 64] |= 1 << (s % 64);
+        sums[bin].0 += d;
+        sums[bin].1 += 1;
+    }
+    let mut best: Option<(usize, f64)> = None;
+    for bin in 1..bins - 1 {
+        let mut words = [0u64; SECTORS.div_ceil(64)];
+        for b in bin - 1..=bin + 1 {
+            for (w, s) in words.iter_mut().zip(&sectors[b]) {
+                *w |= s;
+            }
+        }
+        let cover = words.iter().map(|w| w.count_ones() as usize).sum();
+        if best.is_none_or(|b| cover > b.0) {
+            let (s, n) =
+                (bin - 1..=bin + 1).fold((0.0, 0), |acc, b| (acc.0 + sums[b].0, acc.1 + sums[b].1));
+            best = Some((cover, s / n.max(1) as f64));
+        }
+    }
+    best
+}
+
+/// One refinement round: the outline's sub-pixel position along each ray within
+/// `window` px of `circle`, then a robust circle fit through them.
+fn refine(image: &Array2<f32>, circle: Circle, window: f64, threshold: f32) -> Option<OutlineFit> {
+    let (h, w) = image.dim();
+    let step = 0.25;
+    let n = (2.0 * window / step).round() as usize + 1;
+    let mut points = Vec::new();
+    for k in 0..RAYS {
+        let a = k as f64 / RAYS as f64 * std::f64::consts::TAU;
+        let (ux, uy) = (a.cos(), a.sin());
+        let at = |i: usize| {
+            let rho = circle.r - window + i as f64 * step;
+            (circle.cx + rho * ux, circle.cy + rho * uy)
+        };
+        let (x0, y0) = at(0);
+        let (x1, y1) = at(n - 1);
+        let inside =
+            |x: f64, y: f64| x >= 1.0 && y >= 1.0 && x <= (w - 2) as f64 && y <= (h - 2) as f64;
+        if !inside(x0, y0) || !inside(x1, y1) {
+            continue;
+        }
+        let samples: Vec<f64> = (0..n)
+            .map(|i| {
+                let (x, y) = at(i);
+                bilinear(image, x, y)
+            })
+            .collect();
+        let deriv: Vec<f64> = (1..n - 1)
+            .map(|i| ((samples[i + 1] - samples[i - 1]) / (2.0 * step)).abs())
+            .collect();
+        let (i, &peak) = deriv.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
+        if peak < threshold as f64 || i == 0 || i + 1 == deriv.len() {
+            continue;
+        }
+        let (a0, a1, a2) = (deriv[i - 1], peak, deriv[i + 1]);
+        let curvature = a0 - 2.0 * a1 + a2;
+        let t = if curvature < 0.0 {
+            (0.5 * (a0 - a2) / curvature).clamp(-0.5, 0.5)
+        } else {
+            0.0
+        };
+        let rho = circle.r - window + (i as f64 + 1.0 + t) * step;
+        points.push((circle.cx + rho * ux, circle.cy + rho * uy));
+    }
+    if points.len() < 12 {
+        return None;
+    }
+    // Tukey-weighted geometric fit, scale from the residuals' MAD.
+    let mut c = circle;
+    let mut weights = vec![1.0; points.len()];
+    for _ in 0..8 {
+        let mut res: Vec<f64> = points
+            .iter()
+            .map(|&(x, y)| ((x - c.cx).hypot(y - c.cy) - c.r).abs())
+            .collect();
+        let resid = res.clone();
+        let mid = res.len() / 2;
+        let mad = *res.select_nth_unstable_by(mid, f64::total_cmp).1;
+        let cutoff = 4.685 * (1.4826 * mad).max(0.05);
+        for (wt, r) in weights.iter_mut().zip(&resid) {
+            let u = r / cutoff;
+            *wt = if u < 1.0 { (1.0 - u * u).powi(2) } else { 0.0 };
+        }
+        c = geometric_fit(&points, c, &weights);
+    }
+    let (mut sq, mut kept) = (0.0, 0usize);
+    for (&(x, y), &wt) in points.iter().zip(&weights) {
+        if wt > 0.0 {
+            sq += ((x - c.cx).hypot(y - c.cy) - c.r).powi(2);
+            kept += 1;
+        }
+    }
+    Some(OutlineFit {
+        circle: c,
+        coverage: kept as f64 / RAYS as f64,
+        rms: (sq / kept.max(1) as f64).sqrt(),
+    })
+}
+
+fn bilinear(a: &Array2<f32>, x: f64, y: f64) -> f64 {
+    let (c0, r0) = (x.floor() as usize, y.floor() as usize);
+    let (fx, fy) = (x - c0 as f64, y - r0 as f64);
+    let p = |r: usize, c: usize| a[[r, c]] as f64;
+    (p(r0, c0) * (1.0 - fx) + p(r0, c0 + 1) * fx) * (1.0 - fy)
+        + (p(r0 + 1, c0) * (1.0 - fx) + p(r0 + 1, c0 + 1) * fx) * fy
+}
+
+/// Algebraic (Kåsa) circle through points: a start for the geometric fit.
+fn kasa(points: &[(f64, f64)]) -> Option<Circle> {
+    // Minimise Σ (x² + y² + D x + E y + F)².
+    let mut m = [[0.0f64; 3]; 3];
+    let mut b = [0.0f64; 3];
+    for &(x, y) in points {
+        let row = [x, y, 1.0];
+        let z = -(x * x + y * y);
+        for i in 0..3 {
+            for j in 0..3 {
+                m[i][j] += row[i] * row[j];
+            }
+            b[i] += row[i] * z;
+        }
+    }
+    let [d, e, f] = solve3(m, b)?;
+    let (cx, cy) = (-d / 2.0, -e / 2.0);
+    let r2 = cx * cx + cy * cy - f;
+    (r2 > 0.0).then(|| Circle {
+        cx,
+        cy,
+        r: r2.sqrt(),
+    })
+}
+
+/// Weighted geometric circle fit (Gauss–Newton on distance − r) from `start`.
+fn geometric_fit(points: &[(f64, f64)], start: Circle, weights: &[f64]) -> Circle {
+    let mut c = start;
+    for _ in 0..20 {
+        let mut m = [[0.0f64; 3]; 3];
+        let mut b = [0.0f64; 3];
+        for (&(x, y), &w) in points.iter().zip(weights) {
+            if w == 0.0 {
+                continue;
+            }
+            let (dx, dy) = (x - c.cx, y - c.cy);
+            let d = dx.hypot(dy).max(1e-9);
+            let j = [-dx / d, -dy / d, -1.0];
+            let r = d - c.r;
+            for i in 0..3 {
+                for k in 0..3 {
+                    m[i][k] += w * j[i] * j[k];
+                }
+                b[i] -= w * j[i] * r;
+            }
+        }
+        let Some(delta) = solve3(m, b) else {
+            break;
+        };
+        c = Circle {
+            cx: c.cx + delta[0],
+            cy: c.cy + delta[1],
+            r: c.r + delta[2],
+        };
+        if delta.iter().all(|d| d.abs() < 1e-6) {
+            break;
+        }
+    }
+    c
+}
+
+/// Solve a 3×3 system by Cramer's rule; None when singular.
+fn solve3(m: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |a: [[f64; 3]; 3]| {
+        a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+            - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+            + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
+    };
+    let d = det(m);
+    let scale = m.iter().flatten().map(|v| v.abs()).fold(0.0, f64::max);
+    if d.abs() <= 1e-12 * scale.powi(3) {
+        return None;
+    }
+    let mut out = [0.0; 3];
+    for (k, o) in out.iter_mut().enumerate() {
+        let mut a = m;
+        for i in 0..3 {
+            a[i][k] = b[i];
+        }
+        *o = det(a) / d;
+    }
+    Some(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mask_circle_is_recovered_to_a_tenth_of_a_pixel() {
+        let (cx, cy, r) = (61.3, 47.8, 30.6);
+        let mask = Array2::from_shape_fn((100, 120), |(y, x)| {
+            (x as f64 - cx).hypot(y as f64 - cy) <= r
+        });
+        let c = circle_of_mask(&mask).unwrap();
+        assert!((c.cx - cx).abs() < 0.1 && (c.cy - cy).abs() < 0.1, "{c:?}");
+        assert!((c.r - r).abs() < 0.1, "{c:?}");
+        assert!(circle_of_mask(&Array2::from_elem((20, 20), false)).is_err());
+    }
+
+    #[test]
+    fn outline_of_a_bright_disc_on_stripes() {
+        let (cx, cy, r) = (70.4, 52.7, 33.3);
+        let img = Array2::from_shape_fn((110, 140), |(y, x)| {
+            // 4×4 supersampled coverage of the disc over a striped backdrop.
+            let mut cover = 0.0;
+            for j in 0..4 {
+                for i in 0..4 {
+                    let (sx, sy) = (
+                        x as f64 - 0.375 + 0.25 * i as f64,
+                        y as f64 - 0.375 + 0.25 * j as f64,
+                    );
+                    if (sx - cx).hypot(sy - cy) <= r {
+                        cover += 1.0 / 16.0;
+                    }
+                }
+            }
+            let back = 0.3 + 0.2 * ((x as f64) / 5.0).sin();
+            (cover * 0.8 + (1.0 - cover) * back) as f32
+        });
+        let fit = fit_outline(&img).unwrap();
+        let c = fit.circle;
+        assert!(
+            (c.cx - cx).abs() < 0.1 && (c.cy - cy).abs() < 0.1,
+            "{fit:?}"
+        );
+        assert!((c.r - r).abs() < 0.1, "{fit:?}");
+    }
+}

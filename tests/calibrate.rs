@@ -1,0 +1,295 @@
+//! Light calibration from a chrome sphere, against the true lights of rendered captures:
+//! direction accuracy with the outline found automatically, the errors, `skip_bad`, the
+//! matte sphere's intensities, and a calibrate → reconstruct round trip.
+
+use std::path::Path;
+
+use photostereo::core::calibrate::{
+    self, Calibration, CalibrationError, CircleSource, Settings, SphereImage,
+};
+use photostereo::core::intake::{self, DirMask, Limits};
+use photostereo::core::synth::{self, ChromeSet};
+use photostereo::core::{Options, RunToEnd, lights, reconstruct};
+
+fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let d: f64 = (0..3).map(|k| a[k] * b[k]).sum();
+    d.clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+fn auto() -> Settings {
+    Settings {
+        circle: CircleSource::Fit,
+        camera: calibrate::Camera::Orthographic,
+        skip_bad: false,
+    }
+}
+
+/// Render `set` into a temporary folder, read it back and calibrate it.
+fn run(
+    set: &ChromeSet,
+    settings: &Settings,
+) -> (tempfile::TempDir, Result<Calibration, CalibrationError>) {
+    let dir = tempfile::tempdir().unwrap();
+    set.write(dir.path(), None).unwrap();
+    let (images, names) = calibrate::load_dir(dir.path()).unwrap();
+    let result = calibrate::calibrate(&images, names.as_deref(), settings);
+    (dir, result)
+}
+
+/// Mean and max direction error (degrees) against the set's true lights, and the circle's
+/// centre and radius errors (pixels).
+fn errors(set: &ChromeSet, cal: &Calibration) -> (f64, f64, f64, f64) {
+    assert_eq!(cal.lights.len(), set.lights.len());
+    let e: Vec<f64> = cal
+        .lights
+        .iter()
+        .map(|l| angle_deg(l.highlight.direction, set.lights[l.index]))
+        .collect();
+    let mean = e.iter().sum::<f64>() / e.len() as f64;
+    let max = e.iter().cloned().fold(0.0, f64::max);
+    let c = cal.circle;
+    let centre = (c.cx - set.centre[0]).hypot(c.cy - set.centre[1]);
+    (mean, max, centre, (c.r - set.radius).abs())
+}
+
+fn check_accuracy(name: &str, set: &ChromeSet) {
+    let (_dir, cal) = run(set, &auto());
+    let cal = cal.unwrap();
+    let (mean, max, centre, radius) = errors(set, &cal);
+    let clipped = cal.lights.iter().filter(|l| l.highlight.clipped).count();
+    eprintln!(
+        "{name}: direction error mean {mean:.3}° max {max:.3}°; circle centre off by {centre:.3} px, radius by {radius:.3} px; {clipped} of {} highlights clipped",
+        cal.lights.len()
+    );
+    assert!(
+        clipped >= 4 && clipped < cal.lights.len(),
+        "{clipped} clipped"
+    );
+    assert!(mean < 0.3 && max < 1.0, "{name}: mean {mean}°, max {max}°");
+}
+
+#[test]
+fn chrome_8_bit_off_centre_with_distractors_within_03_degree_mean_1_max() {
+    check_accuracy("8-bit", &ChromeSet::standard(8, 41));
+}
+
+#[test]
+fn chrome_16_bit_within_03_degree_mean_1_max() {
+    check_accuracy("16-bit", &ChromeSet::standard(16, 43));
+}
+
+#[test]
+fn chrome_ball_filling_a_dark_frame_within_03_degree_mean_1_max() {
+    for bits in [8, 16] {
+        check_accuracy(
+            &format!("filling, {bits}-bit"),
+            &ChromeSet::filling(bits, 47),
+        );
+    }
+}
+
+#[test]
+fn a_given_circle_or_mask_overrides_the_fit() {
+    let set = ChromeSet::standard(16, 53);
+    let circle = calibrate::Circle {
+        cx: set.centre[0],
+        cy: set.centre[1],
+        r: set.radius,
+    };
+    let given = Settings {
+        circle: CircleSource::Given(circle),
+        ..auto()
+    };
+    let (_dir, cal) = run(&set, &given);
+    let cal = cal.unwrap();
+    assert_eq!(cal.circle, circle);
+    assert!(cal.outline.is_none());
+    let (mean, max, _, _) = errors(&set, &cal);
+    eprintln!("given circle: mean {mean:.3}° max {max:.3}°");
+    assert!(mean < 0.3 && max < 1.0);
+    let mask = ndarray::Array2::from_shape_fn((set.height, set.width), |(r, c)| {
+        (c as f64 - set.centre[0]).hypot(r as f64 - set.centre[1]) <= set.radius
+    });
+    let masked = Settings {
+        circle: CircleSource::Mask {
+            name: "mask.png".into(),
+            mask,
+        },
+        ..auto()
+    };
+    let (_dir, cal) = run(&set, &masked);
+    let (mean, max, centre, radius) = errors(&set, &cal.unwrap());
+    eprintln!("mask: mean {mean:.3}° max {max:.3}°, circle {centre:.3} / {radius:.3} px");
+    assert!(mean < 0.3 && max < 1.0 && centre < 0.2 && radius < 0.2);
+}
+
+/// The set's images, decoded, with image `i` replaced by `f(images)`.
+fn images_of(set: &ChromeSet) -> (tempfile::TempDir, Vec<SphereImage>) {
+    let dir = tempfile::tempdir().unwrap();
+    set.write(dir.path(), None).unwrap();
+    let (images, _) = calibrate::load_dir(dir.path()).unwrap();
+    (dir, images)
+}
+
+fn error_of(images: &[SphereImage], settings: &Settings) -> String {
+    calibrate::calibrate(images, None, settings)
+        .unwrap_err()
+        .to_string()
+}
+
+#[test]
+fn bad_images_are_errors_naming_them_and_skip_bad_leaves_them_out() {
+    let mut set = ChromeSet::standard(8, 59);
+    set.lights.truncate(8);
+    set.highlight.truncate(8);
+    // Light 3 behind the ball: no highlight; image 6 gets a second light (below).
+    set.lights[2] = [0.02, 0.0, -1.0];
+    let (_dir, mut images) = images_of(&set);
+    let mut twin = set.clone();
+    twin.lights = vec![[-0.5, 0.3, 0.81]];
+    twin.highlight = vec![2.5];
+    let other = twin.render().remove(0).mapv(|v| v * 257);
+    images[5]
+        .plane
+        .zip_mut_with(&other, |a, &b| *a = (*a).max(b));
+
+    let e = error_of(&images, &auto());
+    assert!(
+        e.contains("ball03.png") && e.contains("no highlight"),
+        "{e}"
+    );
+    let mut without_3 = images.clone();
+    without_3.remove(2);
+    let e = error_of(&without_3, &auto());
+    assert!(
+        e.contains("ball06.png") && e.contains("two equally plausible"),
+        "{e}"
+    );
+
+    let skip = Settings {
+        skip_bad: true,
+        ..auto()
+    };
+    let cal = calibrate::calibrate(&images, None, &skip).unwrap();
+    let left_out: Vec<&str> = cal.skipped.iter().map(|s| s.image.as_str()).collect();
+    assert_eq!(left_out, ["ball03.png", "ball06.png"]);
+    assert_eq!(cal.lights.len(), 6);
+    for l in &cal.lights {
+        assert!(angle_deg(l.highlight.direction, set.lights[l.index]) < 1.0);
+    }
+    assert!(!cal.table().contains("ball03.png"));
+
+    // Too few usable images, too few images, different sizes, a circle off the image.
+    let e = calibrate::calibrate(&images[1..4], None, &skip)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("only 2 of 3") && e.contains("ball03.png"), "{e}");
+    let e = error_of(&images[..2], &auto());
+    assert!(e.contains("at least 3"), "{e}");
+    let mut sizes = images.clone();
+    sizes[4].plane = sizes[4].plane.slice(ndarray::s![..200, ..]).to_owned();
+    let e = error_of(&sizes, &auto());
+    assert!(e.contains("ball05.png") && e.contains("same size"), "{e}");
+    let off = Settings {
+        circle: CircleSource::Given(calibrate::Circle {
+            cx: 400.0,
+            cy: 100.0,
+            r: 50.0,
+        }),
+        ..auto()
+    };
+    let e = error_of(&images, &off);
+    assert!(e.contains("outside the 320×240 image"), "{e}");
+}
+
+#[test]
+fn no_sphere_in_a_plain_backdrop_is_an_error() {
+    let mut set = ChromeSet::standard(8, 61);
+    set.radius = 0.0;
+    set.lights.truncate(4);
+    set.highlight.truncate(4);
+    let (_dir, images) = images_of(&set);
+    let e = error_of(&images, &auto());
+    assert!(e.contains("no sphere found"), "{e}");
+}
+
+#[test]
+fn matte_sphere_gives_relative_intensities_within_2_percent() {
+    let set = ChromeSet::standard(16, 67);
+    let k = synth::matte_intensities(set.lights.len(), 5);
+    let dir = tempfile::tempdir().unwrap();
+    set.write(dir.path(), Some(&k)).unwrap();
+    let (images, names) = calibrate::load_dir(dir.path()).unwrap();
+    let mut cal = calibrate::calibrate(&images, names.as_deref(), &auto()).unwrap();
+    let matte = calibrate::load_images(&dir.path().join("matte")).unwrap();
+    cal.fit_intensities(&matte).unwrap();
+    let mean = k.iter().sum::<f64>() / k.len() as f64;
+    let worst = cal
+        .lights
+        .iter()
+        .map(|l| (l.intensity.unwrap() / (k[l.index] / mean) - 1.0).abs())
+        .fold(0.0, f64::max);
+    eprintln!("matte intensities: worst relative error {:.4}", worst);
+    assert!(worst < 0.02, "{worst}");
+    // The table carries them as the fifth column, and reads back as is.
+    let table = lights::parse(&cal.table()).unwrap();
+    assert_eq!(table[0].name, "im1.png");
+    assert!((table[3].intensity - cal.lights[3].intensity.unwrap()).abs() < 1e-3);
+}
+
+/// The normals reconstructed from `dir` with its own lights, or with `table`'s.
+fn normals(dir: &Path, table: Option<&str>) -> ndarray::Array3<f32> {
+    let mut set = intake::load_dir(dir, DirMask::Folder, &Limits::default()).unwrap();
+    if let Some(t) = table {
+        let calibrated = lights::parse(t).unwrap();
+        for l in &mut set.lights {
+            let c = calibrated.iter().find(|c| c.name == l.name).unwrap();
+            l.direction = c.direction;
+        }
+    }
+    reconstruct(&set, &Options::default(), &mut RunToEnd)
+        .unwrap()
+        .normals
+}
+
+#[test]
+fn calibrated_lights_reconstruct_within_half_a_degree_of_the_true_lights() {
+    let chrome = ChromeSet::standard(8, 71);
+    let (_dir, cal) = run(&chrome, &auto());
+    let table = cal.unwrap().table();
+    let object = tempfile::tempdir().unwrap();
+    let capture = synth::Capture {
+        noise_sigma: 0.002,
+        ..Default::default()
+    };
+    synth::write_set(
+        object.path(),
+        &synth::Scene::sphere(128),
+        &chrome.lights,
+        &capture,
+    )
+    .unwrap();
+    let truth = synth::read_truth(object.path()).unwrap();
+    let (a, b) = (
+        normals(object.path(), None),
+        normals(object.path(), Some(&table)),
+    );
+    let mut diffs: Vec<f64> = Vec::new();
+    for ((r, c), &m) in truth.mask.indexed_iter() {
+        if m {
+            let n = |x: &ndarray::Array3<f32>| [0, 1, 2].map(|k| x[[r, c, k]] as f64);
+            diffs.push(angle_deg(n(&a), n(&b)));
+        }
+    }
+    let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+    diffs.sort_by(f64::total_cmp);
+    let p99 = diffs[diffs.len() * 99 / 100];
+    let max = diffs[diffs.len() - 1];
+    eprintln!(
+        "calibrated vs true lights: normals differ by {mean:.3}° on average, {p99:.3}° at the 99th percentile, {max:.3}° at most (a rim pixel)"
+    );
+    assert!(
+        mean < 0.5 && p99 < 0.5,
+        "mean {mean}°, 99th percentile {p99}°"
+    );
+}
