@@ -35,10 +35,11 @@ function showProblem(field, title, detail) {
 // Which field a problem of POST /v1/jobs is about, from the part or option it names.
 function fieldOf(problem, optionNames) {
   const d = (problem.detail || "").toLowerCase();
+  if (/^options:|unknown field|unknown variant/.test(d)) return "options";
   if (/calibration/.test(d) && !$("calibration-field").hidden) return "calibration";
-  if (/option|unknown field|unknown variant/.test(d) || optionNames.some((n) => d.includes(n))) return "options";
-  if (/light table|lights|light_directions|row \d|direction|intensit/.test(d)) return "lights";
-  if (/image|mask|archive|file|part|png|zip|pixels|bytes/.test(d)) return "files";
+  if (/light table|^lights|light_directions|intensit/.test(d)) return "lights";
+  if (/^mask:|image|archive|file|part|png|zip|pixels|bytes/.test(d)) return "files";
+  if (optionNames.some((n) => d.includes(n))) return "options";
   return "submit";
 }
 
