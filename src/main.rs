@@ -74,7 +74,7 @@ struct ReconstructArgs {
     /// Options as a JSON file (the HTTP API's `options` part); flags below override it.
     #[arg(long)]
     options: Option<PathBuf>,
-    /// l2 (default) | robust | weighted
+    /// robust (default) | l2 | weighted
     #[arg(long, value_parser = kebab::<Solver>)]
     solver: Option<Solver>,
     /// auto (default) | none | given. Unless a mode is chosen (here or in --options), a
