@@ -781,6 +781,7 @@ pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot listen on {}", args.listen))?;
     let state = AppState::open(config).await?;
     let addr = listener.local_addr()?;
+    reload_keys_on_hangup(state.clone());
     tracing::info!(
         %addr,
         data_dir = %state.config().data_dir.display(),
@@ -789,27 +790,30 @@ pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         api_keys = state.keys().count(),
         "photostereo serving; API docs at /docs"
     );
-    reload_keys_on_hangup(state.clone());
     serve_with(listener, state, shutdown_signal()).await
 }
 
-/// SIGHUP re-reads the keys file without a restart.
+/// SIGHUP re-reads the keys file without a restart. The handler is installed before
+/// this returns, so from then on a SIGHUP never takes its default action (exit).
 fn reload_keys_on_hangup(state: AppState) {
     #[cfg(unix)]
-    tokio::spawn(async move {
+    {
         use tokio::signal::unix::{SignalKind, signal};
         let Ok(mut hangup) = signal(SignalKind::hangup()) else {
+            tracing::warn!("cannot handle SIGHUP; the keys file is read at start only");
             return;
         };
-        while hangup.recv().await.is_some() {
-            match state.reload_keys() {
-                Ok(n) => tracing::info!(api_keys = n, "API keys re-read"),
-                Err(e) => {
-                    tracing::error!(error = %e, "API keys not re-read; the previous keys stay")
+        tokio::spawn(async move {
+            while hangup.recv().await.is_some() {
+                match state.reload_keys() {
+                    Ok(n) => tracing::info!(api_keys = n, "API keys re-read"),
+                    Err(e) => {
+                        tracing::error!(error = %e, "API keys not re-read; the previous keys stay")
+                    }
                 }
             }
-        }
-    });
+        });
+    }
     #[cfg(not(unix))]
     let _ = state;
 }
