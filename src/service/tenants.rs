@@ -180,10 +180,9 @@ fn parse_line(line: &str) -> Result<Key, String> {
         [t, s] => (*t, *s, "member"),
         [t, s, r] => (*t, *s, *r),
         _ => {
-            return Err(format!(
-                "expected `tenant secret [role]`, got {} fields",
-                fields.len()
-            ));
+            let n = fields.len();
+            let s = if n == 1 { "" } else { "s" };
+            return Err(format!("expected `tenant secret [role]`, got {n} field{s}"));
         }
     };
     check_tenant(tenant)?;
@@ -267,7 +266,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join("keys");
         for (text, needle) in [
-            ("alice\n", "2 fields"),
+            ("alice\n", "got 1 field"),
             ("al ice top-secret x y\n", "fields"),
             ("alice top-secret root\n", "unknown role"),
             ("al/ice top-secret\n", "tenant name"),
