@@ -95,9 +95,10 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_MIN_FREE_DISK", default_value = "1GiB", value_parser = parse_size)]
     pub min_free_disk: u64,
 
-    /// API key required as `Authorization: Bearer <key>` on every /v1 route (repeat for
-    /// several keys; the environment variable takes a comma-separated list). No key: the
-    /// API is open.
+    /// API key required as `Authorization: Bearer <key>` on every /v1 route, as
+    /// `tenant:secret` (a bare secret is a tenant of its own); repeat for several keys (the
+    /// environment variable takes a comma-separated list). Each tenant sees only its own
+    /// jobs. No key and no keys file: the API is open.
     #[arg(
         long = "api-key",
         env = "PHOTOSTEREO_API_KEYS",
@@ -105,6 +106,55 @@ pub struct ServeArgs {
         hide_env_values = true
     )]
     pub api_keys: Vec<String>,
+
+    /// A file of API keys, one `tenant secret [role]` per line (role `admin` sees and
+    /// manages every tenant's jobs; `member`, the default, its own); `#` starts a comment.
+    /// Re-read on SIGHUP (a file that does not parse keeps the keys in force).
+    #[arg(long, env = "PHOTOSTEREO_API_KEYS_FILE")]
+    pub api_keys_file: Option<PathBuf>,
+
+    /// Jobs one tenant may have queued or running at once; past it, submissions get 429
+    /// with Retry-After.
+    #[arg(long, env = "PHOTOSTEREO_TENANT_MAX_JOBS", default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..))]
+    pub tenant_max_jobs: u32,
+
+    /// Submissions one tenant may make per minute (0: no limit); past it, 429 with
+    /// Retry-After.
+    #[arg(
+        long,
+        env = "PHOTOSTEREO_TENANT_SUBMISSIONS_PER_MINUTE",
+        default_value_t = 120
+    )]
+    pub tenant_submissions_per_minute: u32,
+
+    /// Artifact bytes one tenant may keep stored (0: no limit); past it, submissions get
+    /// 429 until jobs are deleted or expire.
+    #[arg(long, env = "PHOTOSTEREO_TENANT_MAX_STORED_BYTES", default_value = "0", value_parser = parse_size)]
+    pub tenant_max_stored_bytes: u64,
+
+    /// A host that jobs' `callback_url` may name (repeat for several; exact names or IP
+    /// addresses; none by default, and loopback or private addresses only when listed).
+    #[arg(
+        long = "webhook-allow-host",
+        env = "PHOTOSTEREO_WEBHOOK_ALLOW_HOSTS",
+        value_delimiter = ','
+    )]
+    pub webhook_allow_hosts: Vec<String>,
+
+    /// A tenant's webhook signing secret, `tenant:secret` (repeat for several; the tenant
+    /// of an open server, with no API keys, is `default`). Callbacks need one.
+    #[arg(
+        long = "webhook-secret",
+        env = "PHOTOSTEREO_WEBHOOK_SECRETS",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    pub webhook_secrets: Vec<String>,
+
+    /// How long a webhook delivery is retried (exponential backoff from 1 s) before it is
+    /// given up as failed.
+    #[arg(long, env = "PHOTOSTEREO_WEBHOOK_RETRY_FOR", default_value = "1h", value_parser = parse_duration)]
+    pub webhook_retry_for: Duration,
 
     /// On SIGTERM or Ctrl-C, how long running jobs may go on finishing; jobs still running
     /// then are stopped within one step of work and run again at the next start.
@@ -139,7 +189,20 @@ pub struct Config {
     pub max_uploads: usize,
     pub upload_timeout: Duration,
     pub min_free_disk: u64,
+    /// `--api-key` values (`tenant:secret` or a bare secret).
     pub api_keys: Vec<String>,
+    pub api_keys_file: Option<PathBuf>,
+    /// Per tenant: jobs queued or running at once, submissions per minute (0: none),
+    /// artifact bytes stored (0: none).
+    pub tenant_max_jobs: usize,
+    pub tenant_submissions_per_minute: usize,
+    pub tenant_max_stored_bytes: u64,
+    pub webhook_allow_hosts: Vec<String>,
+    /// `tenant:secret` values.
+    pub webhook_secrets: Vec<String>,
+    pub webhook_retry_for: Duration,
+    /// The first retry's delay (doubling after each failed attempt).
+    pub webhook_first_retry: Duration,
     pub shutdown_grace: Duration,
     /// Uploads decoded ahead of their job at once.
     pub decode_ahead: usize,
@@ -178,6 +241,14 @@ impl Config {
             upload_timeout: Duration::from_secs(10 * 60),
             min_free_disk: 1 << 30,
             api_keys: Vec::new(),
+            api_keys_file: None,
+            tenant_max_jobs: 32,
+            tenant_submissions_per_minute: 120,
+            tenant_max_stored_bytes: 0,
+            webhook_allow_hosts: Vec::new(),
+            webhook_secrets: Vec::new(),
+            webhook_retry_for: Duration::from_secs(3600),
+            webhook_first_retry: Duration::from_secs(1),
             shutdown_grace: Duration::from_secs(30),
             decode_ahead: workers,
             sweep_interval: Duration::from_secs(60),
@@ -226,6 +297,18 @@ impl From<&ServeArgs> for Config {
             .map(|k| k.trim().to_string())
             .filter(|k| !k.is_empty())
             .collect();
+        c.api_keys_file = a.api_keys_file.clone();
+        c.tenant_max_jobs = a.tenant_max_jobs as usize;
+        c.tenant_submissions_per_minute = a.tenant_submissions_per_minute as usize;
+        c.tenant_max_stored_bytes = a.tenant_max_stored_bytes;
+        c.webhook_allow_hosts = a
+            .webhook_allow_hosts
+            .iter()
+            .map(|h| h.trim().to_ascii_lowercase())
+            .filter(|h| !h.is_empty())
+            .collect();
+        c.webhook_secrets = a.webhook_secrets.clone();
+        c.webhook_retry_for = a.webhook_retry_for;
         c.shutdown_grace = a.shutdown_grace;
         c.decode_ahead = a.decode_ahead.map(|n| n as usize).unwrap_or(c.workers);
         c.sweep_interval =
@@ -264,6 +347,12 @@ mod tests {
         assert_eq!(c.queue_length, d.queue_length);
         assert_eq!(c.max_parts, d.max_parts);
         assert_eq!(c.max_images, d.max_images);
+        assert_eq!(c.tenant_max_jobs, d.tenant_max_jobs);
+        assert_eq!(
+            c.tenant_submissions_per_minute,
+            d.tenant_submissions_per_minute
+        );
+        assert_eq!(c.tenant_max_stored_bytes, d.tenant_max_stored_bytes);
         assert!(c.workers >= 1);
         assert_eq!(c.decode_ahead, c.workers);
     }

@@ -161,6 +161,19 @@ impl ApiError {
         e
     }
 
+    /// 429: a tenant's quota (the detail names the limit); retry after `retry_after`
+    /// seconds.
+    pub fn quota_exceeded(retry_after: u64, detail: impl Into<String>) -> Self {
+        let mut e = Self::new(
+            StatusCode::TOO_MANY_REQUESTS,
+            "quota-exceeded",
+            "Quota exceeded",
+            detail.into(),
+        );
+        e.retry_after = Some(retry_after);
+        e
+    }
+
     /// 503: the service is stopping or not ready.
     pub fn unavailable(retry_after: u64, detail: impl Into<String>) -> Self {
         let mut e = Self::new(

@@ -16,7 +16,8 @@ use uuid::Uuid;
 use super::AppState;
 use super::error::{ApiError, Problem};
 use super::repo::{JobRecord, JobStatus};
-use super::routes::{JobId, JobView, load_job};
+use super::routes::{JobId, JobView, owned_job};
+use super::tenants::Caller;
 
 /// Comment lines sent while nothing changes, so that proxies keep the connection open.
 const KEEP_ALIVE: Duration = Duration::from_secs(15);
@@ -37,15 +38,17 @@ const KEEP_ALIVE: Duration = Duration::from_secs(15);
         (status = 200, description = "Server-sent events: `event: job` with a JobView as data, one per change; `event: deleted` when the job is removed. Ends after a finished status",
             body = String, content_type = "text/event-stream"),
         (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
-        (status = 404, description = "No such job", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such job (or another tenant's)", body = Problem, content_type = "application/problem+json"),
     ),
     security((), ("bearer" = []))
 )]
 pub async fn job_events(
     State(state): State<AppState>,
+    caller: Caller,
     JobId(id): JobId,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    let first = load_job(&state, id).await?;
+    // The owner is checked once: a job's tenant never changes.
+    let first = owned_job(&state, &caller, id).await?;
     let follow = Follow {
         interval: state.config().event_interval,
         state,

@@ -1,7 +1,9 @@
 //! The job queue and the worker pool.
 //!
 //! Accepted jobs wait in a bounded in-memory queue (its length is `--queue-length`; the
-//! repo is the durable copy). `--workers` plain threads take jobs from it, so never more
+//! repo is the durable copy), one line per tenant: workers serve the tenants with waiting
+//! jobs in turn (round-robin), so one tenant's backlog does not hold up another's next
+//! job. `--workers` plain threads take jobs from it, so never more
 //! than that many run at once; each runs `intake::load` and `pipeline::run` into a staged
 //! output directory that is renamed into place when the job succeeds. Progress goes to the
 //! repo at every stage; the progress callback is also where cancellation, the time limit
@@ -54,8 +56,59 @@ pub struct RunControl {
 }
 
 struct QueueState {
-    pending: VecDeque<Uuid>,
+    /// Waiting jobs by tenant, each line oldest first.
+    lines: HashMap<String, VecDeque<Uuid>>,
+    /// The tenants with waiting jobs, in the order they are served next.
+    turns: VecDeque<String>,
+    /// Waiting jobs, all lines together.
+    len: usize,
     closed: bool,
+}
+
+impl QueueState {
+    fn push(&mut self, id: Uuid, tenant: &str) {
+        match self.lines.get_mut(tenant) {
+            Some(line) => line.push_back(id),
+            None => {
+                self.lines.insert(tenant.to_string(), VecDeque::from([id]));
+                self.turns.push_back(tenant.to_string());
+            }
+        }
+        self.len += 1;
+    }
+
+    /// The next tenant's oldest job; that tenant goes to the back of the turns.
+    fn pop(&mut self) -> Option<Uuid> {
+        let tenant = self.turns.pop_front()?;
+        let line = self.lines.get_mut(&tenant)?;
+        let id = line.pop_front();
+        if line.is_empty() {
+            self.lines.remove(&tenant);
+        } else {
+            self.turns.push_back(tenant);
+        }
+        self.len -= usize::from(id.is_some());
+        id
+    }
+
+    fn remove(&mut self, id: Uuid) -> bool {
+        let Some(tenant) = self
+            .lines
+            .iter()
+            .find(|(_, line)| line.contains(&id))
+            .map(|(t, _)| t.clone())
+        else {
+            return false;
+        };
+        let line = self.lines.get_mut(&tenant).expect("found above");
+        line.retain(|j| *j != id);
+        if line.is_empty() {
+            self.lines.remove(&tenant);
+            self.turns.retain(|t| *t != tenant);
+        }
+        self.len -= 1;
+        true
+    }
 }
 
 /// Why a job could not be queued.
@@ -86,7 +139,9 @@ impl JobQueue {
     pub fn new(limit: usize) -> Self {
         Self {
             state: Mutex::new(QueueState {
-                pending: VecDeque::new(),
+                lines: HashMap::new(),
+                turns: VecDeque::new(),
+                len: 0,
                 closed: false,
             }),
             ready: Condvar::new(),
@@ -104,40 +159,37 @@ impl JobQueue {
     }
 
     pub fn depth(&self) -> usize {
-        lock(&self.state).pending.len()
+        lock(&self.state).len
     }
 
     pub fn is_full(&self) -> bool {
         self.depth() >= self.limit
     }
 
-    /// Queue a newly accepted job, unless the queue is full or closed.
-    pub fn try_push(&self, id: Uuid) -> Result<(), PushError> {
+    /// Queue a newly accepted job in its tenant's line, unless the queue is full or closed.
+    pub fn try_push(&self, id: Uuid, tenant: &str) -> Result<(), PushError> {
         let mut s = lock(&self.state);
         if s.closed {
             return Err(PushError::Closed);
         }
-        if s.pending.len() >= self.limit {
+        if s.len >= self.limit {
             return Err(PushError::Full);
         }
-        s.pending.push_back(id);
+        s.push(id, tenant);
         drop(s);
         self.ready.notify_one();
         Ok(())
     }
 
     /// Queue a job regardless of the limit (jobs recovered at startup: a 202 is a promise).
-    pub fn push(&self, id: Uuid) {
-        lock(&self.state).pending.push_back(id);
+    pub fn push(&self, id: Uuid, tenant: &str) {
+        lock(&self.state).push(id, tenant);
         self.ready.notify_one();
     }
 
     /// Take a cancelled job out of the queue.
     pub fn remove(&self, id: Uuid) -> bool {
-        let mut s = lock(&self.state);
-        let before = s.pending.len();
-        s.pending.retain(|j| *j != id);
-        s.pending.len() != before
+        lock(&self.state).remove(id)
     }
 
     /// Wait for the next job; None once the queue is closed.
@@ -147,7 +199,7 @@ impl JobQueue {
             if s.closed {
                 return None;
             }
-            if let Some(id) = s.pending.pop_front() {
+            if let Some(id) = s.pop() {
                 self.busy.fetch_add(1, Ordering::SeqCst);
                 return Some(id);
             }
@@ -369,6 +421,7 @@ fn settle(
                 "job finished"
             );
             inner.metrics.observe_finished(status, elapsed);
+            super::webhooks::job_ended(inner, id);
         }
         Ok(None) => {}
         Err(e) => tracing::error!(error = %e, "cannot record the job's outcome"),
@@ -608,4 +661,33 @@ fn summarize(report: &Report) -> serde_json::Value {
         }
     }
     serde_json::Value::Object(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tenants_take_turns_and_each_line_keeps_its_order() {
+        let q = JobQueue::new(100);
+        let a: Vec<Uuid> = (0..5).map(|_| Uuid::new_v4()).collect();
+        let b: Vec<Uuid> = (0..2).map(|_| Uuid::new_v4()).collect();
+        for id in &a {
+            q.try_push(*id, "a").unwrap();
+        }
+        for id in &b {
+            q.try_push(*id, "b").unwrap();
+        }
+        assert!(q.remove(a[1]));
+        assert!(!q.remove(a[1]));
+        assert_eq!(q.depth(), 6);
+        let mut order = Vec::new();
+        while q.depth() > 0 {
+            order.push(q.pop().unwrap());
+        }
+        assert_eq!(order, [a[0], b[0], a[2], b[1], a[3], a[4]]);
+        let small = JobQueue::new(1);
+        small.try_push(a[0], "a").unwrap();
+        assert_eq!(small.try_push(b[0], "b"), Err(PushError::Full));
+    }
 }

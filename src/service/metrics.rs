@@ -27,11 +27,14 @@ pub struct Metrics {
     pub rejected_queue_full: AtomicU64,
     /// Images jobs took decoded ahead (during their upload).
     pub prefetched_images: AtomicU64,
+    /// (tenant, limit) → submissions refused with 429.
+    quota_refusals: Mutex<BTreeMap<(String, &'static str), u64>>,
 }
 
 /// Gauges read at scrape time.
 pub struct Snapshot {
     pub jobs_by_status: Vec<(JobStatus, u64)>,
+    pub jobs_by_tenant: Vec<(String, JobStatus, u64)>,
     pub queue_depth: usize,
     pub queue_capacity: usize,
     pub running: usize,
@@ -62,6 +65,12 @@ impl Metrics {
         e.sum += elapsed.as_secs_f64();
     }
 
+    pub fn observe_quota_refusal(&self, tenant: &str, limit: &'static str) {
+        *lock(&self.quota_refusals)
+            .entry((tenant.to_string(), limit))
+            .or_default() += 1;
+    }
+
     pub fn observe_finished(&self, status: JobStatus, elapsed: Duration) {
         let mut m = lock(&self.finished);
         let e = m.entry(status.as_str()).or_default();
@@ -81,6 +90,27 @@ impl Metrics {
                 out,
                 "photostereo_jobs{{status=\"{}\"}} {n}",
                 status.as_str()
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_tenant_jobs Jobs in the repository by tenant and status.\n# TYPE photostereo_tenant_jobs gauge"
+        );
+        for (tenant, status, n) in &snap.jobs_by_tenant {
+            let _ = writeln!(
+                out,
+                "photostereo_tenant_jobs{{tenant=\"{tenant}\",status=\"{}\"}} {n}",
+                status.as_str()
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_tenant_quota_refusals_total Submissions refused (429) by tenant and limit.\n# TYPE photostereo_tenant_quota_refusals_total counter"
+        );
+        for ((tenant, limit), n) in lock(&self.quota_refusals).iter() {
+            let _ = writeln!(
+                out,
+                "photostereo_tenant_quota_refusals_total{{tenant=\"{tenant}\",limit=\"{limit}\"}} {n}"
             );
         }
         let gauges: [(&str, &str, u64); 6] = [

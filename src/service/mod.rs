@@ -18,14 +18,18 @@ pub mod config;
 pub mod error;
 mod events;
 mod health;
+mod idempotency;
 pub mod jobs;
 mod metrics;
 mod openapi;
 mod prefetch;
+mod quota;
 pub mod repo;
 pub mod routes;
+pub mod tenants;
 mod upload;
 mod util;
+mod webhooks;
 
 use std::collections::HashSet;
 use std::future::Future;
@@ -40,8 +44,6 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::http::header;
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
-use sha2::{Digest, Sha256};
-use subtle::ConstantTimeEq;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tower_http::catch_panic::CatchPanicLayer;
@@ -64,6 +66,7 @@ use jobs::JobQueue;
 use metrics::{Metrics, Snapshot};
 use prefetch::{Prefetch, Prefetcher};
 use repo::{JobRepo, JobStatus, RepoResult, SqliteRepo};
+use tenants::{Caller, Keyring};
 use util::now_ms;
 
 /// How often running jobs' heartbeats are written.
@@ -83,6 +86,16 @@ pub(crate) struct Inner {
     /// Uploads' images decoded ahead of their jobs.
     prefetch: Prefetcher,
     metrics: Metrics,
+    /// Webhook signing secrets by tenant.
+    webhook_secrets: std::collections::HashMap<String, Vec<u8>>,
+    /// The job resource as JSON (what webhooks deliver).
+    render_job: fn(repo::JobRecord) -> String,
+    /// Where webhook deliveries run (workers are plain threads).
+    runtime: tokio::runtime::Handle,
+    /// Each tenant's submissions of the last minute.
+    submissions: quota::SubmissionRate,
+    /// The API keys in force (replaced whole when the keys file is re-read).
+    keys: std::sync::RwLock<Arc<Keyring>>,
     shutting_down: AtomicBool,
     stop: watch::Sender<bool>,
     /// One permit per upload being received (`max_uploads`).
@@ -110,6 +123,8 @@ impl AppState {
                 config.data_dir.display()
             )
         })?;
+        let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
+        let webhook_secrets = webhooks::parse_secrets(&config.webhook_secrets)?;
         let data_lock = lock_data_dir(&config.data_dir)?;
         let db = config.data_dir.join("jobs.sqlite");
         let repo = SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?;
@@ -117,6 +132,7 @@ impl AppState {
             .with_context(|| format!("opening {}", config.data_dir.display()))?;
         let (stop, _) = watch::channel(false);
         let config_uploads = config.max_uploads.max(1);
+        let submissions = quota::SubmissionRate::new(config.tenant_submissions_per_minute);
         let inner = Arc::new(Inner {
             jobs: JobQueue::new(config.queue_length),
             prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
@@ -124,6 +140,11 @@ impl AppState {
             repo: Arc::new(repo),
             store: Arc::new(store),
             metrics: Metrics::default(),
+            keys: std::sync::RwLock::new(Arc::new(keys)),
+            submissions,
+            webhook_secrets,
+            render_job: routes::job_json,
+            runtime: tokio::runtime::Handle::current(),
             shutting_down: AtomicBool::new(false),
             stop,
             uploads: Arc::new(tokio::sync::Semaphore::new(config_uploads)),
@@ -201,6 +222,25 @@ impl AppState {
         Ok(tokio::task::spawn_blocking(move || f(&*repo)).await??)
     }
 
+    /// The keys in force.
+    pub(crate) fn keys(&self) -> Arc<Keyring> {
+        self.inner
+            .keys
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Read `--api-key` and the keys file again (what SIGHUP does). On an error the keys
+    /// in force stay; the error names the line at fault.
+    pub fn reload_keys(&self) -> anyhow::Result<usize> {
+        let config = &self.inner.config;
+        let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
+        let n = keys.count();
+        *self.inner.keys.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(keys);
+        Ok(n)
+    }
+
     pub fn is_shutting_down(&self) -> bool {
         self.inner.shutting_down.load(Ordering::SeqCst)
     }
@@ -251,6 +291,76 @@ impl AppState {
 
     pub(crate) fn count_submitted(&self) {
         self.inner.metrics.submitted.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The tenant's quotas before an upload is read: submissions per minute (counting
+    /// this one), jobs queued or running, stored bytes. The insert checks the active
+    /// jobs again ([`Self::over_active_jobs`]), as uploads run concurrently.
+    pub(crate) async fn check_quotas(&self, tenant: &str) -> Result<(), ApiError> {
+        let config = &self.inner.config;
+        if let Err(wait) = self.inner.submissions.admit(tenant) {
+            return Err(self.refuse(
+                tenant,
+                quota::Limit::SubmissionsPerMinute,
+                quota::retry_secs(wait),
+                format!(
+                    "tenant {tenant} has made {} submissions in the last minute (the limit)",
+                    self.inner.submissions.per_minute()
+                ),
+            ));
+        }
+        let t = tenant.to_string();
+        let active = self.repo(move |r| r.active(&t)).await?;
+        if active >= config.tenant_max_jobs as u64 {
+            return Err(self.over_active_jobs(tenant));
+        }
+        let max_bytes = config.tenant_max_stored_bytes;
+        if max_bytes > 0 {
+            let t = tenant.to_string();
+            let stored = self.repo(move |r| r.stored_bytes(&t)).await?;
+            if stored >= max_bytes {
+                return Err(self.refuse(
+                    tenant,
+                    quota::Limit::StoredBytes,
+                    config::RETRY_AFTER_SECS,
+                    format!(
+                        "tenant {tenant} stores {stored} bytes of artifacts, the limit is {max_bytes}: delete finished jobs to make room"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// 429 for a tenant at its limit of jobs queued or running.
+    pub(crate) fn over_active_jobs(&self, tenant: &str) -> ApiError {
+        let max = self.inner.config.tenant_max_jobs;
+        self.refuse(
+            tenant,
+            quota::Limit::ActiveJobs,
+            config::RETRY_AFTER_SECS,
+            format!(
+                "tenant {tenant} has {max} jobs queued or running, the limit; retry when one has finished"
+            ),
+        )
+    }
+
+    fn refuse(&self, tenant: &str, limit: quota::Limit, retry: u64, detail: String) -> ApiError {
+        self.inner
+            .metrics
+            .observe_quota_refusal(tenant, limit.as_str());
+        ApiError::quota_exceeded(retry, detail)
+    }
+
+    /// Whether `tenant` has a webhook secret (callbacks need one).
+    pub(crate) fn has_webhook_secret(&self, tenant: &str) -> bool {
+        self.inner.webhook_secrets.contains_key(tenant)
+    }
+
+    /// A job has ended outside a worker (cancelled while queued): deliver its webhook.
+    pub(crate) fn job_ended(&self, id: Uuid) {
+        let inner = self.inner.clone();
+        tokio::task::spawn_blocking(move || webhooks::job_ended(&inner, id));
     }
 
     pub(crate) fn count_queue_full(&self) {
@@ -336,11 +446,13 @@ impl AppState {
 
     pub(crate) async fn render_metrics(&self) -> Result<String, ApiError> {
         let counts = self.repo(|r| r.counts()).await?;
+        let by_tenant = self.repo(|r| r.counts_by_tenant()).await?;
         let store = self.inner.store.clone();
         let free = tokio::task::spawn_blocking(move || store.free_bytes().ok()).await?;
         let jobs = &self.inner.jobs;
         Ok(self.inner.metrics.render(&Snapshot {
             jobs_by_status: counts,
+            jobs_by_tenant: by_tenant,
             queue_depth: jobs.depth(),
             queue_capacity: jobs.capacity(),
             running: jobs.running(),
@@ -433,7 +545,7 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
             inner.repo.fail_queued(rec.id, &problem, now_ms())?;
             continue;
         }
-        inner.jobs.push(rec.id);
+        inner.jobs.push(rec.id, &rec.tenant);
         queued += 1;
     }
     sweep_expired(inner);
@@ -452,6 +564,10 @@ fn sweep_expired(inner: &Inner) {
             return;
         }
     };
+    let stale = now_ms() - idempotency::WINDOW.as_millis() as i64;
+    if let Err(e) = inner.repo.forget_idempotent(stale) {
+        tracing::warn!(error = %e, "cannot forget old idempotency keys");
+    }
     for id in ids {
         match inner.repo.delete(id) {
             Ok(_) => {
@@ -503,10 +619,7 @@ pub fn openapi_json() -> String {
 /// The whole HTTP app over `state`.
 pub fn router(state: AppState) -> Router {
     let max_body = usize::try_from(state.inner.config.max_body_bytes).unwrap_or(usize::MAX);
-    let api = api_routes().route_layer(middleware::from_fn_with_state(
-        state.clone(),
-        require_api_key,
-    ));
+    let api = api_routes().route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     let (app, _) = api.merge(operations_routes()).split_for_parts();
     app.merge(SwaggerUi::new("/docs").config(utoipa_swagger_ui::Config::new(["/openapi.json"])))
         .route("/", axum::routing::get(app::page))
@@ -560,11 +673,13 @@ fn lock_data_dir(dir: &std::path::Path) -> anyhow::Result<std::fs::File> {
     }
 }
 
-/// `Authorization: Bearer <key>` on the /v1 routes when keys are configured. Keys are
-/// compared in constant time (as digests, so their lengths do not show either).
-async fn require_api_key(State(state): State<AppState>, req: Request, next: Next) -> Response {
-    let keys = &state.inner.config.api_keys;
-    if keys.is_empty() {
+/// `Authorization: Bearer <key>` on the /v1 routes when keys are configured: the key's
+/// [`Caller`] goes into the request's extensions. With no keys, every caller is
+/// [`Caller::open`].
+async fn authenticate(State(state): State<AppState>, mut req: Request, next: Next) -> Response {
+    let keys = state.keys();
+    if keys.is_open() {
+        req.extensions_mut().insert(Caller::open());
         return next.run(req).await;
     }
     let presented = req
@@ -584,19 +699,12 @@ async fn require_api_key(State(state): State<AppState>, req: Request, next: Next
             "this server needs an API key: send Authorization: Bearer <key>",
         );
     };
-    // Compare SHA-256 digests, not the keys: equal-length inputs keep the comparison's
-    // time independent of the configured keys' lengths as well as their bytes.
-    let presented = Sha256::digest(presented.as_bytes());
-    let mut ok = subtle::Choice::from(0u8);
-    for key in keys {
-        ok |= Sha256::digest(key.as_bytes())
-            .as_slice()
-            .ct_eq(presented.as_slice());
-    }
-    if bool::from(ok) {
-        next.run(req).await
-    } else {
-        refuse_unauthorized(&state, req, "the API key is not valid")
+    match keys.find(&presented) {
+        Some(caller) => {
+            req.extensions_mut().insert(caller);
+            next.run(req).await
+        }
+        None => refuse_unauthorized(&state, req, "the API key is not valid"),
     }
 }
 
@@ -679,15 +787,41 @@ pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         .with_context(|| format!("cannot listen on {}", args.listen))?;
     let state = AppState::open(config).await?;
     let addr = listener.local_addr()?;
+    reload_keys_on_hangup(state.clone());
     tracing::info!(
         %addr,
         data_dir = %state.config().data_dir.display(),
         workers = state.config().workers,
         queue_length = state.config().queue_length,
-        api_keys = state.config().api_keys.len(),
+        api_keys = state.keys().count(),
         "photostereo serving; API docs at /docs"
     );
     serve_with(listener, state, shutdown_signal()).await
+}
+
+/// SIGHUP re-reads the keys file without a restart. The handler is installed before
+/// this returns, so from then on a SIGHUP never takes its default action (exit).
+fn reload_keys_on_hangup(state: AppState) {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{SignalKind, signal};
+        let Ok(mut hangup) = signal(SignalKind::hangup()) else {
+            tracing::warn!("cannot handle SIGHUP; the keys file is read at start only");
+            return;
+        };
+        tokio::spawn(async move {
+            while hangup.recv().await.is_some() {
+                match state.reload_keys() {
+                    Ok(n) => tracing::info!(api_keys = n, "API keys re-read"),
+                    Err(e) => {
+                        tracing::error!(error = %e, "API keys not re-read; the previous keys stay")
+                    }
+                }
+            }
+        });
+    }
+    #[cfg(not(unix))]
+    let _ = state;
 }
 
 fn init_tracing(format: LogFormat) {

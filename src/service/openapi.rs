@@ -18,7 +18,7 @@ use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
     info(
         title = "photostereo",
         version = "1",
-        description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`."
+        description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`. Each key belongs to a tenant: a tenant sees and manages only its own jobs (another tenant's job is answered exactly like one that does not exist, 404), and a key with the admin role sees all. Each tenant has quotas (jobs queued or running, submissions per minute, stored bytes), answered with 429 and Retry-After; the queue serves tenants in turn."
     ),
     components(schemas(Problem, JobStatus, JobView, JobList, ResultSummary, Health, ImageFile)),
     modifiers(&BearerScheme),
@@ -41,7 +41,7 @@ impl Modify for BearerScheme {
                     HttpBuilder::new()
                         .scheme(HttpAuthScheme::Bearer)
                         .description(Some(
-                            "An API key from the server's --api-key / PHOTOSTEREO_API_KEYS (only when keys are configured)",
+                            "An API key from the server's --api-key (tenant:secret) or --api-keys-file (tenant secret [role]); only when keys are configured. The key decides the tenant whose jobs the request sees; the admin role sees all.",
                         ))
                         .build(),
                 ),

@@ -76,6 +76,8 @@ pub struct ArtifactInfo {
 #[derive(Debug, Clone, PartialEq)]
 pub struct JobRecord {
     pub id: Uuid,
+    /// The tenant that created it (the name, never a key).
+    pub tenant: String,
     pub status: JobStatus,
     pub stage: Option<String>,
     pub progress: f64,
@@ -92,13 +94,21 @@ pub struct JobRecord {
     /// The result summary (from the pipeline's report) once succeeded.
     pub result: Option<serde_json::Value>,
     pub artifacts: Vec<ArtifactInfo>,
+    pub callback: Option<Callback>,
 }
 
 impl JobRecord {
     /// A freshly accepted job.
-    pub fn new_queued(id: Uuid, now: i64, image_count: u32, options: serde_json::Value) -> Self {
+    pub fn new_queued(
+        id: Uuid,
+        tenant: &str,
+        now: i64,
+        image_count: u32,
+        options: serde_json::Value,
+    ) -> Self {
         Self {
             id,
+            tenant: tenant.to_string(),
             status: JobStatus::Queued,
             stage: None,
             progress: 0.0,
@@ -112,8 +122,54 @@ impl JobRecord {
             error: None,
             result: None,
             artifacts: Vec::new(),
+            callback: None,
         }
     }
+}
+
+/// Where a job's end is POSTed, and how that went.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct Callback {
+    /// The job's `callback_url`.
+    pub url: String,
+    pub state: CallbackState,
+    /// Every delivery attempt, oldest first.
+    pub attempts: Vec<CallbackAttempt>,
+}
+
+/// `pending` until the job ends and a delivery is answered with 2xx (`delivered`), or the
+/// retries run out (`failed`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum CallbackState {
+    Pending,
+    Delivered,
+    Failed,
+}
+
+/// One delivery attempt.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct CallbackAttempt {
+    /// RFC 3339.
+    pub at: String,
+    /// The receiver's HTTP status, when it answered.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub status: Option<u16>,
+    /// Why there was no answer (connection refused, time-out, host not allowed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// The answer to a request with an `Idempotency-Key` (see `idempotency`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Remembered {
+    /// Hash of the request's parts.
+    pub body_hash: String,
+    pub status: u16,
+    pub body: String,
+    pub location: Option<String>,
+    /// Milliseconds since the Unix epoch.
+    pub created_at: i64,
 }
 
 /// How a running job ended.
@@ -148,10 +204,22 @@ pub type RepoResult<T> = Result<T, RepoError>;
 /// Durable job records. Every state change is conditional on the state it leaves, so a
 /// worker and a `DELETE` racing on one job cannot both win.
 pub trait JobRepo: Send + Sync + 'static {
-    fn insert(&self, job: &JobRecord) -> RepoResult<()>;
+    /// Record a new job unless its tenant already has `max_active` jobs queued or running
+    /// (false then); the count and the insert are one step.
+    fn insert(&self, job: &JobRecord, max_active: usize) -> RepoResult<bool>;
+    /// Jobs of `tenant` queued or running.
+    fn active(&self, tenant: &str) -> RepoResult<u64>;
+    /// Artifact bytes the jobs of `tenant` hold.
+    fn stored_bytes(&self, tenant: &str) -> RepoResult<u64>;
     fn get(&self, id: Uuid) -> RepoResult<Option<JobRecord>>;
-    /// Newest first; `before` is the (created_at, id) of the last job of the previous page.
-    fn list(&self, limit: usize, before: Option<(i64, Uuid)>) -> RepoResult<Vec<JobRecord>>;
+    /// Newest first, of one tenant or (None) all; `before` is the (created_at, id) of the
+    /// last job of the previous page.
+    fn list(
+        &self,
+        tenant: Option<&str>,
+        limit: usize,
+        before: Option<(i64, Uuid)>,
+    ) -> RepoResult<Vec<JobRecord>>;
     /// Queued and running jobs, oldest first (for the queue at startup).
     fn unfinished(&self) -> RepoResult<Vec<JobRecord>>;
     /// queued → running; counts an attempt. False when the job is no longer queued.
@@ -174,7 +242,31 @@ pub trait JobRepo: Send + Sync + 'static {
     /// Finished jobs whose `finished_at` is before `before`.
     fn expired(&self, before: i64, limit: usize) -> RepoResult<Vec<Uuid>>;
     fn counts(&self) -> RepoResult<Vec<(JobStatus, u64)>>;
+    /// Jobs by tenant and status (only the pairs that have any).
+    fn counts_by_tenant(&self) -> RepoResult<Vec<(String, JobStatus, u64)>>;
     fn ids(&self) -> RepoResult<Vec<Uuid>>;
+    /// The answer remembered for (`tenant`, `scope`, `key`) at or after `since`.
+    fn idempotent(
+        &self,
+        tenant: &str,
+        scope: &str,
+        key: &str,
+        since: i64,
+    ) -> RepoResult<Option<Remembered>>;
+    /// Remember an answer, unless one made at or after `since` is already remembered
+    /// for the key: that one is returned and nothing is changed.
+    fn remember(
+        &self,
+        tenant: &str,
+        scope: &str,
+        key: &str,
+        answer: &Remembered,
+        since: i64,
+    ) -> RepoResult<Option<Remembered>>;
+    /// Forget answers made before `before`.
+    fn forget_idempotent(&self, before: i64) -> RepoResult<usize>;
+    /// Record a job's callback state.
+    fn set_callback(&self, id: Uuid, callback: &Callback) -> RepoResult<()>;
     /// Cheap round trip for readiness checks.
     fn ping(&self) -> RepoResult<()>;
 }
@@ -200,6 +292,24 @@ const MIGRATIONS: &[&str] = &[
     );
     CREATE INDEX jobs_by_created ON jobs (created_at DESC, id DESC);
     CREATE INDEX jobs_by_status ON jobs (status, finished_at);",
+    // 2: jobs belong to tenants; those recorded before belong to the open API's tenant.
+    "ALTER TABLE jobs ADD COLUMN tenant TEXT NOT NULL DEFAULT 'default';
+    CREATE INDEX jobs_by_tenant ON jobs (tenant, created_at DESC, id DESC);",
+    // 3: answers to requests with an Idempotency-Key.
+    "CREATE TABLE idempotency (
+        tenant     TEXT NOT NULL,
+        scope      TEXT NOT NULL,
+        key        TEXT NOT NULL,
+        body_hash  TEXT NOT NULL,
+        status     INTEGER NOT NULL,
+        body       TEXT NOT NULL,
+        location   TEXT,
+        created_at INTEGER NOT NULL,
+        PRIMARY KEY (tenant, scope, key)
+    );
+    CREATE INDEX idempotency_by_age ON idempotency (created_at);",
+    // 4: jobs' webhooks.
+    "ALTER TABLE jobs ADD COLUMN callback TEXT;",
 ];
 
 /// [`JobRepo`] in a SQLite database file.
@@ -208,7 +318,7 @@ pub struct SqliteRepo {
 }
 
 const COLUMNS: &str = "id, status, stage, progress, created_at, started_at, finished_at, \
-     heartbeat_at, attempts, image_count, options, error, result, artifacts";
+     heartbeat_at, attempts, image_count, options, error, result, artifacts, tenant, callback";
 
 impl SqliteRepo {
     /// Open (creating if needed) and migrate the database at `path`.
@@ -264,6 +374,8 @@ fn read_record(row: &Row<'_>) -> rusqlite::Result<RawRecord> {
         error: row.get(11)?,
         result: row.get(12)?,
         artifacts: row.get(13)?,
+        tenant: row.get(14)?,
+        callback: row.get(15)?,
     })
 }
 
@@ -282,6 +394,8 @@ struct RawRecord {
     error: Option<String>,
     result: Option<String>,
     artifacts: Option<String>,
+    tenant: String,
+    callback: Option<String>,
 }
 
 impl RawRecord {
@@ -292,6 +406,7 @@ impl RawRecord {
             .ok_or_else(|| RepoError(format!("stored status {:?} of {id}", self.status)))?;
         Ok(JobRecord {
             id,
+            tenant: self.tenant,
             status,
             stage: self.stage,
             progress: self.progress,
@@ -309,8 +424,37 @@ impl RawRecord {
                 .map(|a| serde_json::from_str(&a))
                 .transpose()?
                 .unwrap_or_default(),
+            callback: self
+                .callback
+                .map(|c| serde_json::from_str(&c))
+                .transpose()?,
         })
     }
+}
+
+fn read_remembered(
+    conn: &Connection,
+    tenant: &str,
+    scope: &str,
+    key: &str,
+    since: i64,
+) -> RepoResult<Option<Remembered>> {
+    Ok(conn
+        .query_row(
+            "SELECT body_hash, status, body, location, created_at FROM idempotency \
+             WHERE tenant = ?1 AND scope = ?2 AND key = ?3 AND created_at >= ?4",
+            params![tenant, scope, key, since],
+            |r| {
+                Ok(Remembered {
+                    body_hash: r.get(0)?,
+                    status: r.get(1)?,
+                    body: r.get(2)?,
+                    location: r.get(3)?,
+                    created_at: r.get(4)?,
+                })
+            },
+        )
+        .optional()?)
 }
 
 fn query_records(
@@ -328,14 +472,23 @@ fn query_records(
 }
 
 impl JobRepo for SqliteRepo {
-    fn insert(&self, job: &JobRecord) -> RepoResult<()> {
+    fn insert(&self, job: &JobRecord, max_active: usize) -> RepoResult<bool> {
         let options = serde_json::to_string(&job.options)?;
         let error = job.error.as_ref().map(serde_json::to_string).transpose()?;
         let result = job.result.as_ref().map(serde_json::to_string).transpose()?;
         let artifacts = serde_json::to_string(&job.artifacts)?;
+        let callback = job
+            .callback
+            .as_ref()
+            .map(serde_json::to_string)
+            .transpose()?;
         self.with(|c| {
             c.execute(
-                &format!("INSERT INTO jobs ({COLUMNS}) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14)"),
+                &format!(
+                    "INSERT INTO jobs ({COLUMNS}) SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, \
+                     ?10, ?11, ?12, ?13, ?14, ?15, ?17 WHERE (SELECT COUNT(*) FROM jobs \
+                     WHERE tenant = ?15 AND status IN ('queued', 'running')) < ?16"
+                ),
                 params![
                     job.id.to_string(),
                     job.status.as_str(),
@@ -351,9 +504,35 @@ impl JobRepo for SqliteRepo {
                     error,
                     result,
                     artifacts,
+                    job.tenant,
+                    max_active as i64,
+                    callback,
                 ],
-            )?;
-            Ok(())
+            )
+            .map(|n| n == 1)
+            .map_err(RepoError::from)
+        })
+    }
+
+    fn active(&self, tenant: &str) -> RepoResult<u64> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT COUNT(*) FROM jobs WHERE tenant = ?1 AND status IN ('queued', 'running')",
+                params![tenant],
+                |r| r.get::<_, i64>(0),
+            )? as u64)
+        })
+    }
+
+    fn stored_bytes(&self, tenant: &str) -> RepoResult<u64> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT COALESCE(SUM(json_extract(a.value, '$.bytes')), 0) \
+                 FROM jobs, json_each(jobs.artifacts) AS a \
+                 WHERE jobs.tenant = ?1 AND jobs.artifacts IS NOT NULL",
+                params![tenant],
+                |r| r.get::<_, i64>(0),
+            )? as u64)
         })
     }
 
@@ -370,22 +549,26 @@ impl JobRepo for SqliteRepo {
         })
     }
 
-    fn list(&self, limit: usize, before: Option<(i64, Uuid)>) -> RepoResult<Vec<JobRecord>> {
+    fn list(
+        &self,
+        tenant: Option<&str>,
+        limit: usize,
+        before: Option<(i64, Uuid)>,
+    ) -> RepoResult<Vec<JobRecord>> {
         let limit = limit as i64;
-        self.with(|c| match before {
-            None => query_records(
-                c,
-                &format!("SELECT {COLUMNS} FROM jobs ORDER BY created_at DESC, id DESC LIMIT ?1"),
-                params![limit],
-            ),
-            Some((at, id)) => query_records(
+        // No cursor and a NULL tenant are conditions too, so one statement serves every case.
+        let first = before.is_none();
+        let (at, id) = before.map_or((0, String::new()), |(at, id)| (at, id.to_string()));
+        self.with(|c| {
+            query_records(
                 c,
                 &format!(
-                    "SELECT {COLUMNS} FROM jobs WHERE (created_at, id) < (?1, ?2) \
-                     ORDER BY created_at DESC, id DESC LIMIT ?3"
+                    "SELECT {COLUMNS} FROM jobs WHERE (?1 IS NULL OR tenant = ?1) \
+                     AND (?2 OR (created_at, id) < (?3, ?4)) \
+                     ORDER BY created_at DESC, id DESC LIMIT ?5"
                 ),
-                params![at, id.to_string(), limit],
-            ),
+                params![tenant, first, at, id, limit],
+            )
         })
     }
 
@@ -555,6 +738,28 @@ impl JobRepo for SqliteRepo {
         })
     }
 
+    fn counts_by_tenant(&self) -> RepoResult<Vec<(String, JobStatus, u64)>> {
+        self.with(|c| {
+            let mut stmt = c.prepare_cached(
+                "SELECT tenant, status, COUNT(*) FROM jobs GROUP BY tenant, status \
+                 ORDER BY tenant, status",
+            )?;
+            let rows = stmt
+                .query_map([], |r| {
+                    Ok((
+                        r.get::<_, String>(0)?,
+                        r.get::<_, String>(1)?,
+                        r.get::<_, i64>(2)?,
+                    ))
+                })?
+                .collect::<Result<Vec<_>, _>>()?;
+            Ok(rows
+                .into_iter()
+                .filter_map(|(t, s, n)| Some((t, JobStatus::parse(&s)?, n as u64)))
+                .collect())
+        })
+    }
+
     fn ids(&self) -> RepoResult<Vec<Uuid>> {
         self.with(|c| {
             let mut stmt = c.prepare_cached("SELECT id FROM jobs")?;
@@ -562,6 +767,69 @@ impl JobRepo for SqliteRepo {
                 .query_map([], |r| r.get::<_, String>(0))?
                 .collect::<Result<Vec<_>, _>>()?;
             Ok(ids.iter().filter_map(|s| Uuid::parse_str(s).ok()).collect())
+        })
+    }
+
+    fn idempotent(
+        &self,
+        tenant: &str,
+        scope: &str,
+        key: &str,
+        since: i64,
+    ) -> RepoResult<Option<Remembered>> {
+        self.with(|c| read_remembered(c, tenant, scope, key, since))
+    }
+
+    fn remember(
+        &self,
+        tenant: &str,
+        scope: &str,
+        key: &str,
+        answer: &Remembered,
+        since: i64,
+    ) -> RepoResult<Option<Remembered>> {
+        self.with(|c| {
+            let tx = c.transaction()?;
+            if let Some(earlier) = read_remembered(&tx, tenant, scope, key, since)? {
+                return Ok(Some(earlier));
+            }
+            tx.execute(
+                "INSERT OR REPLACE INTO idempotency \
+                 (tenant, scope, key, body_hash, status, body, location, created_at) \
+                 VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+                params![
+                    tenant,
+                    scope,
+                    key,
+                    answer.body_hash,
+                    answer.status,
+                    answer.body,
+                    answer.location,
+                    answer.created_at
+                ],
+            )?;
+            tx.commit()?;
+            Ok(None)
+        })
+    }
+
+    fn forget_idempotent(&self, before: i64) -> RepoResult<usize> {
+        self.with(|c| {
+            Ok(c.execute(
+                "DELETE FROM idempotency WHERE created_at < ?1",
+                params![before],
+            )?)
+        })
+    }
+
+    fn set_callback(&self, id: Uuid, callback: &Callback) -> RepoResult<()> {
+        let text = serde_json::to_string(callback)?;
+        self.with(|c| {
+            c.execute(
+                "UPDATE jobs SET callback = ?2 WHERE id = ?1",
+                params![id.to_string(), text],
+            )?;
+            Ok(())
         })
     }
 
@@ -589,8 +857,13 @@ mod tests {
     fn lifecycle_and_races() {
         let (_dir, repo) = repo();
         let id = Uuid::new_v4();
-        repo.insert(&JobRecord::new_queued(id, 1000, 4, serde_json::json!({})))
-            .unwrap();
+        assert!(
+            repo.insert(
+                &JobRecord::new_queued(id, "t", 1000, 4, serde_json::json!({})),
+                9
+            )
+            .unwrap()
+        );
         assert!(repo.start(id, 2000).unwrap());
         assert!(!repo.start(id, 2001).unwrap(), "only a queued job starts");
         repo.progress(id, "solve", 0.25, 2100).unwrap();
@@ -618,19 +891,23 @@ mod tests {
         for i in 0..7 {
             let id = Uuid::new_v4();
             // Two jobs per millisecond: the id breaks ties.
-            repo.insert(&JobRecord::new_queued(
-                id,
-                100 + i / 2,
-                3,
-                serde_json::json!({}),
-            ))
+            repo.insert(
+                &JobRecord::new_queued(
+                    id,
+                    if i % 3 == 0 { "a" } else { "b" },
+                    100 + i / 2,
+                    3,
+                    serde_json::json!({}),
+                ),
+                100,
+            )
             .unwrap();
             ids.push(id);
         }
         let mut seen = Vec::new();
         let mut cursor = None;
         loop {
-            let page = repo.list(3, cursor).unwrap();
+            let page = repo.list(None, 3, cursor).unwrap();
             if page.is_empty() {
                 break;
             }
@@ -644,6 +921,19 @@ mod tests {
         );
         let counts = repo.counts().unwrap();
         assert_eq!(counts[0], (JobStatus::Queued, 7));
+        // One tenant's pages hold only its jobs, in the same order.
+        let a = repo.list(Some("a"), 2, None).unwrap();
+        let rest = repo
+            .list(Some("a"), 2, a.last().map(|r| (r.created_at, r.id)))
+            .unwrap();
+        let theirs: Vec<Uuid> = seen
+            .iter()
+            .filter(|r| r.tenant == "a")
+            .map(|r| r.id)
+            .collect();
+        let paged: Vec<Uuid> = a.iter().chain(&rest).map(|r| r.id).collect();
+        assert_eq!(paged, theirs);
+        assert_eq!(theirs.len(), 3);
     }
 
     #[test]
@@ -653,17 +943,103 @@ mod tests {
         let id = Uuid::new_v4();
         {
             let repo = SqliteRepo::open(&path).unwrap();
-            repo.insert(&JobRecord::new_queued(
-                id,
-                5,
-                3,
-                serde_json::json!({"solver": "l2"}),
-            ))
+            repo.insert(
+                &JobRecord::new_queued(id, "t", 5, 3, serde_json::json!({"solver": "l2"})),
+                100,
+            )
             .unwrap();
         }
         let repo = SqliteRepo::open(&path).unwrap();
         let rec = repo.get(id).unwrap().unwrap();
         assert_eq!(rec.options, serde_json::json!({"solver": "l2"}));
         assert_eq!(repo.unfinished().unwrap().len(), 1);
+    }
+
+    #[test]
+    fn a_tenant_past_its_active_jobs_is_not_recorded() {
+        let (_dir, repo) = repo();
+        let job = |t: &str| JobRecord::new_queued(Uuid::new_v4(), t, 1, 1, serde_json::json!({}));
+        let (first, second) = (job("a"), job("a"));
+        assert!(repo.insert(&first, 2).unwrap());
+        assert!(repo.insert(&second, 2).unwrap());
+        assert!(!repo.insert(&job("a"), 2).unwrap(), "a has 2 active");
+        assert!(
+            repo.insert(&job("b"), 2).unwrap(),
+            "b is not counted with a"
+        );
+        assert_eq!(repo.active("a").unwrap(), 2);
+        // A finished job no longer counts, but its artifacts are stored bytes.
+        assert!(repo.start(first.id, 2).unwrap());
+        let artifact = |name: &str, bytes| ArtifactInfo {
+            name: name.into(),
+            bytes,
+            etag: "\"x\"".into(),
+        };
+        let done = Finish::Succeeded {
+            result: serde_json::json!({}),
+            artifacts: vec![artifact("albedo.png", 1000), artifact("mesh.glb", 234)],
+        };
+        assert!(repo.finish(first.id, &done, 3).unwrap());
+        assert_eq!(repo.active("a").unwrap(), 1);
+        assert!(repo.insert(&job("a"), 2).unwrap());
+        assert_eq!(repo.stored_bytes("a").unwrap(), 1234);
+        assert_eq!(repo.stored_bytes("b").unwrap(), 0);
+        let by_tenant = repo.counts_by_tenant().unwrap();
+        assert!(by_tenant.contains(&("a".into(), JobStatus::Queued, 2)));
+        assert!(by_tenant.contains(&("a".into(), JobStatus::Succeeded, 1)));
+        assert!(by_tenant.contains(&("b".into(), JobStatus::Queued, 1)));
+    }
+
+    #[test]
+    fn jobs_recorded_before_tenants_belong_to_the_default_tenant() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("jobs.sqlite");
+        {
+            let conn = Connection::open(&path).unwrap();
+            conn.execute_batch(MIGRATIONS[0]).unwrap();
+            conn.pragma_update(None, "user_version", 1).unwrap();
+            conn.execute(
+                "INSERT INTO jobs (id, status, created_at, options) VALUES (?1, 'queued', 1, '{}')",
+                params![Uuid::nil().to_string()],
+            )
+            .unwrap();
+        }
+        let repo = SqliteRepo::open(&path).unwrap();
+        let rec = repo.get(Uuid::nil()).unwrap().unwrap();
+        assert_eq!(rec.tenant, super::super::tenants::OPEN_TENANT);
+        assert_eq!(repo.list(Some("default"), 5, None).unwrap().len(), 1);
+    }
+
+    #[test]
+    fn idempotent_answers_are_kept_per_tenant_and_key_for_the_window() {
+        let (_dir, repo) = repo();
+        let answer = |hash: &str, at| Remembered {
+            body_hash: hash.into(),
+            status: 202,
+            body: format!("{{\"h\":\"{hash}\"}}"),
+            location: Some("/v1/jobs/x".into()),
+            created_at: at,
+        };
+        let first = answer("h1", 100);
+        assert_eq!(repo.remember("a", "jobs", "k", &first, 0).unwrap(), None);
+        // A second answer for the same key does not replace the first.
+        assert_eq!(
+            repo.remember("a", "jobs", "k", &answer("h2", 150), 0)
+                .unwrap(),
+            Some(first.clone())
+        );
+        assert_eq!(
+            repo.idempotent("a", "jobs", "k", 0).unwrap(),
+            Some(first.clone())
+        );
+        assert_eq!(repo.idempotent("b", "jobs", "k", 0).unwrap(), None);
+        assert_eq!(repo.idempotent("a", "calibrations", "k", 0).unwrap(), None);
+        // Past the window the key is free again.
+        assert_eq!(repo.idempotent("a", "jobs", "k", 101).unwrap(), None);
+        let later = answer("h3", 300);
+        assert_eq!(repo.remember("a", "jobs", "k", &later, 101).unwrap(), None);
+        assert_eq!(repo.idempotent("a", "jobs", "k", 101).unwrap(), Some(later));
+        assert_eq!(repo.forget_idempotent(301).unwrap(), 1);
+        assert_eq!(repo.idempotent("a", "jobs", "k", 0).unwrap(), None);
     }
 }

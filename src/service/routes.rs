@@ -19,10 +19,13 @@ use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
 use super::error::{ApiError, PROBLEM_JSON, Problem};
+use super::idempotency::{self, PartHasher};
 use super::jobs::PushError;
-use super::repo::{JobRecord, JobStatus};
+use super::repo::{Callback, CallbackState, JobRecord, JobStatus, Remembered};
+use super::tenants::Caller;
 use super::upload;
 use super::util::{format_duration, now_ms, rfc3339, strong_etag};
+use super::webhooks;
 
 /// Cache lifetime of stored artifacts (they never change once a job has succeeded).
 const IMMUTABLE: &str = "private, max-age=31536000, immutable";
@@ -35,6 +38,9 @@ pub struct JobView {
     /// The job's id (a random UUID).
     pub id: Uuid,
     pub status: JobStatus,
+    /// The tenant that submitted it (`default` when the server has no API keys).
+    #[schema(example = "alice")]
+    pub tenant: String,
     /// The stage reached: decode, solve, mask, integrate, outputs or mesh (null before a
     /// worker starts it).
     #[schema(example = "solve")]
@@ -65,6 +71,10 @@ pub struct JobView {
     #[serde(skip_serializing_if = "Option::is_none")]
     #[schema(example = json!({"albedo.png": "/v1/jobs/0b6f2a43-3c1e-4c51-9d1e-6c9f3a7d2e10/artifacts/albedo.png"}))]
     pub artifacts: Option<BTreeMap<String, String>>,
+    /// The webhook, when the job was submitted with a `callback_url`: its state and
+    /// every delivery attempt.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub callback: Option<Callback>,
     /// This resource's URL.
     pub url: String,
 }
@@ -134,6 +144,11 @@ pub struct JobUpload {
     /// `light_directions.csv`, at its top or inside one folder.
     #[schema(value_type = String, content_media_type = "application/zip", required = false)]
     archive: Option<Vec<u8>>,
+    /// Optional webhook: an `http://` URL on the server's allow-list that the job resource
+    /// is POSTed to when the job ends, signed with the tenant's webhook secret
+    /// (`Webhook-Timestamp`, `Webhook-Signature: v1=<hex HMAC-SHA256 of "timestamp.body">`).
+    #[schema(value_type = String, required = false)]
+    callback_url: Option<String>,
 }
 
 /// An image file: PNG, BMP, JPEG or TIFF (8 or 16 bits) or OpenEXR (32-bit float), gray or colour.
@@ -214,6 +229,7 @@ impl JobView {
         Self {
             id: r.id,
             status: r.status,
+            tenant: r.tenant,
             stage: r.stage,
             progress: if succeeded { 1.0 } else { r.progress },
             created_at: rfc3339(r.created_at),
@@ -236,16 +252,37 @@ impl JobView {
                     .map(|a| (a.name.clone(), format!("{url}/artifacts/{}", a.name)))
                     .collect()
             }),
+            callback: r.callback,
             url,
         }
     }
 }
 
-pub(super) async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, ApiError> {
+/// The job resource as JSON, as `GET /v1/jobs/{id}` answers it (what webhooks deliver).
+pub(crate) fn job_json(r: JobRecord) -> String {
+    serde_json::to_string(&JobView::from_record(r)).unwrap_or_default()
+}
+
+/// The job `id` if the caller may see it. Every route that names a job goes through here:
+/// another tenant's job gets exactly the answer of an id that never existed.
+pub(crate) async fn owned_job(
+    state: &AppState,
+    caller: &Caller,
+    id: Uuid,
+) -> Result<JobRecord, ApiError> {
     state
         .repo(move |r| r.get(id))
         .await?
+        .filter(|job| caller.sees(&job.tenant))
         .ok_or_else(|| ApiError::not_found(format!("there is no job {id}")))
+}
+
+/// The request id (set by the request-id layer) for the audit log.
+fn request_id(headers: &HeaderMap) -> &str {
+    headers
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("-")
 }
 
 /// Submit a reconstruction job.
@@ -259,15 +296,20 @@ pub(super) async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, Ap
     path = "/v1/jobs",
     tag = "jobs",
     request_body(content = inline(JobUpload), content_type = "multipart/form-data"),
+    params(
+        ("Idempotency-Key" = Option<String>, Header, description = "1 to 255 visible ASCII characters. The same key and the same parts from the same tenant within 24 hours get the first answer again (same status and body) instead of a new job; the same key with different parts is 422. Kept across restarts."),
+    ),
     responses(
-        (status = 202, description = "Accepted and queued", body = JobView,
+        (status = 202, description = "Accepted and queued (or, for a repeated Idempotency-Key, the first request's answer)", body = JobView,
             headers(("Location" = String, description = "The job's URL"))),
         (status = 400, description = "Not multipart, or parts missing, repeated or unknown", body = Problem, content_type = "application/problem+json"),
         (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
         (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body, image, part count, image count, the set's pixels or archive over a limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "An image (or archive) in an unsupported format", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "Invalid light table, options, names, sizes or archive layout", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "Invalid light table, options, names, sizes or archive layout; a callback_url off the allow-list or not http://, or for a tenant without a webhook secret; an Idempotency-Key already used for a different request", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "A quota of the caller's tenant is reached (the detail names it): jobs queued or running at once, submissions per minute, or stored bytes; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 503, description = "The queue is full, the most uploads at once are under way, or the service is stopping: retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 507, description = "Not enough free disk space", body = Problem, content_type = "application/problem+json"),
@@ -276,11 +318,12 @@ pub(super) async fn load_job(state: &AppState, id: Uuid) -> Result<JobRecord, Ap
 )]
 pub async fn create_job(
     State(state): State<AppState>,
+    caller: Caller,
     request: Request,
 ) -> Result<Response, ApiError> {
     let (parts, body) = request.into_parts();
     let tap = upload::BodyTap::new(body, state.config().max_body_bytes);
-    let answer = accept_job(&state, parts, &tap).await;
+    let answer = accept_job(&state, &caller, parts, &tap).await;
     if answer.is_err() {
         // Answer now, and read what the client is still sending in the background (a
         // lingering close), so that it gets to read the refusal.
@@ -291,10 +334,13 @@ pub async fn create_job(
 
 async fn accept_job(
     state: &AppState,
+    caller: &Caller,
     parts: Parts,
     tap: &upload::BodyTap,
 ) -> Result<Response, ApiError> {
     let config = state.config();
+    let request_id = request_id(&parts.headers).to_string();
+    let idempotency_key = idempotency::key_from(&parts.headers)?;
     if state.is_shutting_down() {
         return Err(ApiError::unavailable(
             super::config::RETRY_AFTER_SECS,
@@ -330,15 +376,30 @@ async fn accept_job(
             ),
         ));
     };
-    if state.jobs().is_full() {
-        state.count_queue_full();
-        return Err(queue_full(state));
+    // A retry is answered as the first request was, whatever the queue and quotas say now.
+    let since = now_ms() - idempotency::WINDOW.as_millis() as i64;
+    let earlier = match idempotency_key.clone() {
+        Some(key) => {
+            let tenant = caller.tenant.clone();
+            state
+                .repo(move |r| r.idempotent(&tenant, JOBS_SCOPE, &key, since))
+                .await?
+        }
+        None => None,
+    };
+    if earlier.is_none() {
+        if state.jobs().is_full() {
+            state.count_queue_full();
+            return Err(queue_full(state));
+        }
+        state.check_quotas(&caller.tenant).await?;
     }
 
     let id = Uuid::new_v4();
     let mut staging = state.stage_upload(id).await?;
     // Dropped with its decoded images on any refusal below.
-    let prefetch = state.begin_prefetch();
+    let prefetch = earlier.is_none().then(|| state.begin_prefetch()).flatten();
+    let mut hash = PartHasher::new(idempotency_key.is_some());
     let received = tokio::time::timeout(
         config.upload_timeout,
         upload::receive(
@@ -347,6 +408,7 @@ async fn accept_job(
             &mut multipart,
             tap,
             prefetch.as_ref(),
+            &mut hash,
         ),
     )
     .await
@@ -356,16 +418,67 @@ async fn accept_job(
             format_duration(config.upload_timeout)
         ))
     })??;
+    let body_hash = hash.finish().unwrap_or_default();
+    if let Some(earlier) = &earlier {
+        return idempotency::replay(earlier, &body_hash);
+    }
+    let callback = match &received.callback_url {
+        Some(url) => {
+            webhooks::check_url(url, &config.webhook_allow_hosts)?;
+            if !state.has_webhook_secret(&caller.tenant) {
+                return Err(ApiError::invalid(format!(
+                    "callback_url: tenant {} has no webhook secret on this server (--webhook-secret), so its callbacks could not be signed",
+                    caller.tenant
+                )));
+            }
+            Some(Callback {
+                url: url.clone(),
+                state: CallbackState::Pending,
+                attempts: Vec::new(),
+            })
+        }
+        None => None,
+    };
     staging.commit().await?;
 
-    let record = JobRecord::new_queued(id, now_ms(), received.image_count as u32, received.options);
+    let mut record = JobRecord::new_queued(
+        id,
+        &caller.tenant,
+        now_ms(),
+        received.image_count as u32,
+        received.options,
+    );
+    record.callback = callback;
     let stored = record.clone();
-    state.repo(move |r| r.insert(&stored)).await?;
+    let max_active = config.tenant_max_jobs;
+    if !state.repo(move |r| r.insert(&stored, max_active)).await? {
+        return Err(state.over_active_jobs(&caller.tenant));
+    }
+    let view = JobView::from_record(record.clone());
+    let answer = Remembered {
+        body_hash,
+        status: StatusCode::ACCEPTED.as_u16(),
+        body: serde_json::to_string(&view)
+            .map_err(|e| ApiError::internal(format!("job view: {e}")))?,
+        location: Some(view.url.clone()),
+        created_at: record.created_at,
+    };
+    if let Some(key) = idempotency_key {
+        let (tenant, remembered) = (caller.tenant.clone(), answer.clone());
+        let raced = state
+            .repo(move |r| r.remember(&tenant, JOBS_SCOPE, &key, &remembered, since))
+            .await?;
+        // A concurrent request with the same key got there first: this job never was.
+        if let Some(first) = raced {
+            state.repo(move |r| r.delete(id)).await?;
+            return idempotency::replay(&first, &answer.body_hash);
+        }
+    }
     // Parked before the job is queued, so that its worker finds it.
     if let Some(set) = prefetch {
         state.park_prefetch(id, set);
     }
-    match state.jobs().try_push(id) {
+    match state.jobs().try_push(id, &caller.tenant) {
         Ok(()) => {}
         // Stopping: the job stays queued in the repo and runs at the next start (which
         // decodes from disk).
@@ -379,15 +492,20 @@ async fn accept_job(
     }
     staging.keep();
     state.count_submitted();
-    tracing::info!(job = %id, images = record.image_count, "job accepted");
-    let view = JobView::from_record(record);
-    Ok((
-        StatusCode::ACCEPTED,
-        [(header::LOCATION, view.url.clone())],
-        Json(view),
-    )
-        .into_response())
+    tracing::info!(
+        target: "audit",
+        action = "create",
+        tenant = %caller.tenant,
+        job = %id,
+        request_id = %request_id,
+        images = record.image_count,
+        "job accepted"
+    );
+    Ok(idempotency::answer(&answer))
 }
+
+/// The `Idempotency-Key` scope of `POST /v1/jobs`.
+const JOBS_SCOPE: &str = "jobs";
 
 fn queue_full(state: &AppState) -> ApiError {
     ApiError::queue_full(
@@ -414,12 +532,15 @@ fn queue_full(state: &AppState) -> ApiError {
 )]
 pub async fn get_job(
     State(state): State<AppState>,
+    caller: Caller,
     JobId(id): JobId,
 ) -> Result<Json<JobView>, ApiError> {
-    Ok(Json(JobView::from_record(load_job(&state, id).await?)))
+    Ok(Json(JobView::from_record(
+        owned_job(&state, &caller, id).await?,
+    )))
 }
 
-/// Jobs, newest first, a page at a time.
+/// The caller's jobs (an admin's: every tenant's), newest first, a page at a time.
 #[utoipa::path(
     get,
     path = "/v1/jobs",
@@ -435,6 +556,7 @@ pub async fn get_job(
 )]
 pub async fn list_jobs(
     State(state): State<AppState>,
+    caller: Caller,
     ApiQuery(q): ApiQuery<ListQuery>,
 ) -> Result<Response, ApiError> {
     let limit = q.limit.unwrap_or(20);
@@ -445,7 +567,10 @@ pub async fn list_jobs(
     }
     let before = q.cursor.as_deref().map(parse_cursor).transpose()?;
     let limit = limit as usize;
-    let mut page = state.repo(move |r| r.list(limit + 1, before)).await?;
+    let scope = caller.scope();
+    let mut page = state
+        .repo(move |r| r.list(scope.as_deref(), limit + 1, before))
+        .await?;
     let next_cursor = if page.len() > limit {
         page.truncate(limit);
         page.last()
@@ -501,13 +626,26 @@ fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
 )]
 pub async fn delete_job(
     State(state): State<AppState>,
+    caller: Caller,
     JobId(id): JobId,
+    headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    let job = owned_job(&state, &caller, id).await?;
+    tracing::info!(
+        target: "audit",
+        action = "delete",
+        tenant = %caller.tenant,
+        owner = %job.tenant,
+        job = %id,
+        request_id = %request_id(&headers),
+        "job deleted or cancelled"
+    );
     let now = now_ms();
     match state.repo(move |r| r.cancel(id, now)).await? {
         Some(JobStatus::Queued) => {
             state.jobs().remove(id);
             state.remove_files(id).await;
+            state.job_ended(id);
             tracing::info!(job = %id, "queued job cancelled");
         }
         Some(_) => {
@@ -515,8 +653,9 @@ pub async fn delete_job(
             tracing::info!(job = %id, "running job cancelled; it stops within one step of work");
         }
         None => {
-            load_job(&state, id).await?;
-            state.repo(move |r| r.delete(id)).await?;
+            if !state.repo(move |r| r.delete(id)).await? {
+                return Err(ApiError::not_found(format!("there is no job {id}")));
+            }
             // A worker still finishing a cancelled run removes the files itself.
             if !state.jobs().is_held(id) {
                 state.remove_files(id).await;
@@ -525,7 +664,7 @@ pub async fn delete_job(
             return Ok(StatusCode::NO_CONTENT.into_response());
         }
     }
-    Ok(Json(JobView::from_record(load_job(&state, id).await?)).into_response())
+    Ok(Json(JobView::from_record(owned_job(&state, &caller, id).await?)).into_response())
 }
 
 /// Download an artifact of a succeeded job.
@@ -567,6 +706,7 @@ pub async fn delete_job(
 )]
 pub async fn get_artifact(
     State(state): State<AppState>,
+    caller: Caller,
     JobId(id): JobId,
     Path(segments): Path<(String, String)>,
     ApiQuery(q): ApiQuery<ArtifactQuery>,
@@ -580,7 +720,7 @@ pub async fn get_artifact(
             known.join(", ")
         )));
     };
-    let job = load_job(&state, id).await?;
+    let job = owned_job(&state, &caller, id).await?;
     if job.status != JobStatus::Succeeded {
         return Err(ApiError::conflict(format!(
             "job {id} is {}: artifacts are served once it has succeeded",

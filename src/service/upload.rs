@@ -33,6 +33,7 @@ use crate::core::{InputError, Options};
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, image_file};
 use super::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use super::error::ApiError;
+use super::idempotency::PartHasher;
 use super::prefetch::Prefetch;
 
 /// The request body, shared between the multipart parser and the handler: it enforces the
@@ -138,6 +139,8 @@ fn too_large_error() -> std::io::Error {
 /// Bytes kept from the start of each file to recognise its format.
 const HEAD_BYTES: usize = 64;
 const ARCHIVE_FILE: &str = "archive.zip";
+/// Longest `callback_url` accepted (bytes).
+const MAX_CALLBACK_BYTES: usize = 2048;
 
 /// An image stored in the staging directory.
 #[derive(Debug, Clone)]
@@ -158,6 +161,8 @@ pub struct Received {
     pub image_count: usize,
     /// The options, defaults filled in.
     pub options: serde_json::Value,
+    /// The `callback_url` part, as sent (the caller checks it).
+    pub callback_url: Option<String>,
 }
 
 #[derive(Default)]
@@ -169,17 +174,20 @@ struct Parts {
     /// The mask mode the options part names, if it names one.
     mask_chosen: Option<MaskMode>,
     archive: Option<PathBuf>,
+    callback_url: Option<String>,
     count: usize,
 }
 
 /// Read the multipart body into `dir` and check it. The caller removes `dir` on error.
-/// Each image is handed to `prefetch` to decode once it is written and probed.
+/// Each image is handed to `prefetch` to decode once it is written and probed; every
+/// part goes through `hash`.
 pub async fn receive(
     config: &Config,
     dir: &Path,
     multipart: &mut Multipart,
     tap: &BodyTap,
     prefetch: Option<&Prefetch>,
+    hash: &mut PartHasher,
 ) -> Result<Received, ApiError> {
     let mut parts = Parts::default();
     while let Some(mut field) = multipart
@@ -195,6 +203,7 @@ pub async fn receive(
             )));
         }
         let part = field.name().unwrap_or_default().to_string();
+        hash.part(&part, field.file_name());
         match part.as_str() {
             "images" => {
                 if parts.archive.is_some() {
@@ -210,7 +219,7 @@ pub async fn receive(
                 let name = file_name(&field, "images")?;
                 let file = image_file(parts.images.len());
                 let (head, written) =
-                    stream_to_file(&mut field, &dir.join(&file), tap, config).await?;
+                    stream_to_file(&mut field, &dir.join(&file), tap, config, hash).await?;
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
                 check_job_pixels(&parts.images, &name, width, height, config.max_job_pixels)?;
@@ -230,8 +239,9 @@ pub async fn receive(
                     return Err(both_forms());
                 }
                 once(&parts.lights, "lights")?;
-                parts.lights =
-                    Some(read_small(&mut field, MAX_LIGHTS_BYTES, "lights", tap, config).await?);
+                parts.lights = Some(
+                    read_small(&mut field, MAX_LIGHTS_BYTES, "lights", tap, config, hash).await?,
+                );
             }
             "mask" => {
                 once(&parts.mask, "mask")?;
@@ -241,7 +251,7 @@ pub async fn receive(
                     .unwrap_or("mask")
                     .to_string();
                 let (head, _) =
-                    stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config).await?;
+                    stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config, hash).await?;
                 let (width, height, depth) = probe(dir.join(MASK_FILE), name.clone(), head, config)
                     .await
                     .map_err(|e| {
@@ -262,12 +272,27 @@ pub async fn receive(
             "options" => {
                 once(&parts.options, "options")?;
                 let bytes =
-                    read_small(&mut field, MAX_OPTIONS_BYTES, "options", tap, config).await?;
+                    read_small(&mut field, MAX_OPTIONS_BYTES, "options", tap, config, hash).await?;
                 let options = parse_options(&bytes)?;
                 let names_mask = serde_json::from_slice::<serde_json::Value>(&bytes)
                     .is_ok_and(|v| v.get("mask").is_some());
                 parts.mask_chosen = names_mask.then_some(options.mask);
                 parts.options = Some(options);
+            }
+            "callback_url" => {
+                once(&parts.callback_url, "callback_url")?;
+                let bytes = read_small(
+                    &mut field,
+                    MAX_CALLBACK_BYTES,
+                    "callback_url",
+                    tap,
+                    config,
+                    hash,
+                )
+                .await?;
+                let url = String::from_utf8(bytes)
+                    .map_err(|_| ApiError::invalid("callback_url: not UTF-8 text"))?;
+                parts.callback_url = Some(url.trim().to_string());
             }
             "archive" => {
                 once(&parts.archive, "archive")?;
@@ -275,7 +300,7 @@ pub async fn receive(
                     return Err(both_forms());
                 }
                 let path = dir.join(ARCHIVE_FILE);
-                let (head, _) = stream_to_file(&mut field, &path, tap, config).await?;
+                let (head, _) = stream_to_file(&mut field, &path, tap, config, hash).await?;
                 if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
                     return Err(ApiError::unsupported_media(
                         "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv, or in the benchmark layout with light_directions.txt and filenames.txt)",
@@ -285,12 +310,12 @@ pub async fn receive(
             }
             "" => {
                 return Err(ApiError::bad_request(
-                    "a multipart part has no name; expected images, lights, mask, options or archive",
+                    "a multipart part has no name; expected images, lights, mask, options, callback_url or archive",
                 ));
             }
             other => {
                 return Err(ApiError::bad_request(format!(
-                    "unknown part {other:?}; expected images, lights, mask, options or archive"
+                    "unknown part {other:?}; expected images, lights, mask, options, callback_url or archive"
                 )));
             }
         }
@@ -379,6 +404,7 @@ pub async fn receive(
         image_count: ordered.len(),
         options: serde_json::to_value(&options)
             .map_err(|e| ApiError::internal(format!("options: {e}")))?,
+        callback_url: parts.callback_url,
     })
 }
 
@@ -469,6 +495,7 @@ async fn stream_to_file(
     path: &Path,
     tap: &BodyTap,
     config: &Config,
+    hash: &mut PartHasher,
 ) -> Result<(Vec<u8>, File), ApiError> {
     let target = path.to_path_buf();
     let file = tokio::task::spawn_blocking(move || {
@@ -493,6 +520,7 @@ async fn stream_to_file(
                 let take = (HEAD_BYTES - head.len()).min(chunk.len());
                 head.extend_from_slice(&chunk[..take]);
             }
+            hash.update(&chunk);
             if tx.send(chunk).await.is_err() {
                 break; // the writer failed: its error is reported below
             }
@@ -542,6 +570,7 @@ async fn read_small(
     part: &str,
     tap: &BodyTap,
     config: &Config,
+    hash: &mut PartHasher,
 ) -> Result<Vec<u8>, ApiError> {
     let mut out = Vec::new();
     while let Some(chunk) = field
@@ -554,6 +583,7 @@ async fn read_small(
                 "the {part} part is larger than {limit} bytes"
             )));
         }
+        hash.update(&chunk);
         out.extend_from_slice(&chunk);
     }
     Ok(out)

@@ -1,0 +1,371 @@
+//! Webhooks: when a job with a `callback_url` ends, the job resource is POSTed there,
+//! signed, and retried with exponential backoff for a bounded time.
+//!
+//! - Only hosts on `--webhook-allow-host` may be called (none by default), checked when
+//!   the job is submitted and again at each delivery, where a name must also resolve to
+//!   public addresses only unless the address itself is listed (so DNS cannot point a
+//!   listed name at an internal network). Redirects are answers like any other non-2xx:
+//!   not followed.
+//! - `Webhook-Timestamp: <unix seconds>` and `Webhook-Signature: v1=<hex>`, the
+//!   HMAC-SHA256 of `<timestamp>.<body>` under the tenant's webhook secret.
+//! - Plain `http://` over a small HTTP/1.1 client (one request per connection); put a
+//!   TLS-terminating proxy on the allow-list for `https` receivers.
+
+use std::collections::HashMap;
+use std::net::IpAddr;
+use std::time::Duration;
+
+use axum::http::Uri;
+use sha2::{Digest, Sha256};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use uuid::Uuid;
+
+use super::Inner;
+use super::error::ApiError;
+use super::repo::{CallbackAttempt, CallbackState};
+use super::util::{now_ms, rfc3339};
+
+/// Longest one delivery attempt may take (connect, send, read the status line).
+const ATTEMPT_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A callback URL that passed the submission checks.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Target {
+    pub host: String,
+    pub port: u16,
+    /// Path and query.
+    pub path: String,
+}
+
+/// Check a `callback_url` against the allow-list (422 naming the problem).
+pub fn check_url(url: &str, allow: &[String]) -> Result<Target, ApiError> {
+    let bad = |why: String| ApiError::invalid(format!("callback_url: {why}"));
+    let uri: Uri = url
+        .parse()
+        .map_err(|_| bad(format!("{url:?} is not a URL")))?;
+    match uri.scheme_str() {
+        Some("http") => {}
+        Some(other) => {
+            return Err(bad(format!(
+                "the scheme {other:?} is not supported; use http:// (through a TLS-terminating proxy for https receivers)"
+            )));
+        }
+        None => return Err(bad(format!("{url:?} is not an absolute http:// URL"))),
+    }
+    let authority = uri
+        .authority()
+        .ok_or_else(|| bad(format!("{url:?} names no host")))?;
+    if authority.as_str().contains('@') {
+        return Err(bad("user information in the URL is not allowed".into()));
+    }
+    let host = authority
+        .host()
+        .trim_start_matches('[')
+        .trim_end_matches(']')
+        .to_ascii_lowercase();
+    if !allow.iter().any(|a| a.eq_ignore_ascii_case(&host)) {
+        return Err(bad(format!(
+            "the host {host:?} is not on this server's webhook allow-list (--webhook-allow-host)"
+        )));
+    }
+    Ok(Target {
+        host,
+        port: authority.port_u16().unwrap_or(80),
+        path: uri
+            .path_and_query()
+            .map(|p| p.as_str().to_string())
+            .unwrap_or_else(|| "/".into()),
+    })
+}
+
+/// Addresses a webhook may reach only when they are listed themselves.
+fn is_internal(ip: IpAddr) -> bool {
+    match ip {
+        IpAddr::V4(v4) => {
+            v4.is_loopback()
+                || v4.is_private()
+                || v4.is_link_local()
+                || v4.is_unspecified()
+                || v4.is_broadcast()
+                || v4.is_multicast()
+                || v4.octets()[0] == 100 && (v4.octets()[1] & 0xc0) == 64 // shared 100.64/10
+        }
+        IpAddr::V6(v6) => {
+            if let Some(v4) = v6.to_ipv4_mapped() {
+                return is_internal(IpAddr::V4(v4));
+            }
+            v6.is_loopback()
+                || v6.is_unspecified()
+                || v6.is_multicast()
+                || (v6.segments()[0] & 0xfe00) == 0xfc00 // unique local
+                || (v6.segments()[0] & 0xffc0) == 0xfe80 // link local
+        }
+    }
+}
+
+/// The signature header's value: `v1=` and the hex HMAC-SHA256 of `timestamp.body`.
+pub fn signature(secret: &[u8], timestamp: u64, body: &[u8]) -> String {
+    let mut message = format!("{timestamp}.").into_bytes();
+    message.extend_from_slice(body);
+    let mac = hmac_sha256(secret, &message);
+    format!(
+        "v1={}",
+        mac.iter().map(|b| format!("{b:02x}")).collect::<String>()
+    )
+}
+
+/// HMAC (RFC 2104) over SHA-256.
+fn hmac_sha256(key: &[u8], message: &[u8]) -> [u8; 32] {
+    const BLOCK: usize = 64;
+    let mut k = [0u8; BLOCK];
+    if key.len() > BLOCK {
+        k[..32].copy_from_slice(&Sha256::digest(key));
+    } else {
+        k[..key.len()].copy_from_slice(key);
+    }
+    let pad = |byte: u8| k.map(|b| b ^ byte);
+    let inner = Sha256::new()
+        .chain_update(pad(0x36))
+        .chain_update(message)
+        .finalize();
+    Sha256::new()
+        .chain_update(pad(0x5c))
+        .chain_update(inner)
+        .finalize()
+        .into()
+}
+
+/// One delivery: check the target again, POST `body`, return the status code (or why
+/// there is none).
+pub async fn post(
+    target: &Target,
+    allow: &[String],
+    headers: &[(&str, String)],
+    body: &[u8],
+) -> Result<u16, String> {
+    if !allow.iter().any(|a| a.eq_ignore_ascii_case(&target.host)) {
+        return Err(format!(
+            "the host {} is no longer allow-listed",
+            target.host
+        ));
+    }
+    let attempt = async {
+        let addrs: Vec<_> = tokio::net::lookup_host((target.host.as_str(), target.port))
+            .await
+            .map_err(|e| format!("cannot resolve {}: {e}", target.host))?
+            .collect();
+        let listed = |ip: IpAddr| allow.iter().any(|a| a.parse::<IpAddr>().ok() == Some(ip));
+        let addr = addrs
+            .iter()
+            .find(|a| !is_internal(a.ip()) || listed(a.ip()))
+            .ok_or_else(|| {
+                format!(
+                    "{} resolves only to internal addresses that are not allow-listed",
+                    target.host
+                )
+            })?;
+        let mut stream = tokio::net::TcpStream::connect(addr)
+            .await
+            .map_err(|e| format!("cannot connect to {addr}: {e}"))?;
+        let mut head = format!(
+            "POST {} HTTP/1.1\r\nHost: {}:{}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\nUser-Agent: photostereo-webhook\r\n",
+            target.path,
+            target.host,
+            target.port,
+            body.len()
+        );
+        for (name, value) in headers {
+            head.push_str(&format!("{name}: {value}\r\n"));
+        }
+        head.push_str("\r\n");
+        stream
+            .write_all(head.as_bytes())
+            .await
+            .and(stream.write_all(body).await)
+            .map_err(|e| format!("sending: {e}"))?;
+        let mut answer = Vec::new();
+        let mut buf = [0u8; 1024];
+        while !answer.windows(2).any(|w| w == b"\r\n") && answer.len() < 8192 {
+            let n = stream
+                .read(&mut buf)
+                .await
+                .map_err(|e| format!("reading the answer: {e}"))?;
+            if n == 0 {
+                break;
+            }
+            answer.extend_from_slice(&buf[..n]);
+        }
+        let line = String::from_utf8_lossy(&answer);
+        let status = line
+            .strip_prefix("HTTP/1.")
+            .and_then(|rest| rest.get(2..5))
+            .and_then(|code| code.parse::<u16>().ok())
+            .ok_or_else(|| "the receiver did not answer HTTP".to_string())?;
+        Ok(status)
+    };
+    tokio::time::timeout(ATTEMPT_TIMEOUT, attempt)
+        .await
+        .unwrap_or_else(|_| Err(format!("no answer within {} s", ATTEMPT_TIMEOUT.as_secs())))
+}
+
+/// `--webhook-secret` values (`tenant:secret`) by tenant.
+pub fn parse_secrets(values: &[String]) -> anyhow::Result<HashMap<String, Vec<u8>>> {
+    let mut out = HashMap::new();
+    for (i, v) in values.iter().enumerate() {
+        let (tenant, secret) = v
+            .trim()
+            .split_once(':')
+            .filter(|(t, s)| !t.is_empty() && !s.is_empty())
+            .ok_or_else(|| {
+                anyhow::anyhow!("--webhook-secret value {} is not tenant:secret", i + 1)
+            })?;
+        out.insert(tenant.to_string(), secret.as_bytes().to_vec());
+    }
+    Ok(out)
+}
+
+/// Deliver the end of job `id`, if it has a callback, on the runtime: attempts with
+/// exponential backoff until one is answered with 2xx or `--webhook-retry-for` has passed,
+/// each recorded on the job.
+pub(crate) fn job_ended(inner: &Inner, id: Uuid) {
+    let repo = inner.repo.clone();
+    let Ok(Some(job)) = repo.get(id) else { return };
+    let Some(mut callback) = job.callback.clone() else {
+        return;
+    };
+    let Some(secret) = inner.webhook_secrets.get(&job.tenant).cloned() else {
+        return; // checked at submission; the secret was removed since
+    };
+    let allow = inner.config.webhook_allow_hosts.clone();
+    let (retry_for, mut delay) = (
+        inner.config.webhook_retry_for,
+        inner.config.webhook_first_retry,
+    );
+    let render = inner.render_job;
+    let mut stop = inner.stop.subscribe();
+    inner.runtime.spawn(async move {
+        let started = std::time::Instant::now();
+        let target = check_url(&callback.url, &allow);
+        loop {
+            let r = repo.clone();
+            let Ok(Ok(Some(job))) = tokio::task::spawn_blocking(move || r.get(id)).await else {
+                return; // deleted meanwhile
+            };
+            let body = render(job);
+            let now = now_ms();
+            let ts = (now / 1000) as u64;
+            let outcome = match &target {
+                Ok(t) => {
+                    let headers = [
+                        ("Webhook-Id", id.to_string()),
+                        ("Webhook-Timestamp", ts.to_string()),
+                        ("Webhook-Signature", signature(&secret, ts, body.as_bytes())),
+                    ];
+                    post(t, &allow, &headers, body.as_bytes()).await
+                }
+                Err(e) => Err(e.detail().to_string()),
+            };
+            let delivered = matches!(outcome, Ok(200..=299));
+            let (status, error) = match outcome {
+                Ok(code) => (Some(code), None),
+                Err(why) => (None, Some(why)),
+            };
+            callback.attempts.push(CallbackAttempt {
+                at: rfc3339(now),
+                status,
+                error,
+            });
+            let out_of_time = started.elapsed() + delay > retry_for;
+            callback.state = match (delivered, out_of_time) {
+                (true, _) => CallbackState::Delivered,
+                (false, true) => CallbackState::Failed,
+                (false, false) => CallbackState::Pending,
+            };
+            let (r, c) = (repo.clone(), callback.clone());
+            let _ = tokio::task::spawn_blocking(move || r.set_callback(id, &c)).await;
+            if callback.state != CallbackState::Pending {
+                tracing::info!(job = %id, state = ?callback.state, attempts = callback.attempts.len(), "webhook done");
+                return;
+            }
+            tokio::select! {
+                _ = tokio::time::sleep(delay) => {}
+                _ = stop.changed() => return,
+            }
+            delay *= 2;
+        }
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hmac_matches_rfc_4231() {
+        // Test case 2 of RFC 4231.
+        let mac = hmac_sha256(b"Jefe", b"what do ya want for nothing?");
+        let hex: String = mac.iter().map(|b| format!("{b:02x}")).collect();
+        assert_eq!(
+            hex,
+            "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843"
+        );
+        // Test case 6: a key longer than the block.
+        let mac = hmac_sha256(
+            &[0xaa; 131],
+            b"Test Using Larger Than Block-Size Key - Hash Key First",
+        );
+        assert_eq!(mac[..4], [0x60, 0xe4, 0x31, 0x59]);
+        assert!(signature(b"k", 5, b"{}").starts_with("v1="));
+    }
+
+    #[test]
+    fn only_allow_listed_http_hosts_pass() {
+        let allow = vec!["127.0.0.1".to_string(), "hooks.example.com".to_string()];
+        let t = check_url("http://127.0.0.1:9000/hook?x=1", &allow).unwrap();
+        assert_eq!(
+            (t.host.as_str(), t.port, t.path.as_str()),
+            ("127.0.0.1", 9000, "/hook?x=1")
+        );
+        assert_eq!(
+            check_url("http://HOOKS.example.com", &allow).unwrap().port,
+            80
+        );
+        for (url, needle) in [
+            ("http://10.0.0.1/x", "allow-list"),
+            ("http://127.0.0.2/x", "allow-list"),
+            ("http://localhost/x", "allow-list"),
+            ("https://127.0.0.1/x", "scheme"),
+            ("ftp://127.0.0.1/x", "scheme"),
+            ("/relative", "absolute"),
+            ("http://user@127.0.0.1/x", "user information"),
+            ("not a url", "not a URL"),
+        ] {
+            let e = check_url(url, &allow).unwrap_err();
+            assert_eq!(e.status().as_u16(), 422, "{url}");
+            assert!(e.detail().contains(needle), "{url}: {}", e.detail());
+        }
+        assert!(
+            check_url("http://127.0.0.1/x", &[]).is_err(),
+            "none by default"
+        );
+    }
+
+    #[test]
+    fn internal_addresses_are_known() {
+        for ip in [
+            "127.0.0.1",
+            "10.1.2.3",
+            "192.168.0.1",
+            "169.254.169.254",
+            "::1",
+            "fd00::1",
+            "::ffff:127.0.0.1",
+            "100.64.0.1",
+        ] {
+            assert!(is_internal(ip.parse().unwrap()), "{ip}");
+        }
+        for ip in ["93.184.216.34", "2606:4700::1"] {
+            assert!(!is_internal(ip.parse().unwrap()), "{ip}");
+        }
+    }
+}
