@@ -19,6 +19,17 @@ use super::repo::{JobRecord, JobStatus};
 use super::routes::{JobId, JobView, owned_job};
 use super::tenants::Caller;
 
+/// One server-sent event as a client parses it (documents the stream's shape; the stream
+/// itself is written by axum's `Event`).
+#[derive(utoipa::ToSchema)]
+#[allow(dead_code)]
+pub struct StreamEvent {
+    /// `job` or `deleted`.
+    event: String,
+    /// `job`: a JobView as JSON; `deleted`: `{"id": ...}`.
+    data: String,
+}
+
 /// Comment lines sent while nothing changes, so that proxies keep the connection open.
 const KEEP_ALIVE: Duration = Duration::from_secs(15);
 
@@ -36,7 +47,7 @@ const KEEP_ALIVE: Duration = Duration::from_secs(15);
     params(("id" = Uuid, Path, description = "Job id")),
     responses(
         (status = 200, description = "Server-sent events: `event: job` with a JobView as data, one per change; `event: deleted` when the job is removed. Ends after a finished status",
-            body = String, content_type = "text/event-stream"),
+            body = StreamEvent, content_type = "text/event-stream"),
         (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job (or another tenant's)", body = Problem, content_type = "application/problem+json"),
     ),
