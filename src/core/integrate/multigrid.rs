@@ -179,47 +179,24 @@ impl Stencil for MaskStencil {
 }
 
 /// General edge weights: `wx[r][c]` joins `(r, c)`–`(r, c+1)` (0 in the last column),
-/// `wy[r][c]` joins `(r, c)`–`(r+1, c)` (0 in the last row); `d` is the diagonal.
+/// `wy[r][c]` joins `(r, c)`–`(r+1, c)` (0 in the last row). The diagonal is summed from
+/// them row by row when a sweep needs it: storing it (and its inverse) doubled the bytes
+/// every sweep streams, and the sweeps are memory-bound.
 pub(super) struct WeightStencil {
     h: usize,
     w: usize,
     wx: Vec<f32>,
     wy: Vec<f32>,
-    d: Vec<f32>,
-    inv: Vec<f32>,
     zero_row: Vec<f32>,
 }
 
 impl WeightStencil {
     pub(super) fn new(h: usize, w: usize, wx: Vec<f32>, wy: Vec<f32>) -> Self {
-        let mut d = vec![0f32; h * w];
-        let mut inv = vec![0f32; h * w];
-        if w > 0 {
-            d.par_chunks_mut(w)
-                .zip(inv.par_chunks_mut(w))
-                .enumerate()
-                .for_each(|(r, (d, inv))| {
-                    for c in 0..w {
-                        let i = r * w + c;
-                        let mut s = wx[i] + wy[i];
-                        if c > 0 {
-                            s += wx[i - 1];
-                        }
-                        if r > 0 {
-                            s += wy[i - w];
-                        }
-                        d[c] = s;
-                        inv[c] = if s > 0.0 { 1.0 / s } else { 0.0 };
-                    }
-                });
-        }
         Self {
             h,
             w,
             wx,
             wy,
-            d,
-            inv,
             zero_row: vec![0.0; w],
         }
     }
@@ -263,20 +240,26 @@ pub(super) fn edge_weights(
     };
     let mut wx = vec![0f32; h * w];
     let mut wy = vec![0f32; h * w];
-    for r in 0..h {
-        for c in 0..w {
-            let i = r * w + c;
-            if !mask[i] {
-                continue;
-            }
-            if c + 1 < w && mask[i + 1] {
-                wx[i] = (0.5 * (wt(i) + wt(i + 1))).max(floor);
-            }
-            if r + 1 < h && mask[i + w] {
-                wy[i] = (0.5 * (wt(i) + wt(i + w))).max(floor);
-            }
-        }
+    if w == 0 {
+        return (wx, wy);
     }
+    wx.par_chunks_mut(w)
+        .zip(wy.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(r, (wx, wy))| {
+            for c in 0..w {
+                let i = r * w + c;
+                if !mask[i] {
+                    continue;
+                }
+                if c + 1 < w && mask[i + 1] {
+                    wx[c] = (0.5 * (wt(i) + wt(i + 1))).max(floor);
+                }
+                if r + 1 < h && mask[i + w] {
+                    wy[c] = (0.5 * (wt(i) + wt(i + w))).max(floor);
+                }
+            }
+        });
     (wx, wy)
 }
 
@@ -324,8 +307,22 @@ impl Stencil for WeightStencil {
 
     #[inline(always)]
     fn diag_row(&self, r: usize, d: &mut [f32], inv: &mut [f32]) {
-        d.copy_from_slice(self.row(&self.d, r));
-        inv.copy_from_slice(self.row(&self.inv, r));
+        let w = self.w;
+        let wx = self.row(&self.wx, r);
+        let wy = self.row(&self.wy, r);
+        let wyu = if r > 0 {
+            self.row(&self.wy, r - 1)
+        } else {
+            &self.zero_row
+        };
+        let (d, inv) = (&mut d[..w], &mut inv[..w]);
+        // East + south + west + north, in that order (0 for a missing west or north edge).
+        for c in 0..w {
+            let west = if c > 0 { wx[c - 1] } else { 0.0 };
+            let s = wx[c] + wy[c] + west + wyu[c];
+            d[c] = s;
+            inv[c] = if s > 0.0 { 1.0 / s } else { 0.0 };
+        }
     }
 
     #[inline(always)]
