@@ -154,6 +154,11 @@ impl AppState {
         if requeued > 0 {
             tracing::info!(jobs = requeued, "unfinished jobs queued again");
         }
+        match webhooks::resume(&inner) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(jobs = n, "undelivered webhooks resumed"),
+            Err(e) => tracing::warn!(error = %e, "cannot resume undelivered webhooks"),
+        }
         for i in 0..inner.config.workers.max(1) {
             let worker = inner.clone();
             let handle = std::thread::Builder::new()
