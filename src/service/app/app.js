@@ -7,7 +7,7 @@ import { api, setKey, getKey, followJob } from "./api.js";
 import { buildOptionsForm, readOptions } from "./form.js";
 import { showMaps } from "./maps.js";
 import { Relight, lightFromAngles } from "./relight.js";
-import { MeshView } from "./mesh.js";
+import { MeshView, parseGlb, gridFromMaps } from "./mesh.js";
 
 const $ = (id) => document.getElementById(id);
 const TERMINAL = ["succeeded", "failed", "cancelled"];
@@ -312,9 +312,11 @@ async function showResult(job) {
   if (a["mesh.glb"]) {
     const glb = await (await api.raw("GET", a["mesh.glb"])).arrayBuffer();
     if (token !== shown) return;
-    meshView.setMesh(glb, images["albedo.png"]);
+    meshView.setSurface(parseGlb(glb), images["albedo.png"], "mesh");
+  } else if (images["height.png"] && images["albedo.png"]) {
+    meshView.setSurface(gridFromMaps(images, job.result || {}), images["albedo.png"], "grid");
   } else {
-    meshView.setMessage("This job wrote no mesh.glb (choose it in the outputs to see the surface).");
+    meshView.setMessage("This job wrote neither mesh.glb nor height.png and albedo.png (choose them in the outputs to see the surface).");
   }
   light.apply();
 }
