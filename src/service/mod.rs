@@ -628,6 +628,7 @@ pub fn router(state: AppState) -> Router {
     let (app, _) = api.merge(operations_routes()).split_for_parts();
     app.merge(SwaggerUi::new("/docs").config(utoipa_swagger_ui::Config::new(["/openapi.json"])))
         .route("/", axum::routing::get(app::page))
+        .route("/app/auth.json", axum::routing::get(app::auth))
         .route("/app/{name}", axum::routing::get(app::asset))
         .fallback(routes::not_found)
         .method_not_allowed_fallback(routes::method_not_allowed)
