@@ -1,146 +1,240 @@
-// The browser app end to end in headless Chromium (Debian's package, driven by
-// playwright-core; Playwright's own browser download is not used):
+// The browser app end to end against real servers, the same checks in each browser
+// (browser-drivers.mjs says how each is driven):
 //
-//   node .ci/browser.mjs <base URL> <data-set folder> [<screenshot dir>]
+//   node .ci/browser.mjs --browser chromium|firefox --open <URL> --keyed <URL> --key <key>
+//        --set <data-set folder> [--shots <screenshot dir>]
 //
-// Submits the folder's images and light table through the page, waits for the job to
-// succeed, then checks that the relighting canvas draws, that it changes when the light is
-// dragged, that the 3-D canvas draws, and that the page logged no console errors; then
-// that a refused light table is shown as the problem's title and detail beside it.
+// On the server without API keys (--open): submits the folder's images and light table
+// through the page, waits for the job to succeed, then checks that the relighting canvas
+// draws, that it changes when the light is dragged, that the 3-D canvas draws the mesh;
+// then a job whose outputs have no mesh.glb, whose 3-D view draws the height map as a
+// grid; that the page logged no console errors; then that a refused light table is shown
+// as the problem's title and detail beside it.
+// On the server with a key (--keyed): the page asks for the key before calling the API
+// (no console error), says a wrong key is not valid, and with the right key submits and
+// shows the result. A refused request is logged by Chromium as "Failed to load resource:
+// the server responded with a status of 4xx": those two (the 422 of the refused table, the
+// 401 of the wrong key) are the only console errors accepted, each after its step.
 // Screenshots go to the given directory only (never into the repository).
-import { chromium } from "playwright-core";
-import { mkdtempSync, readdirSync, rmSync } from "node:fs";
-import { tmpdir } from "node:os";
+import { readdirSync } from "node:fs";
 import { join } from "node:path";
+import { parseArgs } from "node:util";
+import { launch } from "./browser-drivers.mjs";
 
-const [base, set, shots] = process.argv.slice(2);
-if (!base || !set) {
-  console.error("usage: node .ci/browser.mjs <base URL> <data-set folder> [<screenshot dir>]");
+const { values: arg } = parseArgs({
+  options: {
+    browser: { type: "string", default: "chromium" },
+    open: { type: "string" },
+    keyed: { type: "string" },
+    key: { type: "string" },
+    set: { type: "string" },
+    shots: { type: "string" },
+  },
+});
+if (!arg.open || !arg.keyed || !arg.key || !arg.set) {
+  console.error("usage: node .ci/browser.mjs --browser chromium|firefox --open <URL> --keyed <URL> --key <key> --set <folder> [--shots <dir>]");
   process.exit(2);
 }
-const files = readdirSync(set)
+const files = readdirSync(arg.set)
   .filter((f) => /\.(png|bmp|jpe?g|tiff?|csv)$/i.test(f))
-  .map((f) => join(set, f));
+  .map((f) => join(arg.set, f));
 
-const profile = mkdtempSync(join(tmpdir(), "photostereo-chromium-"));
-// A fresh profile (Playwright passes it as --user-data-dir).
-const browser = await chromium.launchPersistentContext(profile, {
-  executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
-  headless: true,
-  args: [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-  ],
-  viewport: { width: 1440, height: 1300 },
-});
+const browser = await launch(arg.browser);
+const page = browser.page;
 const failures = [];
 const check = (ok, what) => {
-  console.log(`${ok ? "ok  " : "FAIL"} ${what}`);
+  console.log(`${ok ? "ok  " : "FAIL"} ${browser.name}: ${what}`);
   if (!ok) failures.push(what);
 };
-try {
-  const page = browser.pages()[0] || (await browser.newPage());
-  const errors = [];
-  page.on("console", (m) => m.type() === "error" && errors.push(m.text()));
-  page.on("pageerror", (e) => errors.push(String(e)));
+// Console errors logged since `from`, less those `allowed` matches.
+const errorsSince = (from, allowed) => page.errors.slice(from).filter((e) => !(allowed && allowed.test(e)));
 
-  await page.goto(base + "/");
-  await page.locator("#options select").first().waitFor(); // the form is built
-  await page.getByTestId("file-input").setInputFiles(files);
-  await page.getByTestId("submit").click();
-  const status = page.getByTestId("job-status").first();
-  await status.filter({ hasText: /^(succeeded|failed|cancelled)$/ }).waitFor({ timeout: 120_000 });
-  check((await status.textContent()) === "succeeded", `the job's status reaches succeeded (${await status.textContent()})`);
-
-  // The result opens by itself once the job has succeeded; wait for both views to draw.
-  await page.locator("#maps canvas").first().waitFor();
-  const stats = (id) =>
-    page.evaluate((id) => {
-      const src = document.getElementById(id);
-      const c = document.createElement("canvas");
-      c.width = src.width;
-      c.height = src.height;
-      const g = c.getContext("2d");
-      g.drawImage(src, 0, 0);
-      const p = g.getImageData(0, 0, c.width, c.height).data;
-      let lit = 0;
-      let sum = 0;
-      const half = [0, 0]; // brightness of the left and the right half
-      for (let i = 0; i < p.length; i += 4) {
-        if (p[i] > 30) lit++;
-        sum += p[i] * ((i / 4) % 251);
-        half[(i / 4) % c.width < c.width / 2 ? 0 : 1] += p[i];
-      }
-      return { lit, total: p.length / 4, sum, half };
-    }, id);
-  const drawn = async (id) => {
-    for (let i = 0; i < 100; i++) {
-      const s = await stats(id);
-      if (s.lit > s.total / 20) return s;
-      await page.waitForTimeout(100);
+// Pixel statistics of a canvas: how many are lit, a position-weighted sum (to tell two
+// pictures apart) and the brightness of the left and the right half.
+const stats = (id) =>
+  page.evaluate((id) => {
+    const src = document.getElementById(id);
+    const c = document.createElement("canvas");
+    c.width = src.width;
+    c.height = src.height;
+    const g = c.getContext("2d");
+    g.drawImage(src, 0, 0);
+    const p = g.getImageData(0, 0, c.width, c.height).data;
+    let lit = 0;
+    let sum = 0;
+    const half = [0, 0];
+    for (let i = 0; i < p.length; i += 4) {
+      if (p[i] > 30) lit++;
+      sum += p[i] * ((i / 4) % 251);
+      half[(i / 4) % c.width < c.width / 2 ? 0 : 1] += p[i];
     }
-    return stats(id);
-  };
-  const before = await drawn("relight-canvas");
+    return { lit, total: p.length / 4, sum, half };
+  }, id);
+
+const drawn = async (id, share) => {
+  for (let i = 0; i < 100; i++) {
+    const s = await stats(id);
+    if (s.lit > s.total * share) return s;
+    await new Promise((ok) => setTimeout(ok, 100));
+  }
+  return stats(id);
+};
+
+// Drop the set's files on the form (ticking `outputs`, if any), submit, wait for the new
+// job to end; returns its status and id. The result opens by itself when it succeeds.
+async function submitSet(outputs = []) {
+  const before = await page.evaluate(() => document.querySelectorAll("#jobs tbody tr").length);
+  await page.files("[data-testid=file-input]", files);
+  await page.waitFor(() => document.querySelector("#file-list li") && document.getElementById("lights").value.trim());
+  for (const name of outputs) await page.click(`#options input[type=checkbox][value="${name}"]`);
+  await page.click("[data-testid=submit]");
+  await page.waitFor(
+    (n) => {
+      const rows = document.querySelectorAll("#jobs tbody tr");
+      const status = rows.length > n && rows[0].querySelector("[data-testid=job-status]").textContent;
+      return /^(succeeded|failed|cancelled)$/.test(status);
+    },
+    before,
+    120_000,
+  );
+  return page.evaluate(() => {
+    const row = document.querySelector("#jobs tbody tr");
+    return { status: row.querySelector("[data-testid=job-status]").textContent, id: row.querySelector("code").title };
+  });
+}
+
+async function resultShown(id, surface) {
+  await page.waitFor(
+    ([id, surface]) =>
+      document.getElementById("result-title").textContent.includes(id.slice(0, 8)) &&
+      document.querySelector("#maps canvas") &&
+      document.getElementById("mesh-canvas").dataset.surface === surface,
+    [id, surface],
+  );
+}
+
+async function rakeFromRight() {
+  await page.click('.presets button[data-azimuth="0"]');
+}
+
+try {
+  // ------------------------------------------------ the open server
+  await page.goto(arg.open + "/");
+  await page.waitFor(() => document.querySelector("#options select")); // the form is built
+  // The console checks below can fail: an error the page logs is seen.
+  await page.evaluate(() => console.error("photostereo console probe"));
+  for (let i = 0; i < 50 && !page.errors.length; i++) await new Promise((ok) => setTimeout(ok, 100));
+  check(page.errors.length === 1 && /console probe/.test(page.errors[0]), `a console error is seen (${page.errors.join(" | ")})`);
+  page.errors.length = 0;
+  let job = await submitSet();
+  check(job.status === "succeeded", `the job's status reaches succeeded (${job.status})`);
+  await resultShown(job.id, "mesh");
+
+  const before = await drawn("relight-canvas", 1 / 20);
   check(before.lit > before.total / 20, `the relighting canvas draws (${before.lit} of ${before.total} pixels lit)`);
 
   // Drag the light from where it is to the far left of the hemisphere (raking from the left).
-  const widget = page.getByTestId("light-widget");
-  await widget.scrollIntoViewIfNeeded();
-  const box = await widget.boundingBox();
+  const box = await page.box("[data-testid=light-widget]");
   await page.mouse.move(box.x + box.width * 0.7, box.y + box.height * 0.3);
   await page.mouse.down();
-  await page.mouse.move(box.x + box.width * 0.4, box.y + box.height * 0.45, { steps: 5 });
-  await page.mouse.move(box.x + box.width * 0.08, box.y + box.height * 0.5, { steps: 5 });
+  await page.mouse.move(box.x + box.width * 0.4, box.y + box.height * 0.45, 5);
+  await page.mouse.move(box.x + box.width * 0.08, box.y + box.height * 0.5, 5);
   await page.mouse.up();
   const after = await stats("relight-canvas");
   check(after.sum !== before.sum && after.lit > 0, `the relighting changes when the light is dragged (${before.lit} -> ${after.lit} lit pixels)`);
   check(after.half[0] > 1.2 * after.half[1], `lit from the left, the left half is the brighter (${after.half})`);
-  const azimuth = await page.locator("#azimuth").inputValue();
+  const azimuth = await page.evaluate(() => document.getElementById("azimuth").value);
   check(Math.abs(Math.abs(+azimuth) - 180) < 20, `the drag moved the light to the left (azimuth ${azimuth}°)`);
-  await page.getByRole("button", { name: "from right" }).click();
+  const meshLeft = await drawn("mesh-canvas", 1 / 50);
+  await rakeFromRight();
   const right = await stats("relight-canvas");
   check(right.half[1] > 1.2 * right.half[0], `raking from the right, the right half is the brighter (${right.half})`);
 
-  const mesh = await drawn("mesh-canvas");
-  check(mesh.lit > mesh.total / 50, `the 3-D canvas draws (${mesh.lit} of ${mesh.total} pixels lit)`);
-  const links = await page.locator("#downloads a").count();
+  const mesh = await drawn("mesh-canvas", 1 / 50);
+  check(mesh.lit > mesh.total / 50, `the 3-D canvas draws the mesh (${mesh.lit} of ${mesh.total} pixels lit)`);
+  check(mesh.sum !== meshLeft.sum, "the mesh is lit by the same light (its picture changes with it)");
+  const links = await page.evaluate(() => document.querySelectorAll("#downloads a").length);
   check(links >= 5, `download links for the artifacts (${links})`);
 
-  if (shots) {
-    await page.locator("#result").screenshot({ path: join(shots, "result.png") });
-    await page.getByRole("button", { name: "Raking from left" }).click();
-    await page.locator("#intensity").fill("2.5");
-    await page.getByTestId("relight-canvas").screenshot({ path: join(shots, "relight.png") });
-    await page.getByTestId("mesh-canvas").screenshot({ path: join(shots, "mesh.png") });
-    await page.screenshot({ path: join(shots, "page.png"), fullPage: true });
+  if (arg.shots) {
+    await page.screenshot("#result", join(arg.shots, "result.png"));
+    await page.click('.presets button[data-azimuth="180"]');
+    await page.fill("#intensity", "2.5");
+    await page.screenshot("[data-testid=relight-canvas]", join(arg.shots, "relight.png"));
+    await page.screenshot("[data-testid=mesh-canvas]", join(arg.shots, "mesh.png"));
+    await page.screenshot(null, join(arg.shots, "page.png"));
+    await page.fill("#intensity", "1");
   }
-  check(errors.length === 0, `no console errors${errors.length ? ": " + errors.join(" | ") : ""}`);
 
-  // A refused submission: the problem's title and detail next to the light table. The
-  // browser itself logs the 422 response; nothing else may show.
-  await page.getByTestId("file-input").setInputFiles(files);
-  const table = await page.locator("#lights").inputValue();
-  await page.locator("#lights").fill(table.replace(/^([^,\n]+),[^,\n]+,/, "$1, east,"));
-  await page.getByTestId("submit").click();
-  const problem = page.locator("#problem-lights");
-  await problem.waitFor();
-  const shown = await problem.textContent();
+  // A job without mesh.glb: the 3-D view draws the height map as a grid.
+  job = await submitSet(["albedo.png", "normal.png", "height.png", "mask.png", "result.json"]);
+  check(job.status === "succeeded", `a job without a mesh succeeds (${job.status})`);
+  await resultShown(job.id, "grid");
+  const artifacts = await page.evaluate(() => [...document.querySelectorAll("#downloads a")].map((a) => a.textContent));
+  check(!artifacts.includes("mesh.glb"), `that job has no mesh.glb (${artifacts.join(", ")})`);
+  await rakeFromRight();
+  const gridRight = await drawn("mesh-canvas", 1 / 50);
+  check(gridRight.lit > gridRight.total / 50, `the 3-D canvas draws the height grid (${gridRight.lit} of ${gridRight.total} pixels lit)`);
+  await page.click('.presets button[data-azimuth="180"]');
+  const gridLeft = await stats("mesh-canvas");
+  check(gridLeft.sum !== gridRight.sum, "the grid is lit by the same light (its picture changes with it)");
+  check(
+    gridLeft.half[0] > gridLeft.half[1] && gridRight.half[1] > gridRight.half[0],
+    `raking from either side, the grid's half on that side is the brighter (left ${gridLeft.half}, right ${gridRight.half})`,
+  );
+  if (arg.shots) await page.screenshot("[data-testid=mesh-canvas]", join(arg.shots, "grid.png"));
+  check(errorsSince(0).length === 0, `no console errors${page.errors.length ? ": " + page.errors.join(" | ") : ""}`);
+
+  // A refused submission: the problem's title and detail next to the light table.
+  let seen = page.errors.length;
+  await page.files("[data-testid=file-input]", files);
+  await page.waitFor(() => document.querySelector("#file-list li") && document.getElementById("lights").value.trim());
+  const table = await page.evaluate(() => document.getElementById("lights").value);
+  await page.fill("#lights", table.replace(/^([^,\n]+),[^,\n]+,/, "$1, east,"));
+  await page.click("[data-testid=submit]");
+  await page.waitFor(() => !document.getElementById("problem-lights").hidden);
+  const shown = await page.evaluate(() => document.getElementById("problem-lights").textContent);
   check(/^Invalid input/.test(shown) && /east/.test(shown) && !shown.includes("{"), `a refused light table is shown next to it (${shown})`);
+  let others = errorsSince(seen, /status of 422/);
+  check(others.length === 0, `no other console errors (${page.errors.length - seen - others.length} "status of 422" accepted)${others.length ? ": " + others.join(" | ") : ""}`);
 
-  const others = errors.filter((e) => !/status of 422/.test(e));
-  check(others.length === 0, `no other console errors${others.length ? ": " + others.join(" | ") : ""}`);
+  // ------------------------------------------------ the server with an API key
+  seen = page.errors.length;
+  await page.goto(arg.keyed + "/");
+  await page.waitFor(
+    () => !document.getElementById("problem-key").hidden && document.activeElement === document.getElementById("api-key"),
+  );
+  let prompt = await page.evaluate(() => document.getElementById("problem-key").textContent);
+  check(/needs an API key/.test(prompt), `with a key required, the page asks for it (${prompt})`);
+  others = errorsSince(seen);
+  check(others.length === 0, `asking for the key logs no console error${others.length ? ": " + others.join(" | ") : ""}`);
+
+  seen = page.errors.length;
+  await page.type("#api-key", "not-the-key");
+  await page.press("Enter");
+  await page.waitFor(() => /not valid/.test(document.getElementById("problem-key").textContent));
+  prompt = await page.evaluate(() => document.getElementById("problem-key").textContent);
+  check(/^Missing or invalid API key/.test(prompt) && /not valid/.test(prompt), `a wrong key is said to be not valid (${prompt})`);
+  others = errorsSince(seen, /status of 401/);
+  const refused = page.errors.length - seen - others.length;
+  check(others.length === 0, `a wrong key logs no other console error (${refused} "status of 401" accepted)${others.length ? ": " + others.join(" | ") : ""}`);
+
+  seen = page.errors.length;
+  await page.fill("#api-key", arg.key);
+  await page.waitFor(() => document.getElementById("problem-key").hidden);
+  job = await submitSet();
+  check(job.status === "succeeded", `with the key, the job's status reaches succeeded (${job.status})`);
+  await resultShown(job.id, "mesh");
+  const keyed = await drawn("relight-canvas", 1 / 20);
+  check(keyed.lit > keyed.total / 20, `with the key, the relighting canvas draws (${keyed.lit} of ${keyed.total} pixels lit)`);
+  const keyedMesh = await drawn("mesh-canvas", 1 / 50);
+  check(keyedMesh.lit > keyedMesh.total / 50, `with the key, the 3-D canvas draws (${keyedMesh.lit} of ${keyedMesh.total} pixels lit)`);
+  others = errorsSince(seen);
+  check(others.length === 0, `with the key, no console errors${others.length ? ": " + others.join(" | ") : ""}`);
 } finally {
   await browser.close();
-  rmSync(profile, { recursive: true, force: true });
 }
 if (failures.length) {
-  console.error(`${failures.length} browser check(s) failed`);
+  console.error(`${browser.name}: ${failures.length} browser check(s) failed`);
   process.exit(1);
 }

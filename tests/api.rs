@@ -794,6 +794,11 @@ async fn api_keys_guard_v1_only() {
         let r = s.client.get(s.url(open)).send().await.unwrap();
         assert_eq!(r.status(), 200, "{open}");
     }
+    // The browser app learns without a key that it needs one.
+    let r = s.client.get(s.url("/app/auth.json")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let auth: Value = r.json().await.unwrap();
+    assert_eq!(auth, serde_json::json!({ "api_key_required": true }));
     s.stop().await;
 }
 
@@ -1170,6 +1175,10 @@ async fn operations_endpoints_and_request_ids() {
             "{file}"
         );
     }
+    let r = s.client.get(s.url("/app/auth.json")).send().await.unwrap();
+    assert_eq!(r.headers()["cache-control"], "no-store");
+    let auth: Value = r.json().await.unwrap();
+    assert_eq!(auth, serde_json::json!({ "api_key_required": false }));
     let r = s
         .client
         .get(s.url("/app/secrets.txt"))

@@ -1,5 +1,7 @@
 //! Webhooks against a local receiver: a job's end is POSTed once, signed as documented,
-//! retried after a 500; callback URLs off the allow-list are refused at submission.
+//! retried after a 500, and retried after a restart when it was not delivered before the
+//! stop (unless its retry window closed meanwhile); callback URLs off the allow-list are
+//! refused at submission.
 
 mod common;
 
@@ -260,5 +262,99 @@ async fn a_failed_job_is_delivered_once_and_disallowed_urls_are_refused() {
         .unwrap();
     assert_eq!(list["jobs"].as_array().unwrap().len(), 1, "no job was made");
     assert!(inbox.lock().unwrap().got.is_empty());
+    s.stop().await;
+}
+
+/// Submit res/bump with a callback to `url` and wait until its first delivery attempt is
+/// recorded; returns the job's id.
+async fn first_attempt_made(s: &TestServer, url: &str) -> String {
+    let r = submit_with_callback(
+        s,
+        "alice-key",
+        folder_form(&repo_root().join("res/bump")),
+        url,
+    )
+    .await;
+    assert_eq!(r.status(), 202);
+    let id = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let start = Instant::now();
+    loop {
+        let job = job_of(s, &id).await;
+        if !job["callback"]["attempts"].as_array().unwrap().is_empty() {
+            assert_eq!(job["status"], "succeeded");
+            assert_eq!(job["callback"]["state"], "pending", "{job}");
+            return id;
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "{job}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn statuses(job: &Value) -> Vec<u64> {
+    job["callback"]["attempts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["status"].as_u64().unwrap())
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_undelivered_callback_is_delivered_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = webhook_config(dir.path());
+    // The next retry would come long after the stop: only the restart can deliver it.
+    c.webhook_first_retry = Duration::from_secs(120);
+    c.webhook_retry_for = Duration::from_secs(600);
+    let (url, inbox) = receiver(usize::MAX).await;
+    let s = TestServer::start(c.clone()).await;
+    let id = first_attempt_made(&s, &url).await;
+    s.stop().await;
+
+    // The receiver recovers while the service is stopped.
+    inbox.lock().unwrap().fail_first = 1;
+    let s = TestServer::start(c).await;
+    let job = settled(&s, &id).await;
+    assert_eq!(job["callback"]["state"], "delivered", "{job}");
+    assert_eq!(statuses(&job), [500, 204]);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let got = std::mem::take(&mut inbox.lock().unwrap().got);
+    assert_eq!(got.len(), 2, "one attempt before the stop, one after");
+    let (headers, body) = &got[1];
+    let ts = header(headers, "webhook-timestamp");
+    assert_eq!(
+        header(headers, "webhook-signature"),
+        expected_signature(SECRET, ts, body)
+    );
+    let delivered: Value = serde_json::from_str(body).unwrap();
+    assert_eq!(delivered["id"], id.as_str());
+    assert_eq!(delivered["status"], "succeeded");
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_callback_whose_retry_window_closed_during_a_stop_is_given_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = webhook_config(dir.path());
+    c.webhook_first_retry = Duration::from_secs(120);
+    c.webhook_retry_for = Duration::from_secs(600);
+    let (url, inbox) = receiver(usize::MAX).await;
+    let s = TestServer::start(c.clone()).await;
+    let id = first_attempt_made(&s, &url).await;
+    s.stop().await;
+
+    // Restarted with a window that closed a second after the job ended.
+    inbox.lock().unwrap().fail_first = 0;
+    tokio::time::sleep(Duration::from_millis(1100)).await;
+    c.webhook_retry_for = Duration::from_secs(1);
+    let s = TestServer::start(c).await;
+    let job = job_of(&s, &id).await;
+    assert_eq!(job["callback"]["state"], "failed", "{job}");
+    assert_eq!(statuses(&job), [500], "no attempt after the window");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(inbox.lock().unwrap().got.len(), 1);
     s.stop().await;
 }

@@ -4,10 +4,12 @@
 //! Content-Security-Policy the app satisfies: no inline script or style, same-origin
 //! requests only, images only from the server or the app's own blob URLs.
 
-use axum::extract::Path;
+use axum::Json;
+use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
+use super::AppState;
 use super::error::ApiError;
 use super::routes::not_modified;
 use super::util::strong_etag;
@@ -68,6 +70,17 @@ const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; \
 /// `GET /`: the app's page.
 pub async fn page(headers: HeaderMap) -> Response {
     serve("index.html", &headers).unwrap_or_else(IntoResponse::into_response)
+}
+
+/// `GET /app/auth.json`: `{"api_key_required": bool}`, so that the page asks for a key
+/// before its first API call instead of provoking a 401 (which browsers log as an error).
+/// It tells no more than any 401 does.
+pub async fn auth(State(state): State<AppState>) -> Response {
+    let mut r =
+        Json(serde_json::json!({ "api_key_required": !state.keys().is_open() })).into_response();
+    r.headers_mut()
+        .insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    r
 }
 
 /// `GET /app/{name}`: the page's script and style sheet.

@@ -154,6 +154,11 @@ impl AppState {
         if requeued > 0 {
             tracing::info!(jobs = requeued, "unfinished jobs queued again");
         }
+        match webhooks::resume(&inner) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(jobs = n, "undelivered webhooks resumed"),
+            Err(e) => tracing::warn!(error = %e, "cannot resume undelivered webhooks"),
+        }
         for i in 0..inner.config.workers.max(1) {
             let worker = inner.clone();
             let handle = std::thread::Builder::new()
@@ -623,6 +628,7 @@ pub fn router(state: AppState) -> Router {
     let (app, _) = api.merge(operations_routes()).split_for_parts();
     app.merge(SwaggerUi::new("/docs").config(utoipa_swagger_ui::Config::new(["/openapi.json"])))
         .route("/", axum::routing::get(app::page))
+        .route("/app/auth.json", axum::routing::get(app::auth))
         .route("/app/{name}", axum::routing::get(app::asset))
         .fallback(routes::not_found)
         .method_not_allowed_fallback(routes::method_not_allowed)

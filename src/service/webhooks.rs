@@ -22,7 +22,7 @@ use uuid::Uuid;
 
 use super::Inner;
 use super::error::ApiError;
-use super::repo::{CallbackAttempt, CallbackState};
+use super::repo::{CallbackAttempt, CallbackState, JobRecord};
 use super::util::{now_ms, rfc3339};
 
 /// Longest one delivery attempt may take (connect, send, read the status line).
@@ -225,8 +225,9 @@ pub fn parse_secrets(values: &[String]) -> anyhow::Result<HashMap<String, Vec<u8
 }
 
 /// Deliver the end of job `id`, if it has a callback, on the runtime: attempts with
-/// exponential backoff until one is answered with 2xx or `--webhook-retry-for` has passed,
-/// each recorded on the job.
+/// exponential backoff until one is answered with 2xx or `--webhook-retry-for` has passed
+/// since the job ended, each recorded on the job. A callback that already has attempts
+/// (resumed after a restart) goes on from the delay its attempts have reached.
 pub(crate) fn job_ended(inner: &Inner, id: Uuid) {
     let repo = inner.repo.clone();
     let Ok(Some(job)) = repo.get(id) else { return };
@@ -237,14 +238,12 @@ pub(crate) fn job_ended(inner: &Inner, id: Uuid) {
         return; // checked at submission; the secret was removed since
     };
     let allow = inner.config.webhook_allow_hosts.clone();
-    let (retry_for, mut delay) = (
-        inner.config.webhook_retry_for,
-        inner.config.webhook_first_retry,
-    );
+    let deadline = give_up_at(&job, inner.config.webhook_retry_for);
+    let tried = u32::try_from(callback.attempts.len()).unwrap_or(u32::MAX);
+    let mut delay = inner.config.webhook_first_retry * 2u32.saturating_pow(tried.min(20));
     let render = inner.render_job;
     let mut stop = inner.stop.subscribe();
     inner.runtime.spawn(async move {
-        let started = std::time::Instant::now();
         let target = check_url(&callback.url, &allow);
         loop {
             let r = repo.clone();
@@ -275,7 +274,7 @@ pub(crate) fn job_ended(inner: &Inner, id: Uuid) {
                 status,
                 error,
             });
-            let out_of_time = started.elapsed() + delay > retry_for;
+            let out_of_time = now_ms().saturating_add(millis(delay)) > deadline;
             callback.state = match (delivered, out_of_time) {
                 (true, _) => CallbackState::Delivered,
                 (false, true) => CallbackState::Failed,
@@ -294,6 +293,53 @@ pub(crate) fn job_ended(inner: &Inner, id: Uuid) {
             delay *= 2;
         }
     });
+}
+
+/// Startup: go on delivering the callbacks of jobs that ended before the last stop but
+/// were not delivered yet (a stop, or a crash, between a job's end and its delivery, or
+/// during the retries). Those whose retry window closed meanwhile are given up as failed
+/// without another attempt. Returns how many deliveries were resumed.
+pub(crate) fn resume(inner: &Inner) -> anyhow::Result<usize> {
+    // Every record is read once (there is no index on the callback's state); a startup
+    // already reads every job's record to tidy the data directory.
+    const PAGE: usize = 500;
+    let mut before = None;
+    let mut resumed = 0;
+    loop {
+        let page = inner.repo.list(None, PAGE, before)?;
+        for job in &page {
+            let Some(callback) = &job.callback else {
+                continue;
+            };
+            if !job.status.is_terminal() || callback.state != CallbackState::Pending {
+                continue;
+            }
+            if now_ms() < give_up_at(job, inner.config.webhook_retry_for) {
+                job_ended(inner, job.id);
+                resumed += 1;
+            } else {
+                let mut given_up = callback.clone();
+                given_up.state = CallbackState::Failed;
+                inner.repo.set_callback(job.id, &given_up)?;
+                tracing::info!(job = %job.id, attempts = given_up.attempts.len(), "webhook given up: its retry window closed while the service was stopped");
+            }
+        }
+        match page.last() {
+            Some(last) if page.len() == PAGE => before = Some((last.created_at, last.id)),
+            _ => return Ok(resumed),
+        }
+    }
+}
+
+/// When the retries of a job's callback stop: `retry_for` after the job ended.
+fn give_up_at(job: &JobRecord, retry_for: Duration) -> i64 {
+    job.finished_at
+        .unwrap_or_else(now_ms)
+        .saturating_add(millis(retry_for))
+}
+
+fn millis(d: Duration) -> i64 {
+    i64::try_from(d.as_millis()).unwrap_or(i64::MAX)
 }
 
 #[cfg(test)]

@@ -7,7 +7,7 @@ import { api, setKey, getKey, followJob } from "./api.js";
 import { buildOptionsForm, readOptions } from "./form.js";
 import { showMaps } from "./maps.js";
 import { Relight, lightFromAngles } from "./relight.js";
-import { MeshView } from "./mesh.js";
+import { MeshView, parseGlb, gridFromMaps } from "./mesh.js";
 
 const $ = (id) => document.getElementById(id);
 const TERMINAL = ["succeeded", "failed", "cancelled"];
@@ -15,7 +15,7 @@ const IMAGE = /\.(png|bmp|jpe?g|tiff?|exr)$/i;
 
 // ---------------------------------------------------------------- problems next to fields
 
-const FIELDS = ["files", "lights", "calibration", "options", "submit", "jobs"];
+const FIELDS = ["key", "files", "lights", "calibration", "options", "submit", "jobs"];
 
 function clearProblems() {
   for (const f of FIELDS) $("problem-" + f).hidden = true;
@@ -173,7 +173,8 @@ async function submit(e) {
     jobs.watch(job, true);
   } catch (err) {
     const names = optionSchema ? Object.keys(optionSchema.properties || {}) : [];
-    showProblem(err.problem ? fieldOf(err.problem, names) : "submit", err.title, err.detail);
+    if (err.status === 401) askForKey(err);
+    else showProblem(err.problem ? fieldOf(err.problem, names) : "submit", err.title, err.detail);
   } finally {
     $("submit").disabled = false;
   }
@@ -187,14 +188,17 @@ const jobs = {
 
   async load() {
     clearProblemsOf("jobs");
+    if (access.keyRequired && !getKey()) return askForKey();
     try {
       const page = await api("GET", "/v1/jobs?limit=20");
+      clearProblemsOf("key");
       for (const job of page.jobs.reverse()) {
         this.upsert(job);
         if (!TERMINAL.includes(job.status)) this.watch(job, false);
       }
     } catch (err) {
-      showProblem("jobs", err.title, err.detail);
+      if (err.status === 401) askForKey(err);
+      else showProblem("jobs", err.title, err.detail);
     }
   },
 
@@ -312,9 +316,11 @@ async function showResult(job) {
   if (a["mesh.glb"]) {
     const glb = await (await api.raw("GET", a["mesh.glb"])).arrayBuffer();
     if (token !== shown) return;
-    meshView.setMesh(glb, images["albedo.png"]);
+    meshView.setSurface(parseGlb(glb), images["albedo.png"], "mesh");
+  } else if (images["height.png"] && images["albedo.png"]) {
+    meshView.setSurface(gridFromMaps(images, job.result || {}), images["albedo.png"], "grid");
   } else {
-    meshView.setMessage("This job wrote no mesh.glb (choose it in the outputs to see the surface).");
+    meshView.setMessage("This job wrote neither mesh.glb nor height.png and albedo.png (choose them in the outputs to see the surface).");
   }
   light.apply();
 }
@@ -498,13 +504,28 @@ function wireLight() {
   }
 }
 
+// ---------------------------------------------------------------- the API key
+
+// Whether the server needs a key (from /app/auth.json, which needs none): with no key
+// yet, the page asks for one instead of calling the API and being refused.
+const access = { keyRequired: false };
+
+// Ask for the key beside its field: the server's 401 problem when there is one (a wrong
+// or revoked key), else that one is needed.
+function askForKey(err) {
+  for (const id of [...jobs.rows.keys()]) jobs.drop(id);
+  if (err) showProblem("key", err.title, ` ${err.detail}`);
+  else showProblem("key", "This server needs an API key", " Enter yours here (it is kept for this tab only).");
+  $("api-key").focus();
+}
+
 // ---------------------------------------------------------------- start
 
 // Calibrations are offered only when the server documents the route.
 let hasCalibrations = false;
 
 async function loadCalibrations() {
-  if (!hasCalibrations) return;
+  if (!hasCalibrations || (access.keyRequired && !getKey())) return;
   try {
     const answer = await api("GET", "/v1/calibrations");
     const list = Array.isArray(answer) ? answer : answer.calibrations || answer.items || [];
@@ -527,6 +548,7 @@ async function start() {
   key.value = getKey();
   key.addEventListener("change", () => {
     setKey(key.value.trim());
+    clearProblemsOf("key");
     jobs.load();
     loadCalibrations();
   });
@@ -535,6 +557,11 @@ async function start() {
   $("job-form").addEventListener("submit", submit);
   $("refresh-jobs").addEventListener("click", () => jobs.load());
   light.apply();
+  try {
+    access.keyRequired = (await api("GET", "/app/auth.json")).api_key_required;
+  } catch {
+    // the server does not answer: the calls below say so
+  }
   try {
     const doc = await api("GET", "/openapi.json");
     optionSchema = buildOptionsForm($("options"), doc);

@@ -1,6 +1,7 @@
 // The surface in 3-D: the job's mesh.glb (positions x right, y up, z the height; vertex
-// normals; uvs into the albedo) with orbit, zoom and pan, textured with the albedo and lit
-// by the relighting's light, which is in the same frame.
+// normals; uvs into the albedo), or when the job wrote none its height map as a grid in
+// the same frame, with orbit, zoom and pan, textured with the albedo and lit by the
+// relighting's light, which is in the same frame.
 
 import { context, program, texture, mat4 } from "./gl.js";
 
@@ -62,6 +63,78 @@ export function parseGlb(buffer) {
   };
 }
 
+// Vertices of the grid drawn from the maps: at most this many along the longer side.
+const GRID = 256;
+
+// A surface like parseGlb's from the maps: heights from height.png (its 0..1 spans the
+// result's height_min..height_max, in pixels), normals from normal.png (8 bits of normal
+// are smoother than the 8 bits a canvas gives of the 16-bit heights), uvs into the albedo;
+// a cell is drawn where all its corners are inside the mask.
+export function gridFromMaps(images, result) {
+  const h = images["height.png"];
+  const w = h.naturalWidth;
+  const rows = h.naturalHeight;
+  const step = Math.max(1, Math.ceil(Math.max(w, rows) / GRID));
+  const nx = Math.ceil(w / step);
+  const ny = Math.ceil(rows / step);
+  // Drawn at the grid's size: the browser averages each cell's pixels.
+  const pixels = (img) => {
+    const c = document.createElement("canvas");
+    c.width = nx;
+    c.height = ny;
+    const g = c.getContext("2d", { willReadFrequently: true });
+    g.drawImage(img, 0, 0, nx, ny);
+    return g.getImageData(0, 0, nx, ny).data;
+  };
+  const height = pixels(h);
+  const normals = images["normal.png"] ? pixels(images["normal.png"]) : null;
+  const mask = images["mask.png"] ? pixels(images["mask.png"]) : null;
+  const lo = result.height_min ?? 0;
+  const span = (result.height_max ?? 1) - lo;
+  const n = nx * ny;
+  const position = new Float32Array(n * 3);
+  const normal = new Float32Array(n * 3);
+  const uv = new Float32Array(n * 2);
+  const inside = new Uint8Array(n);
+  for (let j = 0; j < ny; j++) {
+    for (let i = 0; i < nx; i++) {
+      const k = j * nx + i;
+      const p = k * 4;
+      const x = Math.min(w - 1, (i + 0.5) * step - 0.5);
+      const y = Math.min(rows - 1, (j + 0.5) * step - 0.5);
+      position.set([x, rows - 1 - y, lo + (height[p] / 255) * span], k * 3);
+      uv.set([(x + 0.5) / w, (y + 0.5) / rows], k * 2);
+      let m = [0, 0, 1];
+      if (normals) {
+        m = [normals[p] / 127.5 - 1, normals[p + 1] / 127.5 - 1, normals[p + 2] / 127.5 - 1];
+        const len = Math.hypot(...m);
+        m = len > 0.1 ? m.map((v) => v / len) : [0, 0, 1];
+      }
+      normal.set(m, k * 3);
+      inside[k] = mask ? mask[p] > 127 : normals ? normals[p] + normals[p + 1] + normals[p + 2] > 1 : 1;
+    }
+  }
+  const indices = [];
+  for (let j = 0; j + 1 < ny; j++) {
+    for (let i = 0; i + 1 < nx; i++) {
+      const a = j * nx + i;
+      const [b, c, d] = [a + 1, a + nx, a + nx + 1];
+      if (inside[a] && inside[b] && inside[c] && inside[d]) indices.push(a, c, b, b, c, d);
+    }
+  }
+  const zs = [lo, lo + span];
+  return {
+    position,
+    normal,
+    uv,
+    indices: new Uint32Array(indices),
+    bounds: [
+      [0, 0, Math.min(...zs)],
+      [w - 1, rows - 1, Math.max(...zs)],
+    ],
+  };
+}
+
 export class MeshView {
   constructor(canvas) {
     this.canvas = canvas;
@@ -76,14 +149,16 @@ export class MeshView {
   setMessage(text) {
     this.mesh = null;
     this.canvas.setAttribute("aria-description", text);
+    delete this.canvas.dataset.surface;
     const gl = this.gl;
     gl.clearColor(0.07, 0.07, 0.08, 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
   }
 
-  setMesh(buffer, albedo) {
+  // `surface`: what parseGlb or gridFromMaps return; `kind` names it on the canvas
+  // (data-surface: "mesh" or "grid").
+  setSurface(m, albedo, kind) {
     const gl = this.gl;
-    const m = parseGlb(buffer);
     const vao = gl.createVertexArray();
     gl.bindVertexArray(vao);
     const attribute = (name, data, size) => {
@@ -112,6 +187,7 @@ export class MeshView {
       type: m.indices instanceof Uint32Array ? gl.UNSIGNED_INT : gl.UNSIGNED_SHORT,
     };
     this.canvas.removeAttribute("aria-description");
+    this.canvas.dataset.surface = kind;
     this.draw();
   }
 
