@@ -400,7 +400,6 @@ async fn accept(
             return idempotency::replay(&first, &answer.body_hash);
         }
     }
-    state.count_submitted();
     tracing::info!(
         target: "audit",
         action = "create",
