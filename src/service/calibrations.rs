@@ -720,7 +720,7 @@ struct Made {
 fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
     let decode = |images: &[Stored]| -> Result<Vec<calibrate::SphereImage>, ApiError> {
         use rayon::prelude::*;
-        Ok(images
+        images
             .par_iter()
             .map(|s| {
                 let path = dir.join(&s.file);
@@ -732,7 +732,7 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
                     plane,
                 })
             })
-            .collect::<Result<Vec<_>, ApiError>>()?)
+            .collect::<Result<Vec<_>, ApiError>>()
     };
     let images = decode(&form.images)?;
     let (circle, source) = match (form.circle, &form.mask) {
