@@ -1159,6 +1159,43 @@ mod tests {
     }
 
     #[test]
+    fn calibrations_are_kept_listed_per_tenant_and_deleted() {
+        let (_dir, repo) = repo();
+        let cal = |tenant: &str, at| CalibrationRecord {
+            id: Uuid::new_v4(),
+            tenant: tenant.into(),
+            created_at: at,
+            detail: serde_json::json!({"image_count": 3}),
+            table: "im1.png, 0, 0, 1\n".into(),
+            artifacts: vec![ArtifactInfo {
+                name: "lights.csv".into(),
+                bytes: 17,
+                etag: "\"x\"".into(),
+            }],
+        };
+        let (a1, b1, a2) = (cal("a", 10), cal("b", 11), cal("a", 12));
+        for c in [&a1, &b1, &a2] {
+            repo.insert_calibration(c).unwrap();
+        }
+        assert_eq!(repo.get_calibration(a1.id).unwrap().as_ref(), Some(&a1));
+        let ids = |page: Vec<CalibrationRecord>| page.into_iter().map(|c| c.id).collect::<Vec<_>>();
+        assert_eq!(
+            ids(repo.list_calibrations(Some("a"), 10, None).unwrap()),
+            [a2.id, a1.id]
+        );
+        assert_eq!(
+            ids(repo.list_calibrations(None, 2, Some((12, a2.id))).unwrap()),
+            [b1.id, a1.id]
+        );
+        assert_eq!(repo.calibration_ids().unwrap().len(), 3);
+        assert!(repo.delete_calibration(a1.id).unwrap());
+        assert!(!repo.delete_calibration(a1.id).unwrap());
+        assert!(repo.get_calibration(a1.id).unwrap().is_none());
+        // Jobs and calibrations do not meet.
+        assert!(repo.get(b1.id).unwrap().is_none());
+    }
+
+    #[test]
     fn idempotent_answers_are_kept_per_tenant_and_key_for_the_window() {
         let (_dir, repo) = repo();
         let answer = |hash: &str, at| Remembered {
