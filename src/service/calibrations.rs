@@ -241,9 +241,9 @@ impl CalibrationView {
 /// Calibrate the lights from a chrome sphere.
 ///
 /// One image of a mirror ball per light; the sphere's outline is fitted to the images
-/// unless a `circle` or `mask` is given. The calibration runs within the request (a
-/// second or so for a few dozen megapixels) and the answer is 201 with the result. Give
-/// its id as a job's `calibration` part to reconstruct with its lights.
+/// unless a `circle` or `mask` is given. The calibration runs within the request and the
+/// answer is 201 with the result. Give its id as a job's `calibration` part to
+/// reconstruct with its lights.
 #[utoipa::path(
     post,
     path = "/v1/calibrations",
