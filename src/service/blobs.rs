@@ -5,6 +5,8 @@
 //! jobs/{id}/input/           manifest.json, lights.txt, 000.img, 001.img, …, mask.img
 //! jobs/{id}/output.partial/  a reconstruction being written
 //! jobs/{id}/output/          the finished artifacts (renamed from output.partial at once)
+//! calibrations/{id}/files.partial/  a calibration's upload and files being made
+//! calibrations/{id}/files/          its lights.csv, overlay.png, lights.png
 //! ```
 //!
 //! The reconstruction core reads and writes local files, so the store hands out local
@@ -76,18 +78,31 @@ pub trait BlobStore: Send + Sync + 'static {
     fn free_bytes(&self) -> io::Result<u64>;
     /// Write, sync and remove a probe file.
     fn probe_writable(&self) -> io::Result<()>;
+    /// A fresh, empty directory to receive a calibration's upload and make its files in.
+    fn stage_calibration(&self, id: Uuid) -> io::Result<PathBuf>;
+    /// Make the staged directory the calibration's files (durably).
+    fn commit_calibration(&self, id: Uuid) -> io::Result<()>;
+    /// The committed files of a calibration.
+    fn calibration(&self, id: Uuid) -> PathBuf;
+    /// Remove everything of a calibration (a missing one is not an error).
+    fn remove_calibration(&self, id: Uuid) -> io::Result<()>;
+    /// Every calibration that has a directory.
+    fn calibration_ids(&self) -> io::Result<Vec<Uuid>>;
 }
 
 /// [`BlobStore`] in a local directory.
 pub struct LocalStore {
     root: PathBuf,
+    calibrations: PathBuf,
 }
 
 impl LocalStore {
     pub fn open(data_dir: &Path) -> io::Result<Self> {
         let root = data_dir.join("jobs");
+        let calibrations = data_dir.join("calibrations");
         std::fs::create_dir_all(&root)?;
-        Ok(Self { root })
+        std::fs::create_dir_all(&calibrations)?;
+        Ok(Self { root, calibrations })
     }
 
     fn job(&self, id: Uuid) -> PathBuf {
@@ -171,18 +186,7 @@ impl BlobStore for LocalStore {
     }
 
     fn job_ids(&self) -> io::Result<Vec<Uuid>> {
-        let mut ids = Vec::new();
-        for entry in std::fs::read_dir(&self.root)? {
-            let entry = entry?;
-            if let Some(id) = entry
-                .file_name()
-                .to_str()
-                .and_then(|s| Uuid::parse_str(s).ok())
-            {
-                ids.push(id);
-            }
-        }
-        Ok(ids)
+        uuid_dirs(&self.root)
     }
 
     fn remove_partials(&self, id: Uuid) -> io::Result<()> {
@@ -202,6 +206,46 @@ impl BlobStore for LocalStore {
         std::fs::write(&probe, b"ok")?;
         std::fs::remove_file(&probe)
     }
+
+    fn stage_calibration(&self, id: Uuid) -> io::Result<PathBuf> {
+        let dir = self.calibrations.join(id.to_string()).join("files.partial");
+        Self::fresh_dir(&dir)?;
+        Ok(dir)
+    }
+
+    fn commit_calibration(&self, id: Uuid) -> io::Result<()> {
+        let dir = self.calibrations.join(id.to_string());
+        Self::commit_dir(&dir.join("files.partial"), &dir.join("files"))?;
+        sync_dir(&self.calibrations)
+    }
+
+    fn calibration(&self, id: Uuid) -> PathBuf {
+        self.calibrations.join(id.to_string()).join("files")
+    }
+
+    fn remove_calibration(&self, id: Uuid) -> io::Result<()> {
+        remove_dir_if_exists(&self.calibrations.join(id.to_string()))
+    }
+
+    fn calibration_ids(&self) -> io::Result<Vec<Uuid>> {
+        uuid_dirs(&self.calibrations)
+    }
+}
+
+/// The directories of `root` named by a UUID.
+fn uuid_dirs(root: &Path) -> io::Result<Vec<Uuid>> {
+    let mut ids = Vec::new();
+    for entry in std::fs::read_dir(root)? {
+        let entry = entry?;
+        if let Some(id) = entry
+            .file_name()
+            .to_str()
+            .and_then(|s| Uuid::parse_str(s).ok())
+        {
+            ids.push(id);
+        }
+    }
+    Ok(ids)
 }
 
 #[cfg(unix)]

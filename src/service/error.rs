@@ -8,6 +8,7 @@ use utoipa::ToSchema;
 
 use crate::core::InputError;
 use crate::core::RunError;
+use crate::core::calibrate::CalibrationError;
 
 /// The media type of every error body.
 pub const PROBLEM_JSON: &str = "application/problem+json";
@@ -308,6 +309,17 @@ impl From<InputError> for ApiError {
             Self::internal(e)
         } else {
             Self::invalid(e.to_string())
+        }
+    }
+}
+
+/// The calibration's errors name the image, circle or mask at fault: 422, except for the
+/// input errors, mapped as above.
+impl From<CalibrationError> for ApiError {
+    fn from(e: CalibrationError) -> Self {
+        match e {
+            CalibrationError::Input(e) => e.into(),
+            other => Self::invalid(other.to_string()),
         }
     }
 }

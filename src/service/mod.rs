@@ -14,6 +14,7 @@
 
 mod app;
 pub mod blobs;
+mod calibrations;
 pub mod config;
 pub mod error;
 mod events;
@@ -100,6 +101,9 @@ pub(crate) struct Inner {
     stop: watch::Sender<bool>,
     /// One permit per upload being received (`max_uploads`).
     uploads: Arc<tokio::sync::Semaphore>,
+    /// One permit per calibration being computed (`workers`): each holds its images
+    /// decoded, as a running job does.
+    calibrating: Arc<tokio::sync::Semaphore>,
     /// The data directory's lock file, held (flock) while this server uses it, so that a
     /// second server cannot run the same jobs or tidy away the first one's uploads.
     data_lock: std::sync::Mutex<Option<std::fs::File>>,
@@ -132,6 +136,7 @@ impl AppState {
             .with_context(|| format!("opening {}", config.data_dir.display()))?;
         let (stop, _) = watch::channel(false);
         let config_uploads = config.max_uploads.max(1);
+        let config_workers = config.workers.max(1);
         let submissions = quota::SubmissionRate::new(config.tenant_submissions_per_minute);
         let inner = Arc::new(Inner {
             jobs: JobQueue::new(config.queue_length),
@@ -148,6 +153,7 @@ impl AppState {
             shutting_down: AtomicBool::new(false),
             stop,
             uploads: Arc::new(tokio::sync::Semaphore::new(config_uploads)),
+            calibrating: Arc::new(tokio::sync::Semaphore::new(config_workers)),
             data_lock: std::sync::Mutex::new(Some(data_lock)),
         });
         let requeued = recover(&inner)?;
@@ -294,6 +300,18 @@ impl AppState {
         self.inner.uploads.clone().try_acquire_owned().ok()
     }
 
+    /// A permit to compute one calibration, waited for.
+    pub(crate) async fn calibration_permit(
+        &self,
+    ) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
+        self.inner
+            .calibrating
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|e| ApiError::internal(format!("calibration permits: {e}")))
+    }
+
     pub(crate) fn count_submitted(&self) {
         self.inner.metrics.submitted.fetch_add(1, Ordering::Relaxed);
     }
@@ -303,17 +321,7 @@ impl AppState {
     /// jobs again ([`Self::over_active_jobs`]), as uploads run concurrently.
     pub(crate) async fn check_quotas(&self, tenant: &str) -> Result<(), ApiError> {
         let config = &self.inner.config;
-        if let Err(wait) = self.inner.submissions.admit(tenant) {
-            return Err(self.refuse(
-                tenant,
-                quota::Limit::SubmissionsPerMinute,
-                quota::retry_secs(wait),
-                format!(
-                    "tenant {tenant} has made {} submissions in the last minute (the limit)",
-                    self.inner.submissions.per_minute()
-                ),
-            ));
-        }
+        self.admit_submission(tenant)?;
         let t = tenant.to_string();
         let active = self.repo(move |r| r.active(&t)).await?;
         if active >= config.tenant_max_jobs as u64 {
@@ -335,6 +343,21 @@ impl AppState {
             }
         }
         Ok(())
+    }
+
+    /// The submission rate (jobs and calibrations together), counting this one.
+    pub(crate) fn admit_submission(&self, tenant: &str) -> Result<(), ApiError> {
+        self.inner.submissions.admit(tenant).map_err(|wait| {
+            self.refuse(
+                tenant,
+                quota::Limit::SubmissionsPerMinute,
+                quota::retry_secs(wait),
+                format!(
+                    "tenant {tenant} has made {} submissions in the last minute (the limit)",
+                    self.inner.submissions.per_minute()
+                ),
+            )
+        })
     }
 
     /// 429 for a tenant at its limit of jobs queued or running.
@@ -536,6 +559,16 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
             tracing::warn!(job = %id, error = %e, "cannot tidy job files");
         }
     }
+    // Calibration files are committed before their record: files without one are a
+    // calibration that was never answered.
+    let calibrations: HashSet<Uuid> = inner.repo.calibration_ids()?.into_iter().collect();
+    for id in inner.store.calibration_ids()? {
+        if !calibrations.contains(&id)
+            && let Err(e) = inner.store.remove_calibration(id)
+        {
+            tracing::warn!(calibration = %id, error = %e, "cannot tidy calibration files");
+        }
+    }
     let mut queued = 0;
     for rec in inner.repo.unfinished()? {
         if rec.status == JobStatus::Running {
@@ -594,6 +627,17 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .routes(routes!(routes::get_job, routes::delete_job))
         .routes(routes!(routes::get_artifact))
         .routes(routes!(events::job_events))
+        .routes(routes!(
+            calibrations::create_calibration,
+            calibrations::list_calibrations
+        ))
+        .routes(routes!(
+            calibrations::get_calibration,
+            calibrations::delete_calibration
+        ))
+        .routes(routes!(calibrations::get_lights_csv))
+        .routes(routes!(calibrations::get_overlay))
+        .routes(routes!(calibrations::get_lights_png))
 }
 
 /// Health, readiness, metrics, the OpenAPI document (always open).

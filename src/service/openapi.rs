@@ -9,6 +9,9 @@ use utoipa::{Modify, OpenApi};
 
 use crate::core::outputs::{ALL, ARTIFACTS};
 
+use super::calibrations::{
+    CalibrationList, CalibrationView, CircleView, HighlightView, LightView, Measured, SkippedView,
+};
 use super::error::Problem;
 use super::repo::JobStatus;
 use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
@@ -18,12 +21,28 @@ use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
     info(
         title = "photostereo",
         version = "1",
-        description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`. Each key belongs to a tenant: a tenant sees and manages only its own jobs (another tenant's job is answered exactly like one that does not exist, 404), and a key with the admin role sees all. Each tenant has quotas (jobs queued or running, submissions per minute, stored bytes), answered with 429 and Retry-After; the queue serves tenants in turn."
+        description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. Lights can be measured first: `POST /v1/calibrations` with one chrome-sphere image per light, then give the calibration's id as the job's `calibration` part. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`. Each key belongs to a tenant: a tenant sees and manages only its own jobs (another tenant's job is answered exactly like one that does not exist, 404), and a key with the admin role sees all. Each tenant has quotas (jobs queued or running, submissions per minute, stored bytes), answered with 429 and Retry-After; the queue serves tenants in turn."
     ),
-    components(schemas(Problem, JobStatus, JobView, JobList, ResultSummary, Health, ImageFile)),
+    components(schemas(
+        Problem,
+        JobStatus,
+        JobView,
+        JobList,
+        ResultSummary,
+        Health,
+        ImageFile,
+        CalibrationView,
+        CalibrationList,
+        Measured,
+        CircleView,
+        LightView,
+        HighlightView,
+        SkippedView
+    )),
     modifiers(&BearerScheme),
     tags(
         (name = "jobs", description = "Reconstruction jobs and their artifacts"),
+        (name = "calibrations", description = "Light calibrations from a chrome sphere, for jobs to use instead of a light table"),
         (name = "operations", description = "Health, readiness, metrics and this document"),
     )
 )]

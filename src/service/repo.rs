@@ -172,6 +172,22 @@ pub struct Remembered {
     pub created_at: i64,
 }
 
+/// A calibration as the repo stores it (see `calibrations`). Times are milliseconds since
+/// the Unix epoch.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CalibrationRecord {
+    pub id: Uuid,
+    /// The tenant that created it.
+    pub tenant: String,
+    pub created_at: i64,
+    /// What was measured (circle, lights, quality, skipped images), as JSON.
+    pub detail: serde_json::Value,
+    /// The light table (`name, x, y, z[, intensity]`), as jobs take it.
+    pub table: String,
+    /// Its stored files (`lights.csv`, `overlay.png`, `lights.png`).
+    pub artifacts: Vec<ArtifactInfo>,
+}
+
 /// How a running job ended.
 #[derive(Debug, Clone)]
 pub enum Finish {
@@ -269,6 +285,17 @@ pub trait JobRepo: Send + Sync + 'static {
     fn set_callback(&self, id: Uuid, callback: &Callback) -> RepoResult<()>;
     /// Cheap round trip for readiness checks.
     fn ping(&self) -> RepoResult<()>;
+    fn insert_calibration(&self, calibration: &CalibrationRecord) -> RepoResult<()>;
+    fn get_calibration(&self, id: Uuid) -> RepoResult<Option<CalibrationRecord>>;
+    /// Newest first, of one tenant or (None) all; `before` as for [`JobRepo::list`].
+    fn list_calibrations(
+        &self,
+        tenant: Option<&str>,
+        limit: usize,
+        before: Option<(i64, Uuid)>,
+    ) -> RepoResult<Vec<CalibrationRecord>>;
+    fn delete_calibration(&self, id: Uuid) -> RepoResult<bool>;
+    fn calibration_ids(&self) -> RepoResult<Vec<Uuid>>;
 }
 
 /// Schema versions; `PRAGMA user_version` is the number applied.
@@ -310,6 +337,17 @@ const MIGRATIONS: &[&str] = &[
     CREATE INDEX idempotency_by_age ON idempotency (created_at);",
     // 4: jobs' webhooks.
     "ALTER TABLE jobs ADD COLUMN callback TEXT;",
+    // 5: light calibrations.
+    "CREATE TABLE calibrations (
+        id         TEXT PRIMARY KEY NOT NULL,
+        tenant     TEXT NOT NULL,
+        created_at INTEGER NOT NULL,
+        detail     TEXT NOT NULL,
+        light_table TEXT NOT NULL,
+        artifacts  TEXT NOT NULL
+    );
+    CREATE INDEX calibrations_by_created ON calibrations (created_at DESC, id DESC);
+    CREATE INDEX calibrations_by_tenant ON calibrations (tenant, created_at DESC, id DESC);",
 ];
 
 /// [`JobRepo`] in a SQLite database file.
@@ -455,6 +493,36 @@ fn read_remembered(
             },
         )
         .optional()?)
+}
+
+const CALIBRATION_COLUMNS: &str = "id, tenant, created_at, detail, light_table, artifacts";
+
+/// A calibration row: id, tenant, created_at, detail, light_table, artifacts.
+type RawCalibration = (String, String, i64, String, String, String);
+
+fn read_calibration(row: &Row<'_>) -> rusqlite::Result<RawCalibration> {
+    Ok((
+        row.get(0)?,
+        row.get(1)?,
+        row.get(2)?,
+        row.get(3)?,
+        row.get(4)?,
+        row.get(5)?,
+    ))
+}
+
+fn decode_calibration(
+    (id, tenant, created_at, detail, table, artifacts): RawCalibration,
+) -> RepoResult<CalibrationRecord> {
+    Ok(CalibrationRecord {
+        id: Uuid::parse_str(&id)
+            .map_err(|e| RepoError(format!("stored calibration id {id:?}: {e}")))?,
+        tenant,
+        created_at,
+        detail: serde_json::from_str(&detail)?,
+        table,
+        artifacts: serde_json::from_str(&artifacts)?,
+    })
 }
 
 fn query_records(
@@ -841,6 +909,86 @@ impl JobRepo for SqliteRepo {
             Ok(())
         })
     }
+
+    fn insert_calibration(&self, cal: &CalibrationRecord) -> RepoResult<()> {
+        let detail = serde_json::to_string(&cal.detail)?;
+        let artifacts = serde_json::to_string(&cal.artifacts)?;
+        self.with(|c| {
+            c.execute(
+                &format!(
+                    "INSERT INTO calibrations ({CALIBRATION_COLUMNS}) VALUES (?1, ?2, ?3, ?4, ?5, ?6)"
+                ),
+                params![
+                    cal.id.to_string(),
+                    cal.tenant,
+                    cal.created_at,
+                    detail,
+                    cal.table,
+                    artifacts
+                ],
+            )?;
+            Ok(())
+        })
+    }
+
+    fn get_calibration(&self, id: Uuid) -> RepoResult<Option<CalibrationRecord>> {
+        self.with(|c| {
+            c.query_row(
+                &format!("SELECT {CALIBRATION_COLUMNS} FROM calibrations WHERE id = ?1"),
+                params![id.to_string()],
+                read_calibration,
+            )
+            .optional()?
+            .map(decode_calibration)
+            .transpose()
+        })
+    }
+
+    fn list_calibrations(
+        &self,
+        tenant: Option<&str>,
+        limit: usize,
+        before: Option<(i64, Uuid)>,
+    ) -> RepoResult<Vec<CalibrationRecord>> {
+        let first = before.is_none();
+        let (at, id) = before.map_or((0, String::new()), |(at, id)| (at, id.to_string()));
+        self.with(|c| {
+            let mut stmt = c.prepare_cached(&format!(
+                "SELECT {CALIBRATION_COLUMNS} FROM calibrations WHERE (?1 IS NULL OR tenant = ?1) \
+                 AND (?2 OR (created_at, id) < (?3, ?4)) \
+                 ORDER BY created_at DESC, id DESC LIMIT ?5"
+            ))?;
+            let rows = stmt.query_map(
+                params![tenant, first, at, id, limit as i64],
+                read_calibration,
+            )?;
+            let mut out = Vec::new();
+            for raw in rows {
+                out.push(decode_calibration(raw?)?);
+            }
+            Ok(out)
+        })
+    }
+
+    fn delete_calibration(&self, id: Uuid) -> RepoResult<bool> {
+        self.with(|c| {
+            let n = c.execute(
+                "DELETE FROM calibrations WHERE id = ?1",
+                params![id.to_string()],
+            )?;
+            Ok(n == 1)
+        })
+    }
+
+    fn calibration_ids(&self) -> RepoResult<Vec<Uuid>> {
+        self.with(|c| {
+            let mut stmt = c.prepare_cached("SELECT id FROM calibrations")?;
+            let ids = stmt
+                .query_map([], |r| r.get::<_, String>(0))?
+                .collect::<Result<Vec<_>, _>>()?;
+            Ok(ids.iter().filter_map(|s| Uuid::parse_str(s).ok()).collect())
+        })
+    }
 }
 
 #[cfg(test)]
@@ -1008,6 +1156,43 @@ mod tests {
         let rec = repo.get(Uuid::nil()).unwrap().unwrap();
         assert_eq!(rec.tenant, super::super::tenants::OPEN_TENANT);
         assert_eq!(repo.list(Some("default"), 5, None).unwrap().len(), 1);
+    }
+
+    #[test]
+    fn calibrations_are_kept_listed_per_tenant_and_deleted() {
+        let (_dir, repo) = repo();
+        let cal = |tenant: &str, at| CalibrationRecord {
+            id: Uuid::new_v4(),
+            tenant: tenant.into(),
+            created_at: at,
+            detail: serde_json::json!({"image_count": 3}),
+            table: "im1.png, 0, 0, 1\n".into(),
+            artifacts: vec![ArtifactInfo {
+                name: "lights.csv".into(),
+                bytes: 17,
+                etag: "\"x\"".into(),
+            }],
+        };
+        let (a1, b1, a2) = (cal("a", 10), cal("b", 11), cal("a", 12));
+        for c in [&a1, &b1, &a2] {
+            repo.insert_calibration(c).unwrap();
+        }
+        assert_eq!(repo.get_calibration(a1.id).unwrap().as_ref(), Some(&a1));
+        let ids = |page: Vec<CalibrationRecord>| page.into_iter().map(|c| c.id).collect::<Vec<_>>();
+        assert_eq!(
+            ids(repo.list_calibrations(Some("a"), 10, None).unwrap()),
+            [a2.id, a1.id]
+        );
+        assert_eq!(
+            ids(repo.list_calibrations(None, 2, Some((12, a2.id))).unwrap()),
+            [b1.id, a1.id]
+        );
+        assert_eq!(repo.calibration_ids().unwrap().len(), 3);
+        assert!(repo.delete_calibration(a1.id).unwrap());
+        assert!(!repo.delete_calibration(a1.id).unwrap());
+        assert!(repo.get_calibration(a1.id).unwrap().is_none());
+        // Jobs and calibrations do not meet.
+        assert!(repo.get(b1.id).unwrap().is_none());
     }
 
     #[test]

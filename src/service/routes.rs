@@ -21,14 +21,14 @@ use super::AppState;
 use super::error::{ApiError, PROBLEM_JSON, Problem};
 use super::idempotency::{self, PartHasher};
 use super::jobs::PushError;
-use super::repo::{Callback, CallbackState, JobRecord, JobStatus, Remembered};
+use super::repo::{CalibrationRecord, Callback, CallbackState, JobRecord, JobStatus, Remembered};
 use super::tenants::Caller;
 use super::upload;
 use super::util::{format_duration, now_ms, rfc3339, strong_etag};
 use super::webhooks;
 
 /// Cache lifetime of stored artifacts (they never change once a job has succeeded).
-const IMMUTABLE: &str = "private, max-age=31536000, immutable";
+pub(super) const IMMUTABLE: &str = "private, max-age=31536000, immutable";
 /// Cache lifetime of re-shaded pictures.
 const RESHADED: &str = "private, max-age=86400";
 
@@ -121,8 +121,8 @@ pub struct JobList {
     pub next_cursor: Option<String>,
 }
 
-/// The `POST /v1/jobs` form. Send either `images` + `lights` (+ `mask`, `options`) or
-/// `archive` (+ `mask`, `options`).
+/// The `POST /v1/jobs` form. Send either `images` + `lights` (or `calibration`) (+ `mask`,
+/// `options`) or `archive` (+ `mask`, `options`).
 #[derive(ToSchema)]
 #[allow(dead_code)] // documents the multipart body; the handler streams it
 pub struct JobUpload {
@@ -134,6 +134,10 @@ pub struct JobUpload {
     /// `[{"name", "direction": [x, y, z], "intensity"?}]` (text or file part).
     #[schema(value_type = String, required = false)]
     lights: Option<String>,
+    /// Instead of `lights`: the id of a calibration (`POST /v1/calibrations`) whose lights
+    /// are used, matched to the images by name.
+    #[schema(value_type = String, format = Uuid, required = false)]
+    calibration: Option<String>,
     /// Optional mask image, same size as the images (non-zero = object).
     #[schema(value_type = ImageFile, required = false)]
     mask: Option<Vec<u8>>,
@@ -277,8 +281,43 @@ pub(crate) async fn owned_job(
         .ok_or_else(|| ApiError::not_found(format!("there is no job {id}")))
 }
 
+/// The calibration `id` if the caller may see it: the same rule and answer as
+/// [`owned_job`], for every route that names a calibration.
+pub(crate) async fn owned_calibration(
+    state: &AppState,
+    caller: &Caller,
+    id: Uuid,
+) -> Result<CalibrationRecord, ApiError> {
+    state
+        .repo(move |r| r.get_calibration(id))
+        .await?
+        .filter(|c| caller.sees(&c.tenant))
+        .ok_or_else(|| ApiError::not_found(format!("there is no calibration {id}")))
+}
+
+/// The light table of a job's `calibration` part: an id that is no calibration the caller
+/// may see is a 422 (a field of the body), the same for one that never existed and
+/// another tenant's.
+async fn calibration_table(
+    state: &AppState,
+    caller: &Caller,
+    raw: &str,
+) -> Result<Vec<u8>, ApiError> {
+    let unknown = || {
+        ApiError::invalid(format!(
+            "calibration: there is no calibration {raw:?} (send the id of one of your calibrations, as POST /v1/calibrations answered it)"
+        ))
+    };
+    let id = Uuid::parse_str(raw).map_err(|_| unknown())?;
+    match owned_calibration(state, caller, id).await {
+        Ok(c) => Ok(c.table.into_bytes()),
+        Err(e) if e.status() == StatusCode::NOT_FOUND => Err(unknown()),
+        Err(e) => Err(e),
+    }
+}
+
 /// The request id (set by the request-id layer) for the audit log.
-fn request_id(headers: &HeaderMap) -> &str {
+pub(super) fn request_id(headers: &HeaderMap) -> &str {
     headers
         .get("x-request-id")
         .and_then(|v| v.to_str().ok())
@@ -400,6 +439,11 @@ async fn accept_job(
     // Dropped with its decoded images on any refusal below.
     let prefetch = earlier.is_none().then(|| state.begin_prefetch()).flatten();
     let mut hash = PartHasher::new(idempotency_key.is_some());
+    let tables =
+        |raw: String| -> futures_util::future::BoxFuture<'static, Result<Vec<u8>, ApiError>> {
+            let (state, caller) = (state.clone(), caller.clone());
+            Box::pin(async move { calibration_table(&state, &caller, &raw).await })
+        };
     let received = tokio::time::timeout(
         config.upload_timeout,
         upload::receive(
@@ -409,6 +453,7 @@ async fn accept_job(
             tap,
             prefetch.as_ref(),
             &mut hash,
+            &tables,
         ),
     )
     .await
@@ -593,7 +638,7 @@ pub async fn list_jobs(
     Ok(response)
 }
 
-fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
+pub(super) fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
     let bad = || {
         ApiError::bad_request(format!(
             "invalid cursor {c:?}: pass a next_cursor as it was given"
@@ -819,7 +864,7 @@ pub(super) fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
         .any(|t| t.trim() == "*" || bare(t) == etag)
 }
 
-fn not_modified_response(etag: &str, cache: &'static str) -> Response {
+pub(super) fn not_modified_response(etag: &str, cache: &'static str) -> Response {
     let mut r = StatusCode::NOT_MODIFIED.into_response();
     if let Ok(v) = HeaderValue::from_str(etag) {
         r.headers_mut().insert(header::ETAG, v);
@@ -829,7 +874,7 @@ fn not_modified_response(etag: &str, cache: &'static str) -> Response {
     r
 }
 
-fn artifact_response(
+pub(super) fn artifact_response(
     content_type: &'static str,
     etag: &str,
     cache: &'static str,

@@ -17,6 +17,7 @@ use std::task::{Context, Poll};
 use std::time::Duration;
 
 use axum::body::{Body, BodyDataStream, Bytes};
+use futures_util::future::BoxFuture;
 use futures_util::{Stream, StreamExt};
 
 use axum::extract::Multipart;
@@ -141,6 +142,13 @@ const HEAD_BYTES: usize = 64;
 const ARCHIVE_FILE: &str = "archive.zip";
 /// Longest `callback_url` accepted (bytes).
 const MAX_CALLBACK_BYTES: usize = 2048;
+/// Longest `calibration` part accepted (bytes; an id is 36).
+const MAX_CALIBRATION_BYTES: usize = 256;
+
+/// The light table of a job's `calibration` part (the id as sent), as the caller may see
+/// it; a 422 naming the id when there is none.
+pub type CalibrationTables<'a> =
+    &'a (dyn Fn(String) -> BoxFuture<'static, Result<Vec<u8>, ApiError>> + Send + Sync);
 
 /// An image stored in the staging directory.
 #[derive(Debug, Clone)]
@@ -175,12 +183,14 @@ struct Parts {
     mask_chosen: Option<MaskMode>,
     archive: Option<PathBuf>,
     callback_url: Option<String>,
+    /// The `calibration` part: a calibration id instead of a light table.
+    calibration: Option<String>,
     count: usize,
 }
 
 /// Read the multipart body into `dir` and check it. The caller removes `dir` on error.
 /// Each image is handed to `prefetch` to decode once it is written and probed; every
-/// part goes through `hash`.
+/// part goes through `hash`; a `calibration` part's table comes from `calibrations`.
 pub async fn receive(
     config: &Config,
     dir: &Path,
@@ -188,6 +198,7 @@ pub async fn receive(
     tap: &BodyTap,
     prefetch: Option<&Prefetch>,
     hash: &mut PartHasher,
+    calibrations: CalibrationTables<'_>,
 ) -> Result<Received, ApiError> {
     let mut parts = Parts::default();
     while let Some(mut field) = multipart
@@ -294,10 +305,31 @@ pub async fn receive(
                     .map_err(|_| ApiError::invalid("callback_url: not UTF-8 text"))?;
                 parts.callback_url = Some(url.trim().to_string());
             }
+            "calibration" => {
+                if parts.archive.is_some() {
+                    return Err(calibration_with_archive());
+                }
+                once(&parts.calibration, "calibration")?;
+                let bytes = read_small(
+                    &mut field,
+                    MAX_CALIBRATION_BYTES,
+                    "calibration",
+                    tap,
+                    config,
+                    hash,
+                )
+                .await?;
+                let id = String::from_utf8(bytes)
+                    .map_err(|_| ApiError::invalid("calibration: not UTF-8 text"))?;
+                parts.calibration = Some(id.trim().to_string());
+            }
             "archive" => {
                 once(&parts.archive, "archive")?;
                 if !parts.images.is_empty() || parts.lights.is_some() {
                     return Err(both_forms());
+                }
+                if parts.calibration.is_some() {
+                    return Err(calibration_with_archive());
                 }
                 let path = dir.join(ARCHIVE_FILE);
                 let (head, _) = stream_to_file(&mut field, &path, tap, config, hash).await?;
@@ -310,12 +342,12 @@ pub async fn receive(
             }
             "" => {
                 return Err(ApiError::bad_request(
-                    "a multipart part has no name; expected images, lights, mask, options, callback_url or archive",
+                    "a multipart part has no name; expected images, lights, calibration, mask, options, callback_url or archive",
                 ));
             }
             other => {
                 return Err(ApiError::bad_request(format!(
-                    "unknown part {other:?}; expected images, lights, mask, options, callback_url or archive"
+                    "unknown part {other:?}; expected images, lights, calibration, mask, options, callback_url or archive"
                 )));
             }
         }
@@ -353,17 +385,30 @@ pub async fn receive(
             _ => {}
         }
     }
-    let table = parts.lights.take().ok_or_else(|| {
-        ApiError::bad_request(
-            "missing the lights part (the light table, CSV `name, x, y, z[, intensity]` or JSON), or an archive part",
-        )
-    })?;
+    let calibration = parts.calibration.take();
+    let table = match (parts.lights.take(), &calibration) {
+        (Some(_), Some(_)) => {
+            return Err(ApiError::invalid(
+                "send either a lights part or a calibration part (whose lights are then used), not both",
+            ));
+        }
+        (Some(table), None) => table,
+        (None, Some(id)) => calibrations(id.clone()).await?,
+        (None, None) => {
+            return Err(ApiError::bad_request(
+                "missing the lights part (the light table, CSV `name, x, y, z[, intensity]` or JSON), a calibration part or an archive part",
+            ));
+        }
+    };
     if parts.images.is_empty() {
         return Err(ApiError::bad_request(
             "no images parts: send each image as a file part named images (curl -F images=@im1.png), or an archive part",
         ));
     }
     let lights = lights::parse_bytes(&table)?;
+    if let Some(id) = &calibration {
+        check_calibration_names(id, &lights, &parts.images)?;
+    }
     let ordered = check_names(&lights, &parts.images, config)?;
     check_sizes(&ordered)?;
     if let Some(mask) = &parts.mask {
@@ -408,11 +453,51 @@ pub async fn receive(
     })
 }
 
+fn calibration_with_archive() -> ApiError {
+    ApiError::invalid(
+        "a calibration part goes with images parts; an archive brings its own light table",
+    )
+}
+
+/// Every light of the calibration has its image and every image its light, else a 422
+/// listing the names that do not match.
+fn check_calibration_names(
+    id: &str,
+    lights: &[Light],
+    images: &[StoredImage],
+) -> Result<(), ApiError> {
+    let sent: std::collections::HashSet<&str> = images.iter().map(|i| i.name.as_str()).collect();
+    let named: std::collections::HashSet<&str> = lights.iter().map(|l| l.name.as_str()).collect();
+    let missing: Vec<&str> = (lights.iter().map(|l| l.name.as_str()))
+        .filter(|n| !sent.contains(n))
+        .collect();
+    let unmatched: Vec<&str> = (images.iter().map(|i| i.name.as_str()))
+        .filter(|n| !named.contains(n))
+        .collect();
+    let mut problems = Vec::new();
+    if !missing.is_empty() {
+        problems.push(format!("no image for its lights {}", missing.join(", ")));
+    }
+    if !unmatched.is_empty() {
+        problems.push(format!(
+            "no light in it for the images {}",
+            unmatched.join(", ")
+        ));
+    }
+    if problems.is_empty() {
+        return Ok(());
+    }
+    Err(ApiError::invalid(format!(
+        "the images do not match the lights of calibration {id} (matched by name): {}",
+        problems.join("; ")
+    )))
+}
+
 fn both_forms() -> ApiError {
     ApiError::bad_request("send either an archive part or images and lights parts, not both")
 }
 
-fn once<T>(slot: &Option<T>, part: &str) -> Result<(), ApiError> {
+pub(super) fn once<T>(slot: &Option<T>, part: &str) -> Result<(), ApiError> {
     match slot {
         Some(_) => Err(ApiError::bad_request(format!(
             "the {part} part appears more than once"
@@ -421,7 +506,7 @@ fn once<T>(slot: &Option<T>, part: &str) -> Result<(), ApiError> {
     }
 }
 
-fn multipart_error(e: MultipartError, tap: &BodyTap, config: &Config) -> ApiError {
+pub(super) fn multipart_error(e: MultipartError, tap: &BodyTap, config: &Config) -> ApiError {
     if tap.exceeded() || e.status() == axum::http::StatusCode::PAYLOAD_TOO_LARGE {
         ApiError::too_large(format!(
             "the request body is larger than the limit of {} bytes",
@@ -433,7 +518,7 @@ fn multipart_error(e: MultipartError, tap: &BodyTap, config: &Config) -> ApiErro
 }
 
 /// The file name of an image part: the name the light table uses for it.
-fn file_name(field: &Field<'_>, part: &str) -> Result<String, ApiError> {
+pub(super) fn file_name(field: &Field<'_>, part: &str) -> Result<String, ApiError> {
     match field.file_name() {
         Some(n) if !n.is_empty() => Ok(n.to_string()),
         _ => Err(ApiError::bad_request(format!(
@@ -490,7 +575,7 @@ const WRITE_BUFFER: usize = 1 << 20;
 /// handle stays valid when the staging directory is renamed). The chunks go through a
 /// bounded channel to one blocking task that owns a std file, so a part costs one
 /// blocking-pool hand-off rather than one per chunk, and the async side copies nothing.
-async fn stream_to_file(
+pub(super) async fn stream_to_file(
     field: &mut Field<'_>,
     path: &Path,
     tap: &BodyTap,
@@ -564,7 +649,7 @@ fn start_writeback(file: &File) {
 fn start_writeback(_file: &File) {}
 
 /// Read a small text part into memory, refusing more than `limit` bytes.
-async fn read_small(
+pub(super) async fn read_small(
     field: &mut Field<'_>,
     limit: usize,
     part: &str,
@@ -591,7 +676,7 @@ async fn read_small(
 
 /// Recognise the image format from its signature and read its dimensions and bit depth
 /// from the header (no decoding), off the async runtime.
-async fn probe(
+pub(super) async fn probe(
     path: PathBuf,
     name: String,
     head: Vec<u8>,

@@ -528,13 +528,15 @@ async function loadCalibrations() {
   if (!hasCalibrations || (access.keyRequired && !getKey())) return;
   try {
     const answer = await api("GET", "/v1/calibrations");
-    const list = Array.isArray(answer) ? answer : answer.calibrations || answer.items || [];
+    const list = answer.calibrations || [];
     const select = $("calibration");
     select.replaceChildren(select.options[0]);
     for (const c of list) {
       const o = document.createElement("option");
       o.value = c.id;
-      o.textContent = c.name ? `${c.name} (${c.id.slice(0, 8)})` : c.id;
+      // e.g. "2025-11-25 19:34 · 12 lights (5d1c2f0a)"
+      const when = c.created_at.slice(0, 16).replace("T", " ");
+      o.textContent = `${when} · ${c.lights.length} lights (${c.id.slice(0, 8)})`;
       select.append(o);
     }
     $("calibration-field").hidden = false;

@@ -1,0 +1,1099 @@
+//! Light calibrations as a resource: `POST /v1/calibrations` takes one chrome-sphere image
+//! per light, runs the core's calibration within the request (on the blocking pool, at
+//! most `workers` at once) and answers 201 with the result. The calibration keeps its
+//! light table, per-light quality and pictures until it is deleted; a job names it in a
+//! `calibration` part instead of sending a light table (see `upload`).
+//!
+//! The upload streams to `calibrations/{id}/files.partial/` (images as `000.img`, …, never
+//! the caller's names), which is replaced by the calibration's files and committed before
+//! the record is written; ownership follows the jobs' rule (`routes::owned_calibration`).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::{FromRequest, FromRequestParts, Multipart, Path as UrlPath, Request, State};
+use axum::http::request::Parts;
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+use uuid::Uuid;
+
+use crate::core::InputError;
+use crate::core::calibrate::{self, Calibration, Camera, Circle, CircleSource, Settings};
+use crate::core::intake::{self, Limits};
+
+use super::AppState;
+use super::config::{Config, MAX_LIGHTS_BYTES};
+use super::error::{ApiError, Problem};
+use super::idempotency::{self, PartHasher};
+use super::repo::{ArtifactInfo, CalibrationRecord, Remembered};
+use super::routes::{
+    ApiQuery, IMMUTABLE, ListQuery, artifact_response, not_modified, not_modified_response,
+    owned_calibration, parse_cursor, request_id,
+};
+use super::tenants::Caller;
+use super::upload::{self, BodyTap};
+use super::util::{format_duration, now_ms, rfc3339, strong_etag};
+
+/// The `Idempotency-Key` scope of `POST /v1/calibrations`.
+const SCOPE: &str = "calibrations";
+/// Longest `circle`, `focal_length` or `skip_bad` part accepted (bytes).
+const MAX_VALUE_BYTES: usize = 256;
+
+/// The files a calibration keeps, and their content types.
+pub const FILES: [(&str, &str); 3] = [
+    ("lights.csv", "text/csv; charset=utf-8"),
+    ("overlay.png", "image/png"),
+    ("lights.png", "image/png"),
+];
+
+/// A calibration: the circle used, the lights with their quality figures, the images left
+/// out, and links to its files.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CalibrationView {
+    /// The calibration's id (a random UUID); a job's `calibration` part names it.
+    pub id: Uuid,
+    /// The tenant that created it.
+    #[schema(example = "alice")]
+    pub tenant: String,
+    /// RFC 3339.
+    #[schema(example = "2025-11-25T19:34:00.123Z")]
+    pub created_at: String,
+    #[serde(flatten)]
+    pub measured: Measured,
+    /// File name → download URL: `lights.csv` (the light table), `overlay.png` (circle
+    /// and numbered highlights over the maximum image), `lights.png` (the directions on
+    /// the unit hemisphere).
+    #[schema(example = json!({"lights.csv": "/v1/calibrations/0b6f2a43-3c1e-4c51-9d1e-6c9f3a7d2e10/lights.csv"}))]
+    pub files: BTreeMap<String, String>,
+    /// This resource's URL.
+    pub url: String,
+}
+
+/// What a calibration measured (stored as the record's detail).
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct Measured {
+    /// The sphere images' size, pixels.
+    pub width: u32,
+    pub height: u32,
+    /// Sphere images sent (lights found plus images skipped).
+    pub image_count: u32,
+    /// The pinhole camera's focal length in pixels; null for an orthographic camera.
+    pub focal_length: Option<f64>,
+    pub circle: CircleView,
+    /// One per sphere image with a usable highlight, in upload order.
+    pub lights: Vec<LightView>,
+    /// Images left out (`skip_bad`), and why.
+    pub skipped: Vec<SkippedView>,
+}
+
+/// The sphere's circle in pixels (0-based, pixel centres at integers).
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct CircleView {
+    pub cx: f64,
+    pub cy: f64,
+    pub r: f64,
+    /// `fitted` (to the images' outline), `given` (the `circle` part) or `mask`.
+    #[schema(example = "fitted")]
+    pub source: String,
+    /// For a fitted circle: the fraction of the outline the fit found, and the RMS
+    /// distance of its edge points from the circle (pixels).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rms: Option<f64>,
+}
+
+/// One calibrated light.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct LightView {
+    /// The light table's name for it (what the object image must be called).
+    #[schema(example = "im1.png")]
+    pub name: String,
+    /// Its sphere image's file name, and its number (1-based, upload order) in
+    /// `overlay.png` and `lights.png`.
+    pub image: String,
+    pub number: u32,
+    /// Unit direction towards the light: x = column right, y = row down, z towards the
+    /// camera.
+    pub direction: [f64; 3],
+    /// Relative intensity (mean 1) from the matte sphere, when `matte` images were sent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub intensity: Option<f64>,
+    /// Degrees above the image plane, and around it from the x axis (towards y).
+    pub elevation_deg: f64,
+    pub azimuth_deg: f64,
+    pub highlight: HighlightView,
+}
+
+/// The highlight the direction comes from, and how trustworthy it looks.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct HighlightView {
+    /// Brightness-weighted centre, pixels (0-based, pixel centres at integers).
+    pub x: f64,
+    pub y: f64,
+    /// Pixels in the blob.
+    pub pixels: u64,
+    /// Brightest value (fraction of full scale) and whether it is clipped.
+    pub peak: f64,
+    pub clipped: bool,
+    /// Distance of the centre from the sphere's outline, pixels.
+    pub rim_distance: f64,
+    /// Ratio of the blob's principal axes in direction space (1 = round).
+    pub elongation: f64,
+    /// The blob's equivalent angular radius, degrees.
+    pub radius_deg: f64,
+}
+
+/// A sphere image left out.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct SkippedView {
+    pub image: String,
+    pub reason: String,
+}
+
+/// A page of calibrations, newest first.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct CalibrationList {
+    pub calibrations: Vec<CalibrationView>,
+    /// Pass as `cursor` to get the next page; null on the last page.
+    pub next_cursor: Option<String>,
+}
+
+/// The `POST /v1/calibrations` form.
+#[derive(ToSchema)]
+#[allow(dead_code)] // documents the multipart body; the handler streams it
+pub struct CalibrationUpload {
+    /// One chrome-sphere image per light, in light order (repeat the part; each needs a
+    /// file name, which the errors and the overlay use).
+    #[schema(value_type = Vec<super::routes::ImageFile>)]
+    images: Vec<Vec<u8>>,
+    /// The light table's names, one per line, one per image in the same order (what the
+    /// object images will be called); without it each light is named by its image.
+    #[schema(value_type = String, required = false)]
+    names: Option<String>,
+    /// The sphere's circle `cx,cy,r` in pixels (0-based, pixel centres at integers),
+    /// instead of fitting its outline.
+    #[schema(value_type = String, required = false, example = "187.3,109.6,93.4")]
+    circle: Option<String>,
+    /// A mask of the sphere (non-zero = sphere), the images' size, instead of fitting its
+    /// outline.
+    #[schema(value_type = super::routes::ImageFile, required = false)]
+    mask: Option<Vec<u8>>,
+    /// Images of a matte white sphere under the same lights, same order: fits each
+    /// light's relative intensity.
+    #[schema(value_type = Vec<super::routes::ImageFile>, required = false)]
+    matte: Option<Vec<Vec<u8>>>,
+    /// A pinhole camera's focal length in pixels (principal point at the image centre);
+    /// orthographic without it.
+    #[schema(value_type = String, required = false, example = "2400")]
+    focal_length: Option<String>,
+    /// `true`: leave out images without a usable highlight (listed in `skipped`) instead
+    /// of refusing the upload.
+    #[schema(value_type = String, required = false, example = "true")]
+    skip_bad: Option<String>,
+}
+
+/// The `{id}` of a calibration URL; anything that is not a UUID names none (404).
+pub struct CalibrationId(pub Uuid);
+
+impl<S: Send + Sync> FromRequestParts<S> for CalibrationId {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
+        let UrlPath(params) = UrlPath::<BTreeMap<String, String>>::from_request_parts(parts, state)
+            .await
+            .map_err(|e| ApiError::bad_request(e.body_text()))?;
+        let raw = params.get("id").cloned().unwrap_or_default();
+        Uuid::parse_str(&raw)
+            .map(CalibrationId)
+            .map_err(|_| ApiError::not_found(format!("there is no calibration {raw:?}")))
+    }
+}
+
+fn calibration_url(id: Uuid) -> String {
+    format!("/v1/calibrations/{id}")
+}
+
+impl CalibrationView {
+    pub fn from_record(r: CalibrationRecord) -> Result<Self, ApiError> {
+        let url = calibration_url(r.id);
+        let measured: Measured = serde_json::from_value(r.detail)
+            .map_err(|e| ApiError::internal(format!("stored calibration {}: {e}", r.id)))?;
+        Ok(Self {
+            id: r.id,
+            tenant: r.tenant,
+            created_at: rfc3339(r.created_at),
+            measured,
+            files: r
+                .artifacts
+                .iter()
+                .map(|a| (a.name.clone(), format!("{url}/{}", a.name)))
+                .collect(),
+            url,
+        })
+    }
+}
+
+/// Calibrate the lights from a chrome sphere.
+///
+/// One image of a mirror ball per light; the sphere's outline is fitted to the images
+/// unless a `circle` or `mask` is given. The calibration runs within the request and the
+/// answer is 201 with the result. Give its id as a job's `calibration` part to
+/// reconstruct with its lights.
+#[utoipa::path(
+    post,
+    path = "/v1/calibrations",
+    tag = "calibrations",
+    request_body(content = inline(CalibrationUpload), content_type = "multipart/form-data"),
+    params(
+        ("Idempotency-Key" = Option<String>, Header, description = "1 to 255 visible ASCII characters. The same key and the same parts from the same tenant within 24 hours get the first answer again instead of a new calibration; the same key with different parts is 422."),
+    ),
+    responses(
+        (status = 201, description = "Calibrated (or, for a repeated Idempotency-Key, the first request's answer)", body = CalibrationView,
+            headers(("Location" = String, description = "The calibration's URL"))),
+        (status = 400, description = "Not multipart, or parts missing, repeated or unknown", body = Problem, content_type = "application/problem+json"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body, image, part count, image count or the set's pixels over a limit", body = Problem, content_type = "application/problem+json"),
+        (status = 415, description = "An image in an unsupported format", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
+        (status = 429, description = "The tenant's submissions per minute (shared with jobs) are used up; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = u64, description = "Seconds to wait"))),
+        (status = 503, description = "The most uploads at once are under way, or the service is stopping", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = u64, description = "Seconds to wait"))),
+        (status = 507, description = "Not enough free disk space", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn create_calibration(
+    State(state): State<AppState>,
+    caller: Caller,
+    request: Request,
+) -> Result<Response, ApiError> {
+    let (parts, body) = request.into_parts();
+    let tap = BodyTap::new(body, state.config().max_body_bytes);
+    let answer = accept(&state, &caller, parts, &tap).await;
+    if answer.is_err() {
+        tokio::spawn(async move { tap.drain(upload::LINGER).await });
+    }
+    answer
+}
+
+async fn accept(
+    state: &AppState,
+    caller: &Caller,
+    parts: Parts,
+    tap: &BodyTap,
+) -> Result<Response, ApiError> {
+    let config = state.config();
+    let request_id = request_id(&parts.headers).to_string();
+    let idempotency_key = idempotency::key_from(&parts.headers)?;
+    if state.is_shutting_down() {
+        return Err(ApiError::unavailable(
+            super::config::RETRY_AFTER_SECS,
+            "the service is shutting down",
+        ));
+    }
+    let declared = parts
+        .headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > config.max_body_bytes) {
+        return Err(ApiError::too_large(format!(
+            "the request body is larger than the limit of {} bytes",
+            config.max_body_bytes
+        )));
+    }
+    let mut multipart = Multipart::from_request(Request::from_parts(parts, tap.body()), &())
+        .await
+        .map_err(|e| {
+            ApiError::bad_request(format!(
+                "expected a multipart/form-data body: {}",
+                e.body_text()
+            ))
+        })?;
+    state.check_free_disk().await?;
+    let Some(_receiving) = state.try_upload_permit() else {
+        return Err(ApiError::unavailable(
+            super::config::RETRY_AFTER_SECS,
+            format!(
+                "{} uploads are being received already (the limit); retry later",
+                config.max_uploads
+            ),
+        ));
+    };
+    let since = now_ms() - idempotency::WINDOW.as_millis() as i64;
+    let earlier = match idempotency_key.clone() {
+        Some(key) => {
+            let tenant = caller.tenant.clone();
+            state
+                .repo(move |r| r.idempotent(&tenant, SCOPE, &key, since))
+                .await?
+        }
+        None => None,
+    };
+    if earlier.is_none() {
+        state.admit_submission(&caller.tenant)?;
+    }
+
+    let id = Uuid::new_v4();
+    let mut staging = Staging::open(state, id).await?;
+    let mut hash = PartHasher::new(idempotency_key.is_some());
+    let form = tokio::time::timeout(
+        config.upload_timeout,
+        receive(config, &staging.path, &mut multipart, tap, &mut hash),
+    )
+    .await
+    .map_err(|_| {
+        ApiError::upload_timeout(format!(
+            "the upload did not complete within {}",
+            format_duration(config.upload_timeout)
+        ))
+    })??;
+    let body_hash = hash.finish().unwrap_or_default();
+    if let Some(earlier) = &earlier {
+        return idempotency::replay(earlier, &body_hash);
+    }
+
+    let computing = state.calibration_permit().await?;
+    let (dir, limits) = (staging.path.clone(), config.limits());
+    let made = tokio::task::spawn_blocking(move || compute(&dir, form, &limits)).await??;
+    drop(computing);
+    let store = state.inner.store.clone();
+    tokio::task::spawn_blocking(move || store.commit_calibration(id)).await??;
+
+    let record = CalibrationRecord {
+        id,
+        tenant: caller.tenant.clone(),
+        created_at: now_ms(),
+        detail: serde_json::to_value(&made.measured)
+            .map_err(|e| ApiError::internal(format!("calibration detail: {e}")))?,
+        table: made.table,
+        artifacts: made.files,
+    };
+    let stored = record.clone();
+    state.repo(move |r| r.insert_calibration(&stored)).await?;
+    staging.keep = true;
+    let view = CalibrationView::from_record(record.clone())?;
+    let answer = Remembered {
+        body_hash,
+        status: StatusCode::CREATED.as_u16(),
+        body: serde_json::to_string(&view)
+            .map_err(|e| ApiError::internal(format!("calibration view: {e}")))?,
+        location: Some(view.url.clone()),
+        created_at: record.created_at,
+    };
+    if let Some(key) = idempotency_key {
+        let (tenant, remembered) = (caller.tenant.clone(), answer.clone());
+        let raced = state
+            .repo(move |r| r.remember(&tenant, SCOPE, &key, &remembered, since))
+            .await?;
+        // A concurrent request with the same key got there first: this calibration never was.
+        if let Some(first) = raced {
+            state.repo(move |r| r.delete_calibration(id)).await?;
+            remove_files(state, id).await;
+            return idempotency::replay(&first, &answer.body_hash);
+        }
+    }
+    tracing::info!(
+        target: "audit",
+        action = "create",
+        tenant = %caller.tenant,
+        calibration = %id,
+        request_id = %request_id,
+        lights = view.measured.lights.len(),
+        "calibration created"
+    );
+    Ok(idempotency::answer(&answer))
+}
+
+/// A calibration's staging directory, removed with the calibration's directory when
+/// dropped unless kept.
+struct Staging {
+    state: AppState,
+    id: Uuid,
+    path: PathBuf,
+    keep: bool,
+}
+
+impl Staging {
+    async fn open(state: &AppState, id: Uuid) -> Result<Self, ApiError> {
+        let store = state.inner.store.clone();
+        let path = tokio::task::spawn_blocking(move || store.stage_calibration(id)).await??;
+        Ok(Self {
+            state: state.clone(),
+            id,
+            path,
+            keep: false,
+        })
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if self.keep {
+            return;
+        }
+        let store = self.state.inner.store.clone();
+        let id = self.id;
+        let remove = move || {
+            if let Err(e) = store.remove_calibration(id) {
+                tracing::warn!(calibration = %id, error = %e, "cannot remove a refused upload");
+            }
+        };
+        match tokio::runtime::Handle::try_current() {
+            Ok(rt) => {
+                rt.spawn_blocking(remove);
+            }
+            Err(_) => remove(),
+        }
+    }
+}
+
+async fn remove_files(state: &AppState, id: Uuid) {
+    let store = state.inner.store.clone();
+    match tokio::task::spawn_blocking(move || store.remove_calibration(id)).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => {
+            tracing::warn!(calibration = %id, error = %e, "cannot remove calibration files")
+        }
+        Err(e) => tracing::warn!(calibration = %id, error = %e, "cannot remove calibration files"),
+    }
+}
+
+/// A stored upload image: the caller's file name, the stored file, its size.
+struct Stored {
+    name: String,
+    file: String,
+    width: u32,
+    height: u32,
+}
+
+/// A received calibration form, its images on disk.
+#[derive(Default)]
+struct Form {
+    images: Vec<Stored>,
+    matte: Vec<Stored>,
+    mask: Option<Stored>,
+    circle: Option<Circle>,
+    names: Option<Vec<String>>,
+    focal_length: Option<f64>,
+    skip_bad: Option<bool>,
+}
+
+const PARTS: &str = "images, names, circle, mask, matte, focal_length or skip_bad";
+
+/// Read the multipart body into `dir`, checking what is cheap: the parts, each image's
+/// format and dimensions (from its header) against the limits and the first image.
+async fn receive(
+    config: &Config,
+    dir: &Path,
+    multipart: &mut Multipart,
+    tap: &BodyTap,
+    hash: &mut PartHasher,
+) -> Result<Form, ApiError> {
+    let mut form = Form::default();
+    let mut count = 0;
+    let mut pixels = 0u64;
+    while let Some(mut field) = multipart
+        .next_field()
+        .await
+        .map_err(|e| upload::multipart_error(e, tap, config))?
+    {
+        count += 1;
+        if count > config.max_parts {
+            return Err(ApiError::too_large(format!(
+                "the upload has more than {} parts",
+                config.max_parts
+            )));
+        }
+        let part = field.name().unwrap_or_default().to_string();
+        hash.part(&part, field.file_name());
+        match part.as_str() {
+            "images" | "matte" => {
+                let list = if part == "images" {
+                    &form.images
+                } else {
+                    &form.matte
+                };
+                if list.len() >= config.max_images {
+                    return Err(InputError::TooManyImages {
+                        count: list.len() + 1,
+                        limit: config.max_images,
+                    }
+                    .into());
+                }
+                let name = upload::file_name(&field, &part)?;
+                let file = format!("{part}{:03}.img", list.len());
+                let (head, _) =
+                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash).await?;
+                let (width, height, _) =
+                    upload::probe(dir.join(&file), name.clone(), head, config).await?;
+                pixels = pixels.saturating_add(u64::from(width) * u64::from(height));
+                if pixels > config.max_job_pixels {
+                    return Err(InputError::TooManyPixels {
+                        name,
+                        count: form.images.len() + form.matte.len() + 1,
+                        pixels,
+                        limit: config.max_job_pixels,
+                    }
+                    .into());
+                }
+                let stored = Stored {
+                    name,
+                    file,
+                    width,
+                    height,
+                };
+                if part == "images" {
+                    check_size(form.images.first(), &stored)?;
+                    form.images.push(stored);
+                } else {
+                    form.matte.push(stored);
+                }
+            }
+            "mask" => {
+                upload::once(&form.mask, "mask")?;
+                let name = field
+                    .file_name()
+                    .filter(|n| !n.is_empty())
+                    .unwrap_or("mask")
+                    .to_string();
+                let file = "mask.img".to_string();
+                let (head, _) =
+                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash).await?;
+                let (width, height, _) =
+                    upload::probe(dir.join(&file), name.clone(), head, config).await?;
+                form.mask = Some(Stored {
+                    name,
+                    file,
+                    width,
+                    height,
+                });
+            }
+            "names" => {
+                upload::once(&form.names, "names")?;
+                let text =
+                    text_part(&mut field, MAX_LIGHTS_BYTES, "names", tap, config, hash).await?;
+                form.names = Some(
+                    text.lines()
+                        .map(str::trim)
+                        .filter(|l| !l.is_empty())
+                        .map(String::from)
+                        .collect(),
+                );
+            }
+            "circle" => {
+                upload::once(&form.circle, "circle")?;
+                let text =
+                    text_part(&mut field, MAX_VALUE_BYTES, "circle", tap, config, hash).await?;
+                form.circle = Some(parse_circle(&text)?);
+            }
+            "focal_length" => {
+                upload::once(&form.focal_length, "focal_length")?;
+                let text = text_part(
+                    &mut field,
+                    MAX_VALUE_BYTES,
+                    "focal_length",
+                    tap,
+                    config,
+                    hash,
+                )
+                .await?;
+                form.focal_length = Some(parse_focal_length(&text)?);
+            }
+            "skip_bad" => {
+                upload::once(&form.skip_bad, "skip_bad")?;
+                let text =
+                    text_part(&mut field, MAX_VALUE_BYTES, "skip_bad", tap, config, hash).await?;
+                form.skip_bad = Some(parse_flag(&text)?);
+            }
+            "" => {
+                return Err(ApiError::bad_request(format!(
+                    "a multipart part has no name; expected {PARTS}"
+                )));
+            }
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unknown part {other:?}; expected {PARTS}"
+                )));
+            }
+        }
+    }
+    if form.images.is_empty() {
+        return Err(ApiError::bad_request(
+            "no images parts: send each chrome-sphere image as a file part named images (curl -F images=@ball01.png)",
+        ));
+    }
+    if form.circle.is_some() && form.mask.is_some() {
+        return Err(ApiError::invalid(
+            "give the sphere either as a circle or as a mask, not both",
+        ));
+    }
+    Ok(form)
+}
+
+/// Images of a calibration have one size (the core checks it too, after decoding: this
+/// answers before the rest of the body is read).
+fn check_size(first: Option<&Stored>, img: &Stored) -> Result<(), ApiError> {
+    match first {
+        Some(f) if (f.width, f.height) != (img.width, img.height) => {
+            Err(InputError::SizeMismatch {
+                name: img.name.clone(),
+                width: img.width,
+                height: img.height,
+                first: f.name.clone(),
+                expected_width: f.width,
+                expected_height: f.height,
+            }
+            .into())
+        }
+        _ => Ok(()),
+    }
+}
+
+async fn text_part(
+    field: &mut axum::extract::multipart::Field<'_>,
+    limit: usize,
+    part: &str,
+    tap: &BodyTap,
+    config: &Config,
+    hash: &mut PartHasher,
+) -> Result<String, ApiError> {
+    let bytes = upload::read_small(field, limit, part, tap, config, hash).await?;
+    String::from_utf8(bytes).map_err(|_| ApiError::invalid(format!("{part}: not UTF-8 text")))
+}
+
+/// `cx,cy,r`: three finite numbers, pixels.
+fn parse_circle(text: &str) -> Result<Circle, ApiError> {
+    let bad = || {
+        ApiError::invalid(format!(
+            "circle: expected cx,cy,r (three finite numbers, pixels), got {:?}",
+            text.trim()
+        ))
+    };
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| bad())?;
+    match v[..] {
+        [cx, cy, r] if v.iter().all(|x| x.is_finite()) => Ok(Circle { cx, cy, r }),
+        _ => Err(bad()),
+    }
+}
+
+fn parse_focal_length(text: &str) -> Result<f64, ApiError> {
+    match text.trim().parse::<f64>() {
+        Ok(f) if f.is_finite() && f > 0.0 => Ok(f),
+        _ => Err(ApiError::invalid(format!(
+            "focal_length must be a positive number of pixels, got {:?}",
+            text.trim()
+        ))),
+    }
+}
+
+fn parse_flag(text: &str) -> Result<bool, ApiError> {
+    match text.trim() {
+        "true" | "1" | "yes" => Ok(true),
+        "false" | "0" | "no" => Ok(false),
+        other => Err(ApiError::invalid(format!(
+            "skip_bad must be true or false, got {other:?}"
+        ))),
+    }
+}
+
+/// What [`compute`] made: the measured detail, the light table and the stored files.
+struct Made {
+    measured: Measured,
+    table: String,
+    files: Vec<ArtifactInfo>,
+}
+
+/// Decode the stored images, calibrate, and replace the uploads in `dir` with the
+/// calibration's files. Blocking.
+fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
+    let decode = |images: &[Stored]| -> Result<Vec<calibrate::SphereImage>, ApiError> {
+        use rayon::prelude::*;
+        images
+            .par_iter()
+            .map(|s| {
+                let path = dir.join(&s.file);
+                let bytes = std::fs::read(&path)?;
+                std::fs::remove_file(&path)?;
+                let plane = intake::to_luma16(intake::decode(&s.name, &bytes, limits)?);
+                Ok(calibrate::SphereImage {
+                    name: s.name.clone(),
+                    plane,
+                })
+            })
+            .collect::<Result<Vec<_>, ApiError>>()
+    };
+    let images = decode(&form.images)?;
+    let (circle, source) = match (form.circle, &form.mask) {
+        (Some(c), _) => (CircleSource::Given(c), "given"),
+        (None, Some(m)) => {
+            let mask = decode(std::slice::from_ref(m))?.remove(0);
+            (
+                CircleSource::Mask {
+                    name: mask.name,
+                    mask: mask.plane.mapv(|v| v > 0),
+                },
+                "mask",
+            )
+        }
+        (None, None) => (CircleSource::Fit, "fitted"),
+    };
+    let (h, w) = images[0].plane.dim();
+    let camera = match form.focal_length {
+        Some(f) => Camera::Perspective {
+            focal_px: f,
+            principal: [(w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0],
+        },
+        None => Camera::Orthographic,
+    };
+    let settings = Settings {
+        circle,
+        camera,
+        skip_bad: form.skip_bad.unwrap_or(false),
+    };
+    let mut cal = calibrate::calibrate(&images, form.names.as_deref(), &settings)?;
+    drop(images);
+    if !form.matte.is_empty() {
+        cal.fit_intensities(&decode(&form.matte)?)?;
+    }
+    let table = cal.table();
+    let mut files = Vec::new();
+    for (name, bytes) in [
+        ("lights.csv", table.clone().into_bytes()),
+        ("overlay.png", cal.overlay_png()),
+        ("lights.png", cal.lights_png()),
+    ] {
+        std::fs::write(dir.join(name), &bytes)?;
+        files.push(ArtifactInfo {
+            name: name.to_string(),
+            bytes: bytes.len() as u64,
+            etag: strong_etag(crc32fast::hash(&bytes), bytes.len() as u64),
+        });
+    }
+    let measured = measured(&cal, &form, w, h, source);
+    Ok(Made {
+        measured,
+        table,
+        files,
+    })
+}
+
+fn measured(cal: &Calibration, form: &Form, w: usize, h: usize, source: &str) -> Measured {
+    let c = cal.circle;
+    Measured {
+        width: w as u32,
+        height: h as u32,
+        image_count: form.images.len() as u32,
+        focal_length: form.focal_length,
+        circle: CircleView {
+            cx: c.cx,
+            cy: c.cy,
+            r: c.r,
+            source: source.to_string(),
+            coverage: cal.outline.as_ref().map(|o| o.coverage),
+            rms: cal.outline.as_ref().map(|o| o.rms),
+        },
+        lights: cal
+            .lights
+            .iter()
+            .map(|l| {
+                let hl = &l.highlight;
+                let d = hl.direction;
+                LightView {
+                    name: l.name.clone(),
+                    image: l.image.clone(),
+                    number: l.index as u32 + 1,
+                    direction: d,
+                    intensity: l.intensity,
+                    elevation_deg: d[2].clamp(-1.0, 1.0).asin().to_degrees(),
+                    azimuth_deg: d[1].atan2(d[0]).to_degrees(),
+                    highlight: HighlightView {
+                        x: hl.x,
+                        y: hl.y,
+                        pixels: hl.pixels as u64,
+                        peak: hl.peak,
+                        clipped: hl.clipped,
+                        rim_distance: hl.rim_distance,
+                        elongation: hl.elongation,
+                        radius_deg: hl.radius_deg,
+                    },
+                }
+            })
+            .collect(),
+        skipped: cal
+            .skipped
+            .iter()
+            .map(|s| SkippedView {
+                image: s.image.clone(),
+                reason: s.reason.clone(),
+            })
+            .collect(),
+    }
+}
+
+/// A calibration: its circle, lights, per-light quality, skipped images and file links.
+#[utoipa::path(
+    get,
+    path = "/v1/calibrations/{id}",
+    tag = "calibrations",
+    params(("id" = Uuid, Path, description = "Calibration id")),
+    responses(
+        (status = 200, description = "The calibration", body = CalibrationView),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such calibration", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_calibration(
+    State(state): State<AppState>,
+    caller: Caller,
+    CalibrationId(id): CalibrationId,
+) -> Result<Json<CalibrationView>, ApiError> {
+    Ok(Json(CalibrationView::from_record(
+        owned_calibration(&state, &caller, id).await?,
+    )?))
+}
+
+/// The caller's calibrations (an admin's: every tenant's), newest first, a page at a time.
+#[utoipa::path(
+    get,
+    path = "/v1/calibrations",
+    tag = "calibrations",
+    params(ListQuery),
+    responses(
+        (status = 200, description = "A page of calibrations", body = CalibrationList,
+            headers(("Link" = String, description = "`<next page URL>; rel=\"next\"` when there is one"))),
+        (status = 400, description = "Invalid limit or cursor", body = Problem, content_type = "application/problem+json"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn list_calibrations(
+    State(state): State<AppState>,
+    caller: Caller,
+    ApiQuery(q): ApiQuery<ListQuery>,
+) -> Result<Response, ApiError> {
+    let limit = q.limit.unwrap_or(20);
+    if !(1..=100).contains(&limit) {
+        return Err(ApiError::bad_request(format!(
+            "limit must be between 1 and 100, got {limit}"
+        )));
+    }
+    let before = q.cursor.as_deref().map(parse_cursor).transpose()?;
+    let limit = limit as usize;
+    let scope = caller.scope();
+    let mut page = state
+        .repo(move |r| r.list_calibrations(scope.as_deref(), limit + 1, before))
+        .await?;
+    let next_cursor = if page.len() > limit {
+        page.truncate(limit);
+        page.last()
+            .map(|r| format!("{}_{}", r.created_at, r.id.simple()))
+    } else {
+        None
+    };
+    let calibrations = page
+        .into_iter()
+        .map(CalibrationView::from_record)
+        .collect::<Result<_, _>>()?;
+    let mut response = Json(CalibrationList {
+        calibrations,
+        next_cursor: next_cursor.clone(),
+    })
+    .into_response();
+    if let Some(c) = next_cursor
+        && let Ok(v) = HeaderValue::from_str(&format!(
+            "</v1/calibrations?limit={limit}&cursor={c}>; rel=\"next\""
+        ))
+    {
+        response.headers_mut().insert(header::LINK, v);
+    }
+    Ok(response)
+}
+
+/// Delete a calibration and its files. Jobs submitted with it keep its lights.
+#[utoipa::path(
+    delete,
+    path = "/v1/calibrations/{id}",
+    tag = "calibrations",
+    params(("id" = Uuid, Path, description = "Calibration id")),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such calibration", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn delete_calibration(
+    State(state): State<AppState>,
+    caller: Caller,
+    CalibrationId(id): CalibrationId,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let cal = owned_calibration(&state, &caller, id).await?;
+    if !state.repo(move |r| r.delete_calibration(id)).await? {
+        return Err(ApiError::not_found(format!("there is no calibration {id}")));
+    }
+    remove_files(&state, id).await;
+    tracing::info!(
+        target: "audit",
+        action = "delete",
+        tenant = %caller.tenant,
+        owner = %cal.tenant,
+        calibration = %id,
+        request_id = %request_id(&headers),
+        "calibration deleted"
+    );
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+/// Serve one of a calibration's files (strong ETag, cacheable for good: they never change).
+async fn file(
+    state: &AppState,
+    caller: &Caller,
+    id: Uuid,
+    name: &str,
+    headers: &HeaderMap,
+) -> Result<Response, ApiError> {
+    let cal = owned_calibration(state, caller, id).await?;
+    let content_type = FILES
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, t)| *t)
+        .unwrap_or("application/octet-stream");
+    let Some(info) = cal.artifacts.iter().find(|a| a.name == name) else {
+        return Err(ApiError::not_found(format!(
+            "calibration {id} has no {name}"
+        )));
+    };
+    if not_modified(headers, &info.etag) {
+        return Ok(not_modified_response(&info.etag, IMMUTABLE));
+    }
+    let path = state.store().calibration(id).join(name);
+    let bytes = tokio::fs::read(&path)
+        .await
+        .map_err(|_| ApiError::not_found(format!("the {name} of calibration {id} is gone")))?;
+    Ok(artifact_response(
+        content_type,
+        &info.etag,
+        IMMUTABLE,
+        name,
+        bytes.len() as u64,
+        Body::from(bytes),
+    ))
+}
+
+/// The calibration's light table, `name, x, y, z[, intensity]` (the seed's format, as
+/// `reconstruct` and a job's `lights` part read it).
+#[utoipa::path(
+    get,
+    path = "/v1/calibrations/{id}/lights.csv",
+    tag = "calibrations",
+    params(
+        ("id" = Uuid, Path, description = "Calibration id"),
+        ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
+    ),
+    responses(
+        (status = 200, description = "The light table", content_type = "text/csv", body = String,
+            headers(("ETag" = String, description = "Strong entity tag"))),
+        (status = 304, description = "Not modified (If-None-Match matched)"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such calibration", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_lights_csv(
+    State(state): State<AppState>,
+    caller: Caller,
+    CalibrationId(id): CalibrationId,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    file(&state, &caller, id, "lights.csv", &headers).await
+}
+
+/// The overlay: the fitted circle and each highlight, numbered, over the per-pixel
+/// maximum of the sphere images (the images' size).
+#[utoipa::path(
+    get,
+    path = "/v1/calibrations/{id}/overlay.png",
+    tag = "calibrations",
+    params(
+        ("id" = Uuid, Path, description = "Calibration id"),
+        ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
+    ),
+    responses(
+        (status = 200, description = "The overlay picture", content_type = "image/png",
+            headers(("ETag" = String, description = "Strong entity tag"))),
+        (status = 304, description = "Not modified (If-None-Match matched)"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such calibration", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_overlay(
+    State(state): State<AppState>,
+    caller: Caller,
+    CalibrationId(id): CalibrationId,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    file(&state, &caller, id, "overlay.png", &headers).await
+}
+
+/// The recovered light directions on the unit hemisphere (rings at 30° and 60°).
+#[utoipa::path(
+    get,
+    path = "/v1/calibrations/{id}/lights.png",
+    tag = "calibrations",
+    params(
+        ("id" = Uuid, Path, description = "Calibration id"),
+        ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
+    ),
+    responses(
+        (status = 200, description = "The light diagram", content_type = "image/png",
+            headers(("ETag" = String, description = "Strong entity tag"))),
+        (status = 304, description = "Not modified (If-None-Match matched)"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such calibration", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_lights_png(
+    State(state): State<AppState>,
+    caller: Caller,
+    CalibrationId(id): CalibrationId,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    file(&state, &caller, id, "lights.png", &headers).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn text_values_are_checked() {
+        let c = parse_circle(" 1.5, 2 ,30 ").unwrap();
+        assert_eq!((c.cx, c.cy, c.r), (1.5, 2.0, 30.0));
+        for bad in ["1,2", "1,2,3,4", "a,b,c", "1,2,inf", ""] {
+            assert_eq!(parse_circle(bad).unwrap_err().status(), 422, "{bad}");
+        }
+        assert_eq!(parse_focal_length("2400").unwrap(), 2400.0);
+        for bad in ["0", "-1", "NaN", "x"] {
+            assert!(parse_focal_length(bad).is_err(), "{bad}");
+        }
+        assert!(parse_flag("true").unwrap());
+        assert!(!parse_flag(" 0 ").unwrap());
+        assert!(parse_flag("maybe").is_err());
+    }
+}

@@ -1,0 +1,656 @@
+//! Calibrations over HTTP: `POST /v1/calibrations` on rendered chrome-sphere captures
+//! against their true lights, the files it keeps, its errors, tenants, idempotency, a
+//! restart, and jobs that take a calibration's lights instead of a light table.
+
+mod common;
+
+use std::path::Path;
+
+use common::*;
+use photostereo::core::lights;
+use photostereo::core::synth::{self, ChromeSet};
+use reqwest::Method;
+use reqwest::multipart::{Form, Part};
+use serde_json::Value;
+
+fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let d: f64 = (0..3).map(|k| a[k] * b[k]).sum();
+    d.clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+fn direction(light: &Value) -> [f64; 3] {
+    let d = light["direction"].as_array().unwrap();
+    [0, 1, 2].map(|k| d[k].as_f64().unwrap())
+}
+
+/// The sphere images of a chrome folder (every PNG, in name order) and its `names.txt`.
+fn chrome_form(dir: &Path) -> Form {
+    let mut form = Form::new();
+    for img in images_of(dir) {
+        form = form.part("images", file_part(&img));
+    }
+    form.text(
+        "names",
+        std::fs::read_to_string(dir.join("names.txt")).unwrap(),
+    )
+}
+
+/// A chrome set rendered into a temporary folder.
+fn rendered(set: &ChromeSet) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    set.write(dir.path(), None).unwrap();
+    dir
+}
+
+async fn post(s: &TestServer, form: Form, key: Option<&str>) -> reqwest::Response {
+    let mut r = s.client.post(s.url("/v1/calibrations")).multipart(form);
+    if let Some(k) = key {
+        r = r.bearer_auth(k);
+    }
+    r.send().await.unwrap()
+}
+
+/// Create a calibration; asserts 201 + Location and returns it.
+async fn create(s: &TestServer, form: Form, key: Option<&str>) -> Value {
+    let r = post(s, form, key).await;
+    let status = r.status();
+    let location = r
+        .headers()
+        .get("location")
+        .map(|v| v.to_str().unwrap().to_string());
+    let body: Value = r.json().await.unwrap();
+    assert_eq!(status, 201, "{body}");
+    let id = body["id"].as_str().unwrap();
+    assert_eq!(
+        location.as_deref(),
+        Some(format!("/v1/calibrations/{id}").as_str())
+    );
+    body
+}
+
+/// Mean and max direction error (degrees) of a calibration's lights against a true table.
+fn errors_against(cal: &Value, truth: &[lights::Light]) -> (f64, f64) {
+    let lights = cal["lights"].as_array().unwrap();
+    assert_eq!(lights.len(), truth.len(), "{cal}");
+    let e: Vec<f64> = lights
+        .iter()
+        .map(|l| {
+            let t = truth.iter().find(|t| t.name == l["name"]).unwrap();
+            let t = t.direction.map(f64::from);
+            angle_deg(direction(l), t)
+        })
+        .collect();
+    let mean = e.iter().sum::<f64>() / e.len() as f64;
+    (mean, e.iter().cloned().fold(0.0, f64::max))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn res_chrome_calibrates_to_its_true_lights_and_keeps_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let chrome = repo_root().join("res/chrome");
+    let cal = create(&s, chrome_form(&chrome), None).await;
+    let id = cal["id"].as_str().unwrap();
+    let truth = lights::parse(
+        &std::fs::read_to_string(chrome.join("truth-lights/light_directions.csv")).unwrap(),
+    )
+    .unwrap();
+    let (mean, max) = errors_against(&cal, &truth);
+    let circle: Vec<f64> = std::fs::read_to_string(chrome.join("truth-lights/circle.txt"))
+        .unwrap()
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect();
+    let c = &cal["circle"];
+    let centre_off =
+        (c["cx"].as_f64().unwrap() - circle[0]).hypot(c["cy"].as_f64().unwrap() - circle[1]);
+    eprintln!(
+        "res/chrome over HTTP: direction error mean {mean:.3}°, max {max:.3}°; circle centre off by {centre_off:.3} px"
+    );
+    assert!(mean < 0.3 && max < 1.0, "mean {mean}°, max {max}°");
+    assert!(centre_off < 0.5, "{c}");
+    assert_eq!(c["source"], "fitted");
+    assert_eq!(cal["tenant"], "default");
+    assert_eq!(
+        (cal["width"].as_u64(), cal["height"].as_u64()),
+        (Some(320), Some(240))
+    );
+    assert_eq!(cal["image_count"], 12);
+    assert_eq!(cal["skipped"].as_array().unwrap().len(), 0);
+    let first = &cal["lights"][0];
+    assert_eq!(first["name"], "im1.png");
+    assert_eq!(first["image"], "ball01.png");
+    assert_eq!(first["number"], 1);
+    assert!(first["highlight"]["pixels"].as_u64().unwrap() > 0);
+    assert!(first["highlight"]["rim_distance"].as_f64().unwrap() > 0.0);
+
+    // The resource reads back as created, and is listed.
+    let got = s.get_json(&format!("/v1/calibrations/{id}")).await;
+    assert_eq!(got, cal);
+    let list = s.get_json("/v1/calibrations").await;
+    assert_eq!(list["calibrations"][0]["id"], id);
+
+    // lights.csv is the light table reconstruct reads: the resource's lights, in order.
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/calibrations/{id}/lights.csv")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert!(
+        r.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/csv")
+    );
+    let etag = r.headers()["etag"].to_str().unwrap().to_string();
+    let table = lights::parse(&r.text().await.unwrap()).unwrap();
+    assert_eq!(table.len(), 12);
+    for (row, l) in table.iter().zip(cal["lights"].as_array().unwrap()) {
+        assert_eq!(row.name, l["name"].as_str().unwrap());
+        let d = row.direction.map(f64::from);
+        assert!(angle_deg(d, direction(l)) < 1e-3, "{row:?} vs {l}");
+    }
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/calibrations/{id}/lights.csv")))
+        .header("if-none-match", &etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 304);
+
+    // The overlay is a PNG of the images' size; the diagram a PNG.
+    for (name, size) in [("overlay.png", Some((320, 240))), ("lights.png", None)] {
+        let r = s
+            .client
+            .get(s.url(&format!("/v1/calibrations/{id}/{name}")))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{name}");
+        assert_eq!(r.headers()["content-type"], "image/png");
+        let bytes = r.bytes().await.unwrap();
+        let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::Png).unwrap();
+        if let Some((w, h)) = size {
+            assert_eq!((img.width(), img.height()), (w, h), "{name}");
+        }
+    }
+
+    // Deleted: gone from every route.
+    let r = s
+        .client
+        .delete(s.url(&format!("/v1/calibrations/{id}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 204);
+    for path in ["", "/lights.csv", "/overlay.png"] {
+        let r = s
+            .client
+            .get(s.url(&format!("/v1/calibrations/{id}{path}")))
+            .send()
+            .await
+            .unwrap();
+        expect_problem(r, 404, &[id]).await;
+    }
+    assert!(!dir.path().join("calibrations").join(id).exists());
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_calibrations_are_422_naming_the_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let chrome = repo_root().join("res/chrome");
+    let balls = images_of(&chrome);
+
+    // Too few images.
+    let form = Form::new()
+        .part("images", file_part(&balls[0]))
+        .part("images", file_part(&balls[1]));
+    expect_problem(post(&s, form, None).await, 422, &["at least 3"]).await;
+
+    // Different sizes: answered at the image that differs.
+    let mut form = Form::new();
+    for (i, b) in balls.iter().take(6).enumerate() {
+        form = form.part(
+            "images",
+            if i == 4 {
+                Part::bytes(png(100, 80, 30)).file_name("ball05.png")
+            } else {
+                file_part(b)
+            },
+        );
+    }
+    expect_problem(
+        post(&s, form, None).await,
+        422,
+        &["ball05.png", "same size"],
+    )
+    .await;
+
+    // A given circle off the image.
+    let form = chrome_form(&chrome).text("circle", "400,100,50");
+    expect_problem(
+        post(&s, form, None).await,
+        422,
+        &["circle", "outside the 320×240 image"],
+    )
+    .await;
+    let form = chrome_form(&chrome).text("circle", "1,2");
+    expect_problem(post(&s, form, None).await, 422, &["cx,cy,r"]).await;
+
+    // No sphere in the frame.
+    let mut empty = ChromeSet::standard(8, 61);
+    empty.radius = 0.0;
+    empty.lights.truncate(4);
+    empty.highlight.truncate(4);
+    let d = rendered(&empty);
+    let form = images_of(d.path())
+        .iter()
+        .fold(Form::new(), |f, p| f.part("images", file_part(p)));
+    expect_problem(post(&s, form, None).await, 422, &["no sphere found"]).await;
+
+    // A light behind the ball: no highlight in its image, named; skip_bad leaves it out.
+    let mut behind = ChromeSet::standard(8, 59);
+    behind.lights.truncate(5);
+    behind.highlight.truncate(5);
+    behind.lights[2] = [0.02, 0.0, -1.0];
+    let d = rendered(&behind);
+    let form = |skip: bool| {
+        let f = images_of(d.path())
+            .iter()
+            .fold(Form::new(), |f, p| f.part("images", file_part(p)));
+        if skip { f.text("skip_bad", "true") } else { f }
+    };
+    expect_problem(
+        post(&s, form(false), None).await,
+        422,
+        &["ball03.png", "no highlight"],
+    )
+    .await;
+    let cal = create(&s, form(true), None).await;
+    assert_eq!(cal["skipped"][0]["image"], "ball03.png", "{cal}");
+    assert_eq!(cal["lights"].as_array().unwrap().len(), 4);
+    assert_eq!(cal["image_count"], 5);
+
+    // Names not one per image; parts the form does not have.
+    let form = chrome_form(&repo_root().join("res/chrome")).text("names", "a.png\nb.png\n");
+    let r = post(&s, form, None).await;
+    expect_problem(r, 400, &["names part appears more than once"]).await;
+    let form = images_of(&chrome)
+        .iter()
+        .fold(Form::new(), |f, p| f.part("images", file_part(p)))
+        .text("names", "a.png\nb.png\n");
+    expect_problem(post(&s, form, None).await, 422, &["2 names for 12"]).await;
+    let form = chrome_form(&chrome).text("lights", "x");
+    expect_problem(
+        post(&s, form, None).await,
+        400,
+        &["unknown part \"lights\""],
+    )
+    .await;
+    // Nothing refused is kept.
+    assert_eq!(
+        s.get_json("/v1/calibrations").await["calibrations"]
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+    // (A refused upload's directory is removed in the background, just after the answer.)
+    let dirs = || {
+        std::fs::read_dir(dir.path().join("calibrations"))
+            .unwrap()
+            .count()
+    };
+    let start = std::time::Instant::now();
+    while dirs() != 1 && start.elapsed() < std::time::Duration::from_secs(10) {
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert_eq!(dirs(), 1);
+    s.stop().await;
+}
+
+const ALICE: &str = "alice-secret";
+const BOB: &str = "bob-secret";
+const OPS: &str = "ops-secret";
+
+async fn call(s: &TestServer, method: Method, path: &str, key: &str) -> reqwest::Response {
+    s.client
+        .request(method, s.url(path))
+        .bearer_auth(key)
+        .send()
+        .await
+        .unwrap()
+}
+
+/// A job form: the images of `dir` with a `calibration` part.
+fn job_with_calibration(dir: &Path, id: &str) -> Form {
+    images_of(dir)
+        .iter()
+        .fold(Form::new(), |f, p| f.part("images", file_part(p)))
+        .text("calibration", id.to_string())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn other_tenants_calibrations_do_not_exist_for_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let keys = dir.path().join("keys");
+    std::fs::write(
+        &keys,
+        format!("alice {ALICE}\nbob {BOB}\nops {OPS} admin\n"),
+    )
+    .unwrap();
+    let mut c = config(dir.path());
+    c.api_keys_file = Some(keys);
+    let s = TestServer::start(c).await;
+    let chrome = repo_root().join("res/chrome");
+    let cal = create(&s, chrome_form(&chrome), Some(ALICE)).await;
+    assert_eq!(cal["tenant"], "alice");
+    let id = cal["id"].as_str().unwrap();
+    let never = uuid::Uuid::new_v4().to_string();
+
+    // Every route answers bob as for an id that never existed, and changes nothing.
+    for (method, tail) in [
+        (Method::GET, ""),
+        (Method::GET, "/lights.csv"),
+        (Method::GET, "/overlay.png"),
+        (Method::GET, "/lights.png"),
+        (Method::DELETE, ""),
+    ] {
+        let path = format!("/v1/calibrations/{id}{tail}");
+        let theirs = expect_problem(call(&s, method.clone(), &path, BOB).await, 404, &[]).await;
+        let missing = expect_problem(
+            call(&s, method.clone(), &path.replace(id, &never), BOB).await,
+            404,
+            &[],
+        )
+        .await;
+        assert_eq!(
+            theirs.to_string().replace(id, &never),
+            missing.to_string(),
+            "{method} {path}"
+        );
+        // The admin sees it (without deleting it yet).
+        if method == Method::GET {
+            assert_eq!(call(&s, method, &path, OPS).await.status(), 200, "{path}");
+        }
+    }
+    let r = call(&s, Method::GET, &format!("/v1/calibrations/{id}"), ALICE).await;
+    assert_eq!(r.json::<Value>().await.unwrap(), cal);
+    let listed = |v: Value| -> Vec<String> {
+        v["calibrations"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["id"].as_str().unwrap().to_string())
+            .collect()
+    };
+    let list = |key: &'static str| {
+        let s = &s;
+        async move {
+            call(s, Method::GET, "/v1/calibrations", key)
+                .await
+                .json::<Value>()
+                .await
+                .unwrap()
+        }
+    };
+    assert!(listed(list(BOB).await).is_empty());
+    assert_eq!(listed(list(ALICE).await), [id]);
+    assert_eq!(listed(list(OPS).await), [id]);
+
+    // Bob's job cannot use alice's calibration: the same 422 as an unknown id.
+    let object = repo_root().join("res/bump");
+    let submit = |key: &'static str, cal_id: String| {
+        let s = &s;
+        let object = object.clone();
+        async move {
+            s.client
+                .post(s.url("/v1/jobs"))
+                .bearer_auth(key)
+                .multipart(job_with_calibration(&object, &cal_id))
+                .send()
+                .await
+                .unwrap()
+        }
+    };
+    let theirs = expect_problem(submit(BOB, id.to_string()).await, 422, &["calibration"]).await;
+    let unknown = expect_problem(submit(BOB, never.clone()).await, 422, &[]).await;
+    assert_eq!(
+        theirs["detail"].as_str().unwrap().replace(id, &never),
+        unknown["detail"].as_str().unwrap()
+    );
+    // Alice's own gets further: res/bump has 4 of the calibration's 12 images.
+    expect_problem(
+        submit(ALICE, id.to_string()).await,
+        422,
+        &[
+            "do not match",
+            "no image for its lights im5.png",
+            "im12.png",
+        ],
+    )
+    .await;
+
+    // The admin may delete it.
+    let r = call(&s, Method::DELETE, &format!("/v1/calibrations/{id}"), OPS).await;
+    assert_eq!(r.status(), 204);
+    let r = call(&s, Method::GET, &format!("/v1/calibrations/{id}"), ALICE).await;
+    expect_problem(r, 404, &[]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retries_with_an_idempotency_key_and_a_restart_keep_one_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let chrome = repo_root().join("res/chrome");
+    let keyed = |form: Form, key: &str| {
+        let key = key.to_string();
+        move |s: &TestServer| {
+            s.client
+                .post(s.url("/v1/calibrations"))
+                .header("idempotency-key", key)
+                .multipart(form)
+                .send()
+        }
+    };
+    let s = TestServer::start(config(dir.path())).await;
+    let first = keyed(chrome_form(&chrome), "cal-1")(&s).await.unwrap();
+    assert_eq!(first.status(), 201);
+    let first: Value = first.json().await.unwrap();
+    let again = keyed(chrome_form(&chrome), "cal-1")(&s).await.unwrap();
+    assert_eq!(again.status(), 201);
+    assert_eq!(again.json::<Value>().await.unwrap(), first);
+    let other = keyed(chrome_form(&chrome).text("skip_bad", "true"), "cal-1")(&s)
+        .await
+        .unwrap();
+    expect_problem(other, 422, &["Idempotency-Key"]).await;
+    // The key is the calibrations' own: a job with it is not a replay.
+    let id = first["id"].as_str().unwrap().to_string();
+    let csv = s
+        .client
+        .get(s.url(&format!("/v1/calibrations/{id}/lights.csv")))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    assert_eq!(
+        s.get_json("/v1/calibrations").await["calibrations"]
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+    s.stop().await;
+
+    // Reopened on the same data directory: the calibration, its files and the key remain.
+    let s = TestServer::start(config(dir.path())).await;
+    assert_eq!(s.get_json(&format!("/v1/calibrations/{id}")).await, first);
+    let after = s
+        .client
+        .get(s.url(&format!("/v1/calibrations/{id}/lights.csv")))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    assert_eq!(after, csv);
+    let replay = keyed(chrome_form(&chrome), "cal-1")(&s).await.unwrap();
+    assert_eq!(replay.status(), 201);
+    assert_eq!(replay.json::<Value>().await.unwrap(), first);
+    assert_eq!(
+        s.get_json("/v1/calibrations").await["calibrations"]
+            .as_array()
+            .unwrap()
+            .len(),
+        1
+    );
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_refuses_a_calibration_with_lights_or_unmatched_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let cal = create(&s, chrome_form(&repo_root().join("res/chrome")), None).await;
+    let id = cal["id"].as_str().unwrap();
+    let tiny = |names: &[&str]| {
+        names.iter().fold(Form::new(), |f, n| {
+            f.part(
+                "images",
+                Part::bytes(png(8, 8, 100)).file_name(n.to_string()),
+            )
+        })
+    };
+    let mut names: Vec<String> = (1..=11).map(|i| format!("im{i}.png")).collect();
+    names.push("extra.png".into());
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    let post_job = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    expect_problem(
+        post_job(tiny(&refs).text("calibration", id.to_string()))
+            .await
+            .unwrap(),
+        422,
+        &[id, "no image for its lights im12.png", "images extra.png"],
+    )
+    .await;
+    expect_problem(
+        post_job(
+            tiny(&refs)
+                .text("calibration", id.to_string())
+                .text("lights", "im1.png, 0, 0, 1\n"),
+        )
+        .await
+        .unwrap(),
+        422,
+        &["not both"],
+    )
+    .await;
+    expect_problem(
+        post_job(tiny(&refs).text("calibration", "not-an-id"))
+            .await
+            .unwrap(),
+        422,
+        &["there is no calibration \"not-an-id\""],
+    )
+    .await;
+    expect_problem(
+        post_job(
+            archive_form(zip_folder(&repo_root().join("res/bump"), None))
+                .text("calibration", id.to_string()),
+        )
+        .await
+        .unwrap(),
+        422,
+        &["archive"],
+    )
+    .await;
+    s.stop().await;
+}
+
+/// The normals of a job's `normal.exr` (y down, as the truth), per pixel.
+async fn normals_of(s: &TestServer, id: &str) -> image::Rgb32FImage {
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/jobs/{id}/artifacts/normal.exr")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let bytes = r.bytes().await.unwrap();
+    image::load_from_memory_with_format(&bytes, image::ImageFormat::OpenExr)
+        .unwrap()
+        .to_rgb32f()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_with_a_calibration_matches_the_job_with_the_true_lights_within_half_a_degree() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    // A chrome capture and an object under the same 24 lights.
+    let chrome = ChromeSet::standard(8, 71);
+    let sphere_dir = rendered(&chrome);
+    let object = tempfile::tempdir().unwrap();
+    let capture = synth::Capture {
+        noise_sigma: 0.002,
+        ..Default::default()
+    };
+    synth::write_set(
+        object.path(),
+        &synth::Scene::sphere(128),
+        &chrome.lights,
+        &capture,
+    )
+    .unwrap();
+    let truth = synth::read_truth(object.path()).unwrap();
+
+    let cal = create(&s, chrome_form(sphere_dir.path()), None).await;
+    let cal_id = cal["id"].as_str().unwrap();
+    let options = r#"{"outputs": ["normal.exr"]}"#;
+    let calibrated = s
+        .submit(job_with_calibration(object.path(), cal_id).text("options", options))
+        .await;
+    let with_truth = s
+        .submit(folder_form(object.path()).text("options", options))
+        .await;
+    let (a, b) = (
+        calibrated["id"].as_str().unwrap(),
+        with_truth["id"].as_str().unwrap(),
+    );
+    s.wait_succeeded(a).await;
+    s.wait_succeeded(b).await;
+    let (na, nb) = (normals_of(&s, a).await, normals_of(&s, b).await);
+    let mut diffs = Vec::new();
+    let mut to_truth = Vec::new();
+    for ((r, c), &m) in truth.mask.indexed_iter() {
+        if m {
+            let n = |img: &image::Rgb32FImage| {
+                let p = img.get_pixel(c as u32, r as u32).0;
+                [p[0] as f64, -p[1] as f64, p[2] as f64] // normal.exr has y up
+            };
+            diffs.push(angle_deg(n(&na), n(&nb)));
+            let t = [0, 1, 2].map(|k| truth.normals[[r, c, k]] as f64);
+            to_truth.push(angle_deg(n(&na), t));
+        }
+    }
+    let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+    let mean_truth = to_truth.iter().sum::<f64>() / to_truth.len() as f64;
+    diffs.sort_by(f64::total_cmp);
+    let p99 = diffs[diffs.len() * 99 / 100];
+    eprintln!(
+        "job with calibration {cal_id} vs job with the true lights: normals differ by {mean:.3}° on average ({p99:.3}° at the 99th percentile) over {} mask pixels; {mean_truth:.3}° from the true normals",
+        diffs.len()
+    );
+    assert!(mean < 0.5, "mean {mean}°");
+    assert!(
+        mean > 0.0,
+        "the two jobs must differ a little: the lights are measured"
+    );
+}
