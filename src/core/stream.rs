@@ -641,7 +641,8 @@ mod tests {
         let mut plain = open(lights.clone(), &files, None, &limits).unwrap();
         let ahead = |i: usize| {
             let f = File::open(&files[i].path).unwrap();
-            (i % 2 == 0).then(|| Ok(prescan(f, &limits).expect("a PNG read by rows")))
+            i.is_multiple_of(2)
+                .then(|| Ok(prescan(f, &limits).expect("a PNG read by rows")))
         };
         let mut prescanned = open_with(lights, &files, None, &limits, ahead).unwrap();
         assert_eq!(plain.samples.planes, prescanned.samples.planes);
