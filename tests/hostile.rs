@@ -374,46 +374,72 @@ async fn image_headers_claiming_huge_sizes_are_refused_before_decoding() {
     nothing_accepted(&s).await;
 }
 
-/// The job's pixels, all images together, are bounded as well as each image's: the image
-/// that crosses the bound is refused by name before the rest of the body is read.
+/// A job is bounded by what it costs: its stored input bytes (the part that crosses the
+/// bound is refused by name before the rest of the body is read, in a form or a zip) and
+/// its output maps (pixels per image), each 413 naming the limit. The per-job pixel flag
+/// it replaces is still accepted, with no effect.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn sets_over_the_job_pixel_limit_are_refused_at_the_image_that_crosses_it() {
+async fn jobs_over_the_input_bytes_or_image_size_limits_are_refused() {
     let dir = tempfile::tempdir().unwrap();
-    // Three 16×16 images are 768 pixels; two are 512.
+    let small: Vec<Vec<u8>> = [60, 100, 140].map(|v| png(10, 20, v)).into();
+    let limit = small.iter().map(|p| p.len()).sum::<usize>() + 16;
+    // Noise does not compress: 16×16 at 16 bits is over 500 bytes, past the limit with a
+    // and b before it.
+    let mut x = 12345u32;
+    let noise = image::ImageBuffer::from_fn(16, 16, |_, _| {
+        x = x.wrapping_mul(1_103_515_245).wrapping_add(12345);
+        image::Luma([(x >> 8) as u16])
+    });
+    let mut noisy = std::io::Cursor::new(Vec::new());
+    noise.write_to(&mut noisy, image::ImageFormat::Png).unwrap();
+    let noisy = noisy.into_inner();
+    assert!(small[0].len() + small[1].len() + noisy.len() > limit);
+    let limit_flag = limit.to_string();
     let flags: Vec<&str> = (FLAGS.iter().copied())
-        .chain(["--max-job-pixels", "700"])
+        .chain(["--max-input-bytes", &limit_flag, "--max-pixels", "300"])
+        .chain(["--max-job-pixels", "100"])
         .collect();
     let s = BinServer::start(dir.path(), &flags);
-    let detail = [
+    let over_bytes = [
         "\"c.png\"",
-        "3 images",
-        "768 pixels",
-        "limit of 700 pixels per job",
+        "stored input files",
+        &format!("limit of {limit} bytes"),
+        "max-input-bytes",
     ];
-    refused(
-        &s,
-        "three images",
-        three_pngs(Part::text(TABLE3)),
-        413,
-        &detail,
-    )
-    .await;
+    let form = Form::new()
+        .text("lights", TABLE3)
+        .part("images", Part::bytes(small[0].clone()).file_name("a.png"))
+        .part("images", Part::bytes(small[1].clone()).file_name("b.png"))
+        .part("images", Part::bytes(noisy.clone()).file_name("c.png"));
+    refused(&s, "input bytes", form, 413, &over_bytes).await;
     let zip = common::zip_entries(&[
-        ("a.png", &png(16, 16, 1)),
-        ("b.png", &png(16, 16, 2)),
-        ("c.png", &png(16, 16, 3)),
+        ("a.png", &small[0]),
+        ("b.png", &small[1]),
+        ("c.png", &noisy),
         ("light_directions.csv", TABLE3.as_bytes()),
     ]);
-    refused(&s, "three images in a zip", archive_form(zip), 413, &detail).await;
+    refused(
+        &s,
+        "input bytes in a zip",
+        archive_form(zip),
+        413,
+        &over_bytes,
+    )
+    .await;
+    // 20×20 is 400 pixels an image, over --max-pixels.
+    let form = Form::new()
+        .text("lights", TABLE3)
+        .part("images", Part::bytes(png(20, 20, 60)).file_name("a.png"));
+    let over_pixels = ["\"a.png\"", "20×20", "limit of 300"];
+    refused(&s, "image size", form, 413, &over_pixels).await;
     nothing_accepted(&s).await;
 
-    // 600 pixels in all: accepted, and the job runs.
-    let small = Form::new()
-        .text("lights", TABLE3)
-        .part("images", Part::bytes(png(10, 20, 60)).file_name("a.png"))
-        .part("images", Part::bytes(png(10, 20, 100)).file_name("b.png"))
-        .part("images", Part::bytes(png(10, 20, 140)).file_name("c.png"));
-    let r = submit(&s, "600 pixels", small).await;
+    // Under both (600 pixels in all, past the old per-job bound of 100): accepted.
+    let mut form = Form::new().text("lights", TABLE3);
+    for (p, name) in small.iter().zip(["a.png", "b.png", "c.png"]) {
+        form = form.part("images", Part::bytes(p.clone()).file_name(name));
+    }
+    let r = submit(&s, "under the limits", form).await;
     assert_eq!(r.status(), 202, "{}", r.text().await.unwrap());
 }
 

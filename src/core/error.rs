@@ -66,15 +66,6 @@ pub enum InputError {
     #[error("{count} images is over the limit of {limit} images per job")]
     TooManyImages { count: usize, limit: usize },
     #[error(
-        "image {name:?} brings the job's {count} images to {pixels} pixels together, over the limit of {limit} pixels per job"
-    )]
-    TooManyPixels {
-        name: String,
-        count: usize,
-        pixels: u64,
-        limit: u64,
-    },
-    #[error(
         "the light directions span fewer than 3 dimensions (rank {rank}): normals cannot be solved"
     )]
     RankDeficient { rank: usize },
@@ -93,10 +84,7 @@ pub enum InputError {
 impl InputError {
     /// Whether the fault is the size of the input (an HTTP service answers 413).
     pub fn is_too_large(&self) -> bool {
-        matches!(
-            self,
-            Self::TooLarge { .. } | Self::TooManyImages { .. } | Self::TooManyPixels { .. }
-        )
+        matches!(self, Self::TooLarge { .. } | Self::TooManyImages { .. })
     }
 
     /// Whether the fault is an image format the core cannot read (HTTP 415).

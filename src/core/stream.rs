@@ -8,14 +8,16 @@
 //! each band's images are decoded in parallel. Non-interlaced 8/16-bit PNGs without a
 //! palette are decoded row by row through the `png` crate in both passes; every other
 //! file is decoded whole once (by [`intake::decode`]) and kept decoded until the solve
-//! has read it, so it costs one decoded image.
+//! has read it, so it costs one decoded image. A row-read PNG's first pass can also be
+//! done ahead ([`prescan`], e.g. while the rest of an upload arrives): it keeps only the
+//! sampled rows, and [`open_with`] then starts with the bands.
 //!
 //! A band is converted exactly as [`intake::load`] converts a whole image (the same
 //! per-pixel functions over the band as a small image), so the planes, and with them
 //! every result, are the same as the set loaded whole.
 
 use std::fs::File;
-use std::io::{BufReader, Read};
+use std::io::{BufReader, Read, Seek};
 use std::ops::Range;
 use std::path::Path;
 
@@ -34,9 +36,8 @@ const BAND_BYTES: usize = 32 << 20;
 /// [`intake::load_dir`], streamed: the folder's set as a [`Stack`].
 pub fn open_dir(dir: &Path, mask: DirMask<'_>, limits: &Limits) -> Result<Streamed, InputError> {
     let found = intake::dir_files(dir, mask)?;
-    let mut set = open(found.lights, &found.files, found.mask.as_ref(), limits)?;
-    set.info.notes = found.notes;
-    Ok(set)
+    let set = open(found.lights, &found.files, found.mask.as_ref(), limits)?;
+    Ok(set.noted(found.notes))
 }
 
 /// [`intake::load`], streamed: the first pass over the files (errors as `load` reports
@@ -47,9 +48,45 @@ pub fn open(
     mask: Option<&NamedFile>,
     limits: &Limits,
 ) -> Result<Streamed, InputError> {
+    open_with(lights, files, mask, limits, |_| None)
+}
+
+/// One image's first pass done ahead by [`prescan`]: its sampled rows, not its planes.
+pub struct Prescanned(Scanned);
+
+/// The first pass over a PNG read row by row, from an open handle to it (read from its
+/// start), with the limits [`open_with`] will be given. `None` when it is left to
+/// `open_with`: files decoded whole (their decoded image would be held until the job),
+/// and every error, which `open_with` reports as it would without a prescan.
+pub fn prescan(mut file: File, limits: &Limits) -> Option<Prescanned> {
+    file.rewind().ok()?;
+    let (reader, kind) = png_reader(file).ok()?;
+    scan_rows(reader, kind?, limits).ok().map(Prescanned)
+}
+
+/// [`open`], taking image `i` of `files` from `prescanned(i)` when that has it (the
+/// [`prescan`] of the same file with the same limits, or an error that stands for its
+/// scan's), so the set and its first error are the same as without.
+pub fn open_with(
+    lights: Vec<Light>,
+    files: &[NamedFile],
+    mask: Option<&NamedFile>,
+    limits: &Limits,
+    prescanned: impl Fn(usize) -> Option<Result<Prescanned, InputError>> + Sync,
+) -> Result<Streamed, InputError> {
     let ordered = intake::check_files(&lights, files, limits)?;
     let scanned: Vec<Scanned> = (ordered.par_iter())
-        .map(|&i| scan(&files[i], limits))
+        .map(|&i| match prescanned(i) {
+            Some(ready) => ready.map(|Prescanned(mut s)| {
+                // Its second pass reads the file where the set has it.
+                s.source = Source::Png {
+                    file: files[i].clone(),
+                    reader: None,
+                };
+                s
+            }),
+            None => scan(&files[i], limits),
+        })
         .collect::<Vec<_>>()
         .into_iter()
         .collect::<Result<_, InputError>>()?;
@@ -123,6 +160,14 @@ pub struct Streamed {
     planes: Vec<Vec<u16>>,
     moments: Vec<f32>,
     next_row: usize,
+}
+
+impl Streamed {
+    /// The set with what intake noted on the caller's behalf (for `result.json`).
+    pub fn noted(mut self, notes: Vec<String>) -> Self {
+        self.info.notes = notes;
+        self
+    }
 }
 
 impl Stack for Streamed {
@@ -303,23 +348,44 @@ fn read_up_to(f: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
 /// (palette, interlacing, transparency chunk, under 8 bits: the conversions the `image`
 /// crate applies are left to it).
 fn scan_png(file: &NamedFile, limits: &Limits) -> Result<Option<Scanned>, InputError> {
-    let Ok((mut reader, kind)) = open_png(file) else {
+    let Ok((reader, kind)) = open_png(file) else {
         return Ok(None); // the whole decode names the problem
     };
     let Some(kind) = kind else {
         return Ok(None);
     };
-    let info = reader.info();
-    let (width, height) = (info.width as usize, info.height as usize);
-    let pixels = width as u64 * height as u64;
-    if pixels > limits.max_pixels_per_image {
-        return Err(InputError::TooLarge {
+    match scan_rows(reader, kind, limits) {
+        Ok(mut scanned) => {
+            scanned.source = Source::Png {
+                file: file.clone(),
+                reader: None,
+            };
+            Ok(Some(scanned))
+        }
+        Err(RowScan::TooLarge { width, height }) => Err(InputError::TooLarge {
             name: file.name.clone(),
             width: width as u64,
             height: height as u64,
-            pixels,
+            pixels: width as u64 * height as u64,
             limit: limits.max_pixels_per_image,
-        });
+        }),
+        Err(RowScan::Broken(reason)) => whole_decode_error(file, limits, &reason),
+    }
+}
+
+/// Why a row scan stopped (the file's own error is named by the caller, who knows it).
+enum RowScan {
+    TooLarge { width: usize, height: usize },
+    Broken(String),
+}
+
+/// Every row of a PNG once: its size, depth, colour and sampled rows. The source it
+/// returns is a placeholder for the caller to name the file in.
+fn scan_rows(mut reader: PngRows, kind: PngKind, limits: &Limits) -> Result<Scanned, RowScan> {
+    let info = reader.info();
+    let (width, height) = (info.width as usize, info.height as usize);
+    if width as u64 * height as u64 > limits.max_pixels_per_image {
+        return Err(RowScan::TooLarge { width, height });
     }
     let mut sampled_at = bands::sampled_rows(width, height).peekable();
     let mut sampled = Vec::new();
@@ -330,8 +396,8 @@ fn scan_png(file: &NamedFile, limits: &Limits) -> Result<Option<Scanned>, InputE
     for r in 0..height {
         match reader.read_row(&mut row) {
             Ok(Some(_)) => {}
-            Ok(None) => return whole_decode_error(file, limits, "the image data ends early"),
-            Err(e) => return whole_decode_error(file, limits, &e.to_string()),
+            Ok(None) => return Err(RowScan::Broken("the image data ends early".into())),
+            Err(e) => return Err(RowScan::Broken(e.to_string())),
         }
         if kind.channels >= 3 && !colour {
             colour = kind.row_has_colour(&row);
@@ -342,17 +408,20 @@ fn scan_png(file: &NamedFile, limits: &Limits) -> Result<Option<Scanned>, InputE
             count += 1;
         }
     }
-    Ok(Some(Scanned {
+    Ok(Scanned {
         width,
         height,
         depth: kind.depth,
         colour,
         sampled: vec![kind.image(width, count, sampled)],
         source: Source::Png {
-            file: file.clone(),
+            file: NamedFile {
+                name: String::new(),
+                path: Default::default(),
+            },
             reader: None,
         },
-    }))
+    })
 }
 
 /// An error the row reader met: the whole decode's message for the same file (the one
@@ -420,9 +489,14 @@ impl PngKind {
 /// A row reader for the file, and its layout when rows can be taken as they come.
 fn open_png(file: &NamedFile) -> Result<(PngRows, Option<PngKind>), InputError> {
     let f = File::open(&file.path).map_err(|e| InputError::io(&file.path, e))?;
+    png_reader(f).map_err(|e| png_error(file, e))
+}
+
+/// [`open_png`] over an open file, read from where it stands.
+fn png_reader(f: File) -> Result<(PngRows, Option<PngKind>), png::DecodingError> {
     let mut decoder = png::Decoder::new(BufReader::with_capacity(16 << 10, f));
     decoder.set_transformations(png::Transformations::EXPAND);
-    let reader = decoder.read_info().map_err(|e| png_error(file, e))?;
+    let reader = decoder.read_info()?;
     let info = reader.info();
     let plain = !info.interlaced && info.trns.is_none();
     let kind = match (info.color_type, info.bit_depth) {
@@ -557,6 +631,25 @@ mod tests {
                 assert!(most < 1e-5, "{kind}: moments differ by {most}");
             }
         }
+    }
+
+    #[test]
+    fn prescanned_images_give_the_same_set() {
+        let dir = tempfile::tempdir().unwrap();
+        let limits = Limits::default();
+        let (lights, files) = write_set(dir.path(), "rgb8", 4, true);
+        let mut plain = open(lights.clone(), &files, None, &limits).unwrap();
+        let ahead = |i: usize| {
+            let f = File::open(&files[i].path).unwrap();
+            i.is_multiple_of(2)
+                .then(|| Ok(prescan(f, &limits).expect("a PNG read by rows")))
+        };
+        let mut prescanned = open_with(lights, &files, None, &limits, ahead).unwrap();
+        assert_eq!(plain.samples.planes, prescanned.samples.planes);
+        assert_eq!(read_all(&mut plain), read_all(&mut prescanned));
+        // Files decoded whole are left to the set.
+        let (_, bmps) = write_set(dir.path(), "bmp", 1, false);
+        assert!(prescan(File::open(&bmps[0].path).unwrap(), &limits).is_none());
     }
 
     #[test]

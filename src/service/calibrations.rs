@@ -258,7 +258,7 @@ impl CalibrationView {
         (status = 400, description = "Not multipart, or parts missing, repeated or unknown", body = Problem, content_type = "application/problem+json"),
         (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
         (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
-        (status = 413, description = "Body, image, part count, image count or the set's pixels over a limit", body = Problem, content_type = "application/problem+json"),
+        (status = 413, description = "Body, image, part count, image count or the stored input bytes over a limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "An image in an unsupported format", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "The tenant's submissions per minute (shared with jobs) are used up; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
@@ -499,7 +499,8 @@ async fn receive(
 ) -> Result<Form, ApiError> {
     let mut form = Form::default();
     let mut count = 0;
-    let mut pixels = 0u64;
+    // Image and mask bytes stored so far (413 past `max_input_bytes`, as for jobs).
+    let mut stored = 0u64;
     while let Some(mut field) = multipart
         .next_field()
         .await
@@ -530,20 +531,12 @@ async fn receive(
                 }
                 let name = upload::file_name(&field, &part)?;
                 let file = format!("{part}{:03}.img", list.len());
+                let into = Some((&mut stored, name.as_str()));
                 let (head, _) =
-                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash).await?;
+                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash, into)
+                        .await?;
                 let (width, height, _) =
                     upload::probe(dir.join(&file), name.clone(), head, config).await?;
-                pixels = pixels.saturating_add(u64::from(width) * u64::from(height));
-                if pixels > config.max_job_pixels {
-                    return Err(InputError::TooManyPixels {
-                        name,
-                        count: form.images.len() + form.matte.len() + 1,
-                        pixels,
-                        limit: config.max_job_pixels,
-                    }
-                    .into());
-                }
                 let stored = Stored {
                     name,
                     file,
@@ -565,8 +558,10 @@ async fn receive(
                     .unwrap_or("mask")
                     .to_string();
                 let file = "mask.img".to_string();
+                let into = Some((&mut stored, name.as_str()));
                 let (head, _) =
-                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash).await?;
+                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash, into)
+                        .await?;
                 let (width, height, _) =
                     upload::probe(dir.join(&file), name.clone(), head, config).await?;
                 form.mask = Some(Stored {

@@ -50,18 +50,20 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_MAX_IMAGES", default_value_t = 256)]
     pub max_images: usize,
 
-    /// Most pixels in one image, width × height (413 past it).
+    /// Most pixels in one image, width × height (413 past it): a job's output maps are
+    /// sized by it, about 75 bytes per pixel at the job's peak, whatever the image count.
     #[arg(long, env = "PHOTOSTEREO_MAX_PIXELS", default_value_t = 33_554_432)]
     pub max_pixels: u64,
 
-    /// Most pixels in one job, all its images together (413 past it): a job holds its
-    /// images as 16-bit planes, so this bounds that memory at 2 bytes per pixel.
-    #[arg(
-        long,
-        env = "PHOTOSTEREO_MAX_JOB_PIXELS",
-        default_value_t = 1_073_741_824
-    )]
-    pub max_job_pixels: u64,
+    /// Most bytes of input files one job may store: its image and mask parts as
+    /// uploaded, or the files its archive unpacks to (413 past it).
+    #[arg(long, env = "PHOTOSTEREO_MAX_INPUT_BYTES", default_value = "4GiB", value_parser = parse_size)]
+    pub max_input_bytes: u64,
+
+    /// Deprecated, no effect (a warning at start): jobs read their images from the store
+    /// in bands and never hold them all; --max-input-bytes and --max-pixels bound a job.
+    #[arg(long, env = "PHOTOSTEREO_MAX_JOB_PIXELS")]
+    pub max_job_pixels: Option<u64>,
 
     /// Most parts in one multipart upload, and most entries in one zip archive (413 past
     /// it); room for --max-images images and a benchmark folder's other files.
@@ -161,8 +163,9 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_SHUTDOWN_GRACE", default_value = "30s", value_parser = parse_duration)]
     pub shutdown_grace: Duration,
 
-    /// Uploads whose images are decoded while they arrive, held ready for their job
-    /// (0: off) [default: the number of workers].
+    /// Uploads whose images get their first pass (size, colour, the rows the robust
+    /// solver samples) while they arrive, held for their job (0: off) [default: the
+    /// number of workers].
     #[arg(long, env = "PHOTOSTEREO_DECODE_AHEAD", value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub decode_ahead: Option<u32>,
 
@@ -181,7 +184,7 @@ pub struct Config {
     pub max_body_bytes: u64,
     pub max_images: usize,
     pub max_pixels: u64,
-    pub max_job_pixels: u64,
+    pub max_input_bytes: u64,
     pub max_parts: usize,
     pub max_unpacked_bytes: u64,
     pub retention: Duration,
@@ -204,7 +207,7 @@ pub struct Config {
     /// The first retry's delay (doubling after each failed attempt).
     pub webhook_first_retry: Duration,
     pub shutdown_grace: Duration,
-    /// Uploads decoded ahead of their job at once.
+    /// Uploads scanned ahead of their job at once.
     pub decode_ahead: usize,
     /// How often expired jobs are looked for.
     pub sweep_interval: Duration,
@@ -232,7 +235,7 @@ impl Config {
             max_body_bytes: 2 << 30,
             max_images: 256,
             max_pixels: 33_554_432,
-            max_job_pixels: 1 << 30,
+            max_input_bytes: 4 << 30,
             max_parts: 512,
             max_unpacked_bytes: 2 << 30,
             retention: Duration::from_secs(7 * 86_400),
@@ -283,7 +286,7 @@ impl From<&ServeArgs> for Config {
         c.max_body_bytes = a.max_body_bytes;
         c.max_images = a.max_images;
         c.max_pixels = a.max_pixels;
-        c.max_job_pixels = a.max_job_pixels;
+        c.max_input_bytes = a.max_input_bytes;
         c.max_parts = a.max_parts;
         c.max_unpacked_bytes = a.max_unpacked_bytes;
         c.retention = a.retention;
@@ -337,7 +340,7 @@ mod tests {
         assert_eq!(c.data_dir, d.data_dir);
         assert_eq!(c.max_body_bytes, d.max_body_bytes);
         assert_eq!(c.max_pixels, d.max_pixels);
-        assert_eq!(c.max_job_pixels, d.max_job_pixels);
+        assert_eq!(c.max_input_bytes, d.max_input_bytes);
         assert_eq!(c.retention, d.retention);
         assert_eq!(c.job_timeout, d.job_timeout);
         assert_eq!(c.upload_timeout, d.upload_timeout);
@@ -382,6 +385,10 @@ mod tests {
         assert!(Cli::try_parse_from(["x", "--decode-ahead", "100000"]).is_err());
         let off = Cli::try_parse_from(["x", "--decode-ahead", "0"]).unwrap();
         assert_eq!(Config::from(&off.serve).decode_ahead, 0);
+        let old = ["x", "--max-job-pixels", "700", "--max-input-bytes", "1MiB"];
+        let old = Cli::try_parse_from(old).unwrap();
+        assert_eq!(old.serve.max_job_pixels, Some(700), "still accepted");
+        assert_eq!(Config::from(&old.serve).max_input_bytes, 1 << 20);
         assert!(Cli::try_parse_from(["x", "--retention", "soon"]).is_err());
     }
 }

@@ -4,7 +4,8 @@
 //! repo is the durable copy), one line per tenant: workers serve the tenants with waiting
 //! jobs in turn (round-robin), so one tenant's backlog does not hold up another's next
 //! job. `--workers` plain threads take jobs from it, so never more
-//! than that many run at once; each runs `intake::load` and `pipeline::run` into a staged
+//! than that many run at once; each opens its stored inputs with `stream::open_with` (read
+//! back from the store band by band) and runs `pipeline::run` into a staged
 //! output directory that is renamed into place when the job succeeds. Progress goes to the
 //! repo at every stage; the progress callback is also where cancellation, the time limit
 //! and shutdown stop a job.
@@ -18,14 +19,14 @@ use std::time::{Duration, Instant};
 use uuid::Uuid;
 
 use crate::core::RunError;
-use crate::core::bands::InMemory;
 use crate::core::error::panic_message;
-use crate::core::intake::{self, NamedFile};
+use crate::core::intake::NamedFile;
 use crate::core::lights;
 use crate::core::outputs::ARTIFACTS;
 use crate::core::pipeline;
 use crate::core::progress::{Progress, Stage};
 use crate::core::reconstruction::Report;
+use crate::core::stream::{self, Streamed};
 use crate::core::{InputError, Options};
 
 use super::Inner;
@@ -549,11 +550,11 @@ fn execute(
         name: m.name.clone(),
         path: input.join(&m.file),
     });
-    let mut set = load_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, clock)?;
-    set.notes = manifest.notes.clone();
+    let set = open_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, clock)?;
+    let set = set.noted(manifest.notes.clone());
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
-    let report = pipeline::run(InMemory::new(set), &options, &out, clock);
+    let report = pipeline::run(set, &options, &out, clock);
     clock.close();
     let report = match report {
         Ok(r) => r,
@@ -568,10 +569,11 @@ fn execute(
     Ok((summarize(&report), artifacts))
 }
 
-/// Decode the job's images, taking those decoded during the upload when there are any.
-/// Once `clock` says stop, the images not yet started are not decoded and the set, which
-/// then holds a placeholder error for them, is dropped.
-fn load_inputs(
+/// The first pass over the job's images, taking those scanned during the upload when
+/// there are any; the bands are read from the store by the solve. Once `clock` says stop,
+/// the images not yet started are not scanned and the set, which then holds a placeholder
+/// error for them, is dropped.
+fn open_inputs(
     inner: &Inner,
     id: Uuid,
     lights: Vec<lights::Light>,
@@ -579,8 +581,8 @@ fn load_inputs(
     mask: Option<&NamedFile>,
     manifest: &Manifest,
     clock: &StageClock<'_>,
-) -> Result<intake::ImageSet, Stop> {
-    // Waits for decodes still running (on rayon: this is a worker thread, not a pool one).
+) -> Result<Streamed, Stop> {
+    // Waits for scans still running (on rayon: this is a worker thread, not a pool one).
     let ready = Mutex::new(
         inner
             .prefetch
@@ -589,7 +591,7 @@ fn load_inputs(
             .unwrap_or_default(),
     );
     let taken = AtomicUsize::new(0);
-    let set = intake::load_with(lights, files, mask, &inner.config.limits(), |i| {
+    let set = stream::open_with(lights, files, mask, &inner.config.limits(), |i| {
         if clock.halted() {
             return Some(Err(InputError::Decode {
                 name: files[i].name.clone(),
@@ -598,7 +600,7 @@ fn load_inputs(
         }
         let found = lock(&ready).remove(&manifest.images[i].file)?;
         taken.fetch_add(1, Ordering::Relaxed);
-        Some(found)
+        Some(Ok(found))
     });
     if clock.halted() {
         return Err(Stop::Stopped);
@@ -608,7 +610,7 @@ fn load_inputs(
         .metrics
         .prefetched_images
         .fetch_add(taken, Ordering::Relaxed);
-    tracing::debug!(images = taken, "images decoded during the upload");
+    tracing::debug!(images = taken, "images scanned during the upload");
     Ok(set.map_err(ApiError::from)?)
 }
 

@@ -831,6 +831,11 @@ pub async fn serve_with(
 /// `photostereo serve`: run the API until SIGTERM or Ctrl-C.
 pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
     init_tracing(args.log_format);
+    if args.max_job_pixels.is_some() {
+        tracing::warn!(
+            "--max-job-pixels (PHOTOSTEREO_MAX_JOB_PIXELS) is deprecated and has no effect: jobs read their images in bands; --max-input-bytes and --max-pixels bound a job"
+        );
+    }
     let config = Config::from(&args);
     let listener = TcpListener::bind(&args.listen)
         .await

@@ -1,22 +1,22 @@
-//! Decoding an upload's images while the rest of it arrives, so that its job starts with
-//! the planes ready rather than decoding them again.
+//! The first pass over an upload's images ([`stream::prescan`]) while the rest of it
+//! arrives, so that its job starts with the bands rather than reading every file twice.
 //!
 //! Purely an optimisation: the inputs are still written and committed as before, and a job
-//! without a prefetched set (after a restart, when no slot was free, for archives or colour
-//! images) decodes from disk. A slot is held from the first image until the job takes the
-//! planes (they are then the job's own memory) or the set is dropped; at most
-//! `decode_ahead` sets exist at once.
+//! without a prefetched set (after a restart, when no slot was free, for archives and
+//! files the first pass decodes whole) scans them from disk. What is held is the sampled
+//! rows (about 12 000 pixels an image), never the planes. A slot is held from the first
+//! image until the job takes the scans or the set is dropped; at most `decode_ahead` sets
+//! exist at once.
 
 use std::collections::HashMap;
 use std::fs::File;
-use std::io::{Read, Seek};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use uuid::Uuid;
 
-use crate::core::InputError;
-use crate::core::intake::{self, Decoded, Limits};
+use crate::core::intake::Limits;
+use crate::core::stream::{self, Prescanned};
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
@@ -80,8 +80,8 @@ impl Prefetcher {
     }
 }
 
-/// One upload's images being decoded ahead. Dropping it drops what was decoded and frees
-/// its slot (decodes still running finish into the void).
+/// One upload's images being scanned ahead. Dropping it drops what was scanned and frees
+/// its slot (scans still running finish into the void).
 pub struct Prefetch {
     shared: Arc<Shared>,
     limits: Limits,
@@ -93,19 +93,18 @@ struct Shared {
 }
 
 struct State {
-    /// Stored file name → the decode's result (`None`: left to the job).
-    results: HashMap<String, Option<Result<Decoded, InputError>>>,
-    /// Decodes started and not finished.
+    /// Stored file name → the scan (`None`: left to the job).
+    results: HashMap<String, Option<Prescanned>>,
+    /// Scans started and not finished.
     pending: usize,
     dropped: bool,
     permit: Option<OwnedSemaphorePermit>,
 }
 
 impl Prefetch {
-    /// Start decoding a completely written image on the rayon pool. `file` is its stored
-    /// name, `name` the light table's name for it (decode errors name it), `source` the
-    /// written file (read from its start).
-    pub fn start(&self, file: String, name: String, source: File) {
+    /// Start scanning a completely written image on the rayon pool. `file` is its stored
+    /// name, `source` the written file (read from its start).
+    pub fn start(&self, file: String, source: File) {
         lock(&self.shared.state).pending += 1;
         let shared = self.shared.clone();
         let limits = self.limits;
@@ -113,8 +112,8 @@ impl Prefetch {
             let result = if lock(&shared.state).dropped {
                 None
             } else {
-                // Unreadable: left to the job, which reports it under the path it reads.
-                read_all(source).and_then(|bytes| intake::predecode(&name, &bytes, &limits))
+                // Errors are left to the job, which reports them as without a scan.
+                stream::prescan(source, &limits)
             };
             let mut state = lock(&shared.state);
             state.pending -= 1;
@@ -126,11 +125,11 @@ impl Prefetch {
         });
     }
 
-    /// Wait for the decodes under way, then hand the results over (by stored file name)
-    /// and free the slot: the planes are now the job's.
+    /// Wait for the scans under way, then hand them over (by stored file name) and free
+    /// the slot.
     ///
-    /// Must not be called from the rayon pool: the decodes waited for run there.
-    pub fn finish(self) -> HashMap<String, Result<Decoded, InputError>> {
+    /// Must not be called from the rayon pool: the scans waited for run there.
+    pub fn finish(self) -> HashMap<String, Prescanned> {
         let mut state = lock(&self.shared.state);
         while state.pending > 0 {
             state = self
@@ -147,13 +146,6 @@ impl Prefetch {
             .filter_map(|(file, r)| Some((file, r?)))
             .collect()
     }
-}
-
-fn read_all(mut file: File) -> Option<Vec<u8>> {
-    file.rewind().ok()?;
-    let mut bytes = Vec::new();
-    file.read_to_end(&mut bytes).ok()?;
-    Some(bytes)
 }
 
 impl Drop for Prefetch {
@@ -185,17 +177,17 @@ mod tests {
         gray_png(&dir.path().join("000.img"), 7);
         std::fs::write(dir.path().join("001.img"), b"not an image").unwrap();
         let open = |f: &str| File::open(dir.path().join(f)).unwrap();
-        a.start("000.img".into(), "a.png".into(), open("000.img"));
-        a.start("001.img".into(), "b.png".into(), open("001.img"));
+        a.start("000.img".into(), open("000.img"));
+        a.start("001.img".into(), open("001.img"));
         let id = Uuid::new_v4();
         p.park(id, a);
         let results = p.take(id).unwrap().finish();
         assert_eq!(p.held(), 0);
-        assert_eq!(results["000.img"].as_ref().unwrap().plane[[0, 0]], 7 * 257);
-        assert!(results["001.img"].is_err());
+        assert!(results.contains_key("000.img"));
+        assert!(!results.contains_key("001.img"), "left to the job");
 
         let b = p.begin().expect("the slot is free again");
-        b.start("000.img".into(), "a.png".into(), open("000.img"));
+        b.start("000.img".into(), open("000.img"));
         p.park(id, b);
         p.discard(id);
         assert_eq!(p.held(), 0);

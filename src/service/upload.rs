@@ -186,10 +186,12 @@ struct Parts {
     /// The `calibration` part: a calibration id instead of a light table.
     calibration: Option<String>,
     count: usize,
+    /// Bytes of image and mask files written so far (bounded by `max_input_bytes`).
+    stored: u64,
 }
 
 /// Read the multipart body into `dir` and check it. The caller removes `dir` on error.
-/// Each image is handed to `prefetch` to decode once it is written and probed; every
+/// Each image is handed to `prefetch` to scan once it is written and probed; every
 /// part goes through `hash`; a `calibration` part's table comes from `calibrations`.
 pub async fn receive(
     config: &Config,
@@ -229,13 +231,14 @@ pub async fn receive(
                 }
                 let name = file_name(&field, "images")?;
                 let file = image_file(parts.images.len());
+                let target = dir.join(&file);
+                let stored = Some((&mut parts.stored, name.as_str()));
                 let (head, written) =
-                    stream_to_file(&mut field, &dir.join(&file), tap, config, hash).await?;
+                    stream_to_file(&mut field, &target, tap, config, hash, stored).await?;
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
-                check_job_pixels(&parts.images, &name, width, height, config.max_job_pixels)?;
                 if let Some(p) = prefetch {
-                    p.start(file.clone(), name.clone(), written);
+                    p.start(file.clone(), written);
                 }
                 parts.images.push(StoredImage {
                     name,
@@ -261,8 +264,10 @@ pub async fn receive(
                     .filter(|n| !n.is_empty())
                     .unwrap_or("mask")
                     .to_string();
+                let target = dir.join(MASK_FILE);
+                let stored = Some((&mut parts.stored, name.as_str()));
                 let (head, _) =
-                    stream_to_file(&mut field, &dir.join(MASK_FILE), tap, config, hash).await?;
+                    stream_to_file(&mut field, &target, tap, config, hash, stored).await?;
                 let (width, height, depth) = probe(dir.join(MASK_FILE), name.clone(), head, config)
                     .await
                     .map_err(|e| {
@@ -332,7 +337,9 @@ pub async fn receive(
                     return Err(calibration_with_archive());
                 }
                 let path = dir.join(ARCHIVE_FILE);
-                let (head, _) = stream_to_file(&mut field, &path, tap, config, hash).await?;
+                // Not input bytes: it is removed once unpacked, and what it unpacks to is
+                // counted as image parts are.
+                let (head, _) = stream_to_file(&mut field, &path, tap, config, hash, None).await?;
                 if !(head.starts_with(b"PK\x03\x04") || head.starts_with(b"PK\x05\x06")) {
                     return Err(ApiError::unsupported_media(
                         "the archive part is not a zip file (expected a .zip of a folder with the images and light_directions.csv, or in the benchmark layout with light_directions.txt and filenames.txt)",
@@ -572,7 +579,9 @@ const WRITE_QUEUE: usize = 64;
 const WRITE_BUFFER: usize = 1 << 20;
 
 /// Write a part to `path`; returns its first bytes and the file, open for reading too (a
-/// handle stays valid when the staging directory is renamed). The chunks go through a
+/// handle stays valid when the staging directory is renamed). `stored`, for input files, is
+/// the job's input bytes so far, which the part adds to (413 past `max_input_bytes`), and
+/// the part's name for that refusal. The chunks go through a
 /// bounded channel to one blocking task that owns a std file, so a part costs one
 /// blocking-pool hand-off rather than one per chunk, and the async side copies nothing.
 pub(super) async fn stream_to_file(
@@ -581,6 +590,7 @@ pub(super) async fn stream_to_file(
     tap: &BodyTap,
     config: &Config,
     hash: &mut PartHasher,
+    mut stored: Option<(&mut u64, &str)>,
 ) -> Result<(Vec<u8>, File), ApiError> {
     let target = path.to_path_buf();
     let file = tokio::task::spawn_blocking(move || {
@@ -604,6 +614,12 @@ pub(super) async fn stream_to_file(
             if head.len() < HEAD_BYTES {
                 let take = (HEAD_BYTES - head.len()).min(chunk.len());
                 head.extend_from_slice(&chunk[..take]);
+            }
+            if let Some((stored, name)) = &mut stored {
+                **stored += chunk.len() as u64;
+                if **stored > config.max_input_bytes {
+                    return Err(too_much_input(name, config.max_input_bytes));
+                }
             }
             hash.update(&chunk);
             if tx.send(chunk).await.is_err() {
@@ -727,29 +743,12 @@ fn probe_image(
     Ok((w, h, depth))
 }
 
-/// Refuse image `name`, of `width`×`height`, when with the images already received it
-/// would take the job past `limit` pixels. Checked as each image arrives, so an oversized
-/// set is refused before the rest of its body is read.
-fn check_job_pixels(
-    received: &[StoredImage],
-    name: &str,
-    width: u32,
-    height: u32,
-    limit: u64,
-) -> Result<(), InputError> {
-    let area = |w: u32, h: u32| u64::from(w) * u64::from(h);
-    let pixels = (received.iter())
-        .map(|i| area(i.width, i.height))
-        .fold(area(width, height), u64::saturating_add);
-    if pixels > limit {
-        return Err(InputError::TooManyPixels {
-            name: name.into(),
-            count: received.len() + 1,
-            pixels,
-            limit,
-        });
-    }
-    Ok(())
+/// The refusal of the part `name` that takes a job's stored input files past `limit`
+/// bytes (checked as it is written, so the rest of the body is not read).
+fn too_much_input(name: &str, limit: u64) -> ApiError {
+    ApiError::too_large(format!(
+        "{name:?} takes the job's stored input files over the limit of {limit} bytes (max-input-bytes)"
+    ))
 }
 
 /// Pair the table's rows with the uploaded images, in table order.
@@ -834,7 +833,7 @@ struct ArchiveLimits {
     max_unpacked: u64,
     max_images: usize,
     max_pixels: u64,
-    max_job_pixels: u64,
+    max_input_bytes: u64,
 }
 
 impl From<&Config> for ArchiveLimits {
@@ -844,7 +843,7 @@ impl From<&Config> for ArchiveLimits {
             max_unpacked: c.max_unpacked_bytes,
             max_images: c.max_images,
             max_pixels: c.max_pixels,
-            max_job_pixels: c.max_job_pixels,
+            max_input_bytes: c.max_input_bytes,
         }
     }
 }
@@ -967,6 +966,8 @@ fn extract_archive(
     }
 
     let mut budget = limits.max_unpacked;
+    // The images' and the mask's bytes, as stored for the job.
+    let mut stored = 0u64;
     let over_budget = || {
         ApiError::too_large(format!(
             "the archive unpacks to more than {} bytes",
@@ -1051,6 +1052,10 @@ fn extract_archive(
                 return Err(over_budget());
             }
             budget -= n as u64;
+            stored += n as u64;
+            if stored > limits.max_input_bytes {
+                return Err(too_much_input(&name, limits.max_input_bytes));
+            }
             if head.len() < HEAD_BYTES {
                 let take = (HEAD_BYTES - head.len()).min(n);
                 head.extend_from_slice(&buf[..take]);
@@ -1073,7 +1078,6 @@ fn extract_archive(
             continue;
         }
         let (width, height, depth) = probed?;
-        check_job_pixels(&images, &name, width, height, limits.max_job_pixels)?;
         images.push(StoredImage {
             name,
             file,
@@ -1093,7 +1097,7 @@ fn extract_archive(
 
 /// The archive reader on its own, for property tests and fuzzing: unpack the zip file at
 /// `zip` into the directory `dir` under `config`'s caps (`max_parts` entries,
-/// `max_unpacked_bytes`, `max_images`, `max_pixels`), exactly as an `archive` part is
+/// `max_unpacked_bytes`, `max_images`, `max_pixels`, `max_input_bytes`), exactly as an `archive` part is
 /// unpacked. Returns the images' names (in archive order) and the light table's bytes
 /// (as stored for the job: JSON in the project's frame).
 pub fn unpack_archive(
@@ -1134,7 +1138,7 @@ mod tests {
             max_unpacked: 1 << 20,
             max_images: 8,
             max_pixels: 1 << 20,
-            max_job_pixels: 1 << 22,
+            max_input_bytes: 1 << 20,
         }
     }
 
