@@ -8,16 +8,17 @@
 // through the page, waits for the job to succeed, then checks that the relighting canvas
 // draws, that it changes when the light is dragged, that the 3-D canvas draws the mesh;
 // then a job whose outputs have no mesh.glb, whose 3-D view draws the height map as a
-// grid; that the page logged no console errors; then that a refused light table is shown
-// as the problem's title and detail beside it.
+// grid; then a calibration made over the API, offered in the form and picked for a job
+// that runs on its lights; that the page logged no console errors; then that a refused
+// light table is shown as the problem's title and detail beside it.
 // On the server with a key (--keyed): the page asks for the key before calling the API
 // (no console error), says a wrong key is not valid, and with the right key submits and
 // shows the result. A refused request is logged by Chromium as "Failed to load resource:
 // the server responded with a status of 4xx": those two (the 422 of the refused table, the
 // 401 of the wrong key) are the only console errors accepted, each after its step.
 // Screenshots go to the given directory only (never into the repository).
-import { readdirSync } from "node:fs";
-import { join } from "node:path";
+import { readdirSync, readFileSync } from "node:fs";
+import { basename, join } from "node:path";
 import { parseArgs } from "node:util";
 import { launch } from "./browser-drivers.mjs";
 
@@ -29,6 +30,7 @@ const { values: arg } = parseArgs({
     key: { type: "string" },
     set: { type: "string" },
     shots: { type: "string" },
+    chrome: { type: "string", default: "res/chrome" },
   },
 });
 if (!arg.open || !arg.keyed || !arg.key || !arg.set) {
@@ -113,6 +115,21 @@ async function resultShown(id, surface) {
   );
 }
 
+// A calibration from four of the chrome set's sphere images (its known circle), its lights
+// named after the set's images; returns the calibration resource.
+async function createCalibration(base) {
+  const form = new FormData();
+  for (const name of ["ball01.png", "ball02.png", "ball03.png", "ball04.png"]) {
+    form.append("images", new Blob([readFileSync(join(arg.chrome, name))], { type: "image/png" }), name);
+  }
+  const images = files.filter((f) => /\.png$/i.test(f)).map((f) => basename(f));
+  form.append("names", images.join("\n"));
+  form.append("circle", readFileSync(join(arg.chrome, "truth-lights", "circle.txt"), "utf8").trim());
+  const answer = await fetch(`${base}/v1/calibrations`, { method: "POST", body: form });
+  if (answer.status !== 201) throw new Error(`POST /v1/calibrations: ${answer.status} ${await answer.text()}`);
+  return answer.json();
+}
+
 async function rakeFromRight() {
   await page.click('.presets button[data-azimuth="0"]');
 }
@@ -184,6 +201,39 @@ try {
   );
   if (arg.shots) await page.screenshot("[data-testid=mesh-canvas]", join(arg.shots, "grid.png"));
   check(errorsSince(0).length === 0, `no console errors${page.errors.length ? ": " + page.errors.join(" | ") : ""}`);
+
+  // A calibration made over the API is offered in the form, and a job that picks it runs
+  // on its lights instead of the dropped table (its light matrix differs).
+  const tabled = await (await fetch(`${arg.open}/v1/jobs/${job.id}`)).json();
+  const calibration = await createCalibration(arg.open);
+  await page.goto(arg.open + "/");
+  await page.waitFor(
+    (id) =>
+      !document.getElementById("calibration-field").hidden &&
+      [...document.querySelectorAll("#calibration option")].some((o) => o.value === id),
+    calibration.id,
+  );
+  const offered = await page.evaluate(
+    (id) => [...document.querySelectorAll("#calibration option")].find((o) => o.value === id).textContent,
+    calibration.id,
+  );
+  check(/· 4 lights/.test(offered), `the calibration is offered in the form (${offered})`);
+  await page.evaluate((id) => {
+    const select = document.getElementById("calibration");
+    select.value = id;
+    select.dispatchEvent(new Event("change"));
+  }, calibration.id);
+  job = await submitSet();
+  check(job.status === "succeeded", `a job with the calibration picked succeeds (${job.status})`);
+  const calibrated = await (await fetch(`${arg.open}/v1/jobs/${job.id}`)).json();
+  const [a, b] = [calibrated, tabled].map((j) => j.result && j.result.light_condition_number);
+  check(a > 0 && b > 0 && Math.abs(a - b) > 1e-6, `that job ran on the calibration's lights (condition number ${a} against the table's ${b})`);
+  check(errorsSince(0).length === 0, `still no console errors${page.errors.length ? ": " + page.errors.join(" | ") : ""}`);
+  await page.evaluate(() => {
+    const select = document.getElementById("calibration");
+    select.value = "";
+    select.dispatchEvent(new Event("change"));
+  });
 
   // A refused submission: the problem's title and detail next to the light table.
   let seen = page.errors.length;
