@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use axum::Json;
 use axum::body::Body;
-use axum::extract::{FromRequest, FromRequestParts, Multipart, Path as UrlPath, Request, State};
+use axum::extract::{FromRequestParts, Multipart, Path as UrlPath, Request, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -31,8 +31,8 @@ use super::error::{ApiError, Problem};
 use super::idempotency::{self, PartHasher};
 use super::repo::{ArtifactInfo, CalibrationRecord, Remembered};
 use super::routes::{
-    ApiQuery, IMMUTABLE, ListQuery, artifact_response, not_modified, not_modified_response,
-    owned_calibration, parse_cursor, request_id,
+    ApiQuery, IMMUTABLE, ListQuery, Submission, artifact_response, not_modified,
+    not_modified_response, open_submission, owned_calibration, parse_cursor, request_id,
 };
 use super::tenants::Caller;
 use super::upload::{self, BodyTap};
@@ -290,53 +290,14 @@ async fn accept(
     tap: &BodyTap,
 ) -> Result<Response, ApiError> {
     let config = state.config();
-    let request_id = request_id(&parts.headers).to_string();
-    let idempotency_key = idempotency::key_from(&parts.headers)?;
-    if state.is_shutting_down() {
-        return Err(ApiError::unavailable(
-            super::config::RETRY_AFTER_SECS,
-            "the service is shutting down",
-        ));
-    }
-    let declared = parts
-        .headers
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok());
-    if declared.is_some_and(|n| n > config.max_body_bytes) {
-        return Err(ApiError::too_large(format!(
-            "the request body is larger than the limit of {} bytes",
-            config.max_body_bytes
-        )));
-    }
-    let mut multipart = Multipart::from_request(Request::from_parts(parts, tap.body()), &())
-        .await
-        .map_err(|e| {
-            ApiError::bad_request(format!(
-                "expected a multipart/form-data body: {}",
-                e.body_text()
-            ))
-        })?;
-    state.check_free_disk().await?;
-    let Some(_receiving) = state.try_upload_permit() else {
-        return Err(ApiError::unavailable(
-            super::config::RETRY_AFTER_SECS,
-            format!(
-                "{} uploads are being received already (the limit); retry later",
-                config.max_uploads
-            ),
-        ));
-    };
-    let since = now_ms() - idempotency::WINDOW.as_millis() as i64;
-    let earlier = match idempotency_key.clone() {
-        Some(key) => {
-            let tenant = caller.tenant.clone();
-            state
-                .repo(move |r| r.idempotent(&tenant, SCOPE, &key, since))
-                .await?
-        }
-        None => None,
-    };
+    let Submission {
+        request_id,
+        idempotency_key,
+        mut multipart,
+        earlier,
+        since,
+        _receiving,
+    } = open_submission(state, caller, parts, tap, SCOPE).await?;
     if earlier.is_none() {
         state.admit_submission(&caller.tenant)?;
     }

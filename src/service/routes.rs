@@ -371,12 +371,31 @@ pub async fn create_job(
     answer
 }
 
-async fn accept_job(
+/// What every multipart submission (a job, a calibration) starts with, checked before its
+/// body is read; `_receiving` holds one of the `max_uploads` upload slots until dropped.
+pub(super) struct Submission {
+    pub request_id: String,
+    pub idempotency_key: Option<String>,
+    pub multipart: Multipart,
+    /// The answer to an earlier request with the same `Idempotency-Key` (of `scope`), if
+    /// any: a retry is answered as the first request was, whatever the queue and quotas say
+    /// now.
+    pub earlier: Option<Remembered>,
+    /// The start of the idempotency window, for remembering this request's answer.
+    pub since: i64,
+    pub _receiving: tokio::sync::OwnedSemaphorePermit,
+}
+
+/// Refuse a submission the service cannot take now (shutting down, a declared body over
+/// the limit, not a multipart body, too little disk, every upload slot taken), and look up
+/// an earlier answer to its `Idempotency-Key` in `scope`.
+pub(super) async fn open_submission(
     state: &AppState,
     caller: &Caller,
     parts: Parts,
     tap: &upload::BodyTap,
-) -> Result<Response, ApiError> {
+    scope: &'static str,
+) -> Result<Submission, ApiError> {
     let config = state.config();
     let request_id = request_id(&parts.headers).to_string();
     let idempotency_key = idempotency::key_from(&parts.headers)?;
@@ -397,7 +416,7 @@ async fn accept_job(
             config.max_body_bytes
         )));
     }
-    let mut multipart = Multipart::from_request(Request::from_parts(parts, tap.body()), &())
+    let multipart = Multipart::from_request(Request::from_parts(parts, tap.body()), &())
         .await
         .map_err(|e| {
             ApiError::bad_request(format!(
@@ -406,7 +425,7 @@ async fn accept_job(
             ))
         })?;
     state.check_free_disk().await?;
-    let Some(_receiving) = state.try_upload_permit() else {
+    let Some(receiving) = state.try_upload_permit() else {
         return Err(ApiError::unavailable(
             super::config::RETRY_AFTER_SECS,
             format!(
@@ -415,17 +434,41 @@ async fn accept_job(
             ),
         ));
     };
-    // A retry is answered as the first request was, whatever the queue and quotas say now.
     let since = now_ms() - idempotency::WINDOW.as_millis() as i64;
     let earlier = match idempotency_key.clone() {
         Some(key) => {
             let tenant = caller.tenant.clone();
             state
-                .repo(move |r| r.idempotent(&tenant, JOBS_SCOPE, &key, since))
+                .repo(move |r| r.idempotent(&tenant, scope, &key, since))
                 .await?
         }
         None => None,
     };
+    Ok(Submission {
+        request_id,
+        idempotency_key,
+        multipart,
+        earlier,
+        since,
+        _receiving: receiving,
+    })
+}
+
+async fn accept_job(
+    state: &AppState,
+    caller: &Caller,
+    parts: Parts,
+    tap: &upload::BodyTap,
+) -> Result<Response, ApiError> {
+    let config = state.config();
+    let Submission {
+        request_id,
+        idempotency_key,
+        mut multipart,
+        earlier,
+        since,
+        _receiving,
+    } = open_submission(state, caller, parts, tap, JOBS_SCOPE).await?;
     if earlier.is_none() {
         if state.jobs().is_full() {
             state.count_queue_full();
