@@ -9,13 +9,13 @@
 //! the record is written; ownership follows the jobs' rule (`routes::owned_calibration`).
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use axum::Json;
 use axum::body::Body;
 use axum::extract::{FromRequestParts, Multipart, Path as UrlPath, Request, State};
 use axum::http::request::Parts;
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -31,8 +31,8 @@ use super::error::{ApiError, Problem};
 use super::idempotency::{self, PartHasher};
 use super::repo::{ArtifactInfo, CalibrationRecord, Remembered};
 use super::routes::{
-    ApiQuery, IMMUTABLE, ListQuery, Submission, artifact_response, not_modified,
-    not_modified_response, open_submission, owned_calibration, parse_cursor, request_id,
+    ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, artifact_response, not_modified,
+    not_modified_response, open_submission, owned_calibration, request_id,
 };
 use super::tenants::Caller;
 use super::upload::{self, BodyTap};
@@ -303,11 +303,11 @@ async fn accept(
     }
 
     let id = Uuid::new_v4();
-    let mut staging = Staging::open(state, id).await?;
+    let mut staging = state.stage_calibration(id).await?;
     let mut hash = PartHasher::new(idempotency_key.is_some());
     let form = tokio::time::timeout(
         config.upload_timeout,
-        receive(config, &staging.path, &mut multipart, tap, &mut hash),
+        receive(config, staging.path(), &mut multipart, tap, &mut hash),
     )
     .await
     .map_err(|_| {
@@ -322,11 +322,10 @@ async fn accept(
     }
 
     let computing = state.calibration_permit().await?;
-    let (dir, limits) = (staging.path.clone(), config.limits());
+    let (dir, limits) = (staging.path().to_path_buf(), config.limits());
     let made = tokio::task::spawn_blocking(move || compute(&dir, form, &limits)).await??;
     drop(computing);
-    let store = state.inner.store.clone();
-    tokio::task::spawn_blocking(move || store.commit_calibration(id)).await??;
+    staging.commit().await?;
 
     let record = CalibrationRecord {
         id,
@@ -339,7 +338,7 @@ async fn accept(
     };
     let stored = record.clone();
     state.repo(move |r| r.insert_calibration(&stored)).await?;
-    staging.keep = true;
+    staging.keep();
     let view = CalibrationView::from_record(record.clone())?;
     let answer = Remembered {
         body_hash,
@@ -371,49 +370,6 @@ async fn accept(
         "calibration created"
     );
     Ok(idempotency::answer(&answer))
-}
-
-/// A calibration's staging directory, removed with the calibration's directory when
-/// dropped unless kept.
-struct Staging {
-    state: AppState,
-    id: Uuid,
-    path: PathBuf,
-    keep: bool,
-}
-
-impl Staging {
-    async fn open(state: &AppState, id: Uuid) -> Result<Self, ApiError> {
-        let store = state.inner.store.clone();
-        let path = tokio::task::spawn_blocking(move || store.stage_calibration(id)).await??;
-        Ok(Self {
-            state: state.clone(),
-            id,
-            path,
-            keep: false,
-        })
-    }
-}
-
-impl Drop for Staging {
-    fn drop(&mut self) {
-        if self.keep {
-            return;
-        }
-        let store = self.state.inner.store.clone();
-        let id = self.id;
-        let remove = move || {
-            if let Err(e) = store.remove_calibration(id) {
-                tracing::warn!(calibration = %id, error = %e, "cannot remove a refused upload");
-            }
-        };
-        match tokio::runtime::Handle::try_current() {
-            Ok(rt) => {
-                rt.spawn_blocking(remove);
-            }
-            Err(_) => remove(),
-        }
-    }
 }
 
 async fn remove_files(state: &AppState, id: Uuid) {
@@ -840,25 +796,13 @@ pub async fn list_calibrations(
     caller: Caller,
     ApiQuery(q): ApiQuery<ListQuery>,
 ) -> Result<Response, ApiError> {
-    let limit = q.limit.unwrap_or(20);
-    if !(1..=100).contains(&limit) {
-        return Err(ApiError::bad_request(format!(
-            "limit must be between 1 and 100, got {limit}"
-        )));
-    }
-    let before = q.cursor.as_deref().map(parse_cursor).transpose()?;
-    let limit = limit as usize;
+    let page_query = PageQuery::parse(&q)?;
+    let (limit, before) = (page_query.limit, page_query.before);
     let scope = caller.scope();
     let mut page = state
         .repo(move |r| r.list_calibrations(scope.as_deref(), limit + 1, before))
         .await?;
-    let next_cursor = if page.len() > limit {
-        page.truncate(limit);
-        page.last()
-            .map(|r| format!("{}_{}", r.created_at, r.id.simple()))
-    } else {
-        None
-    };
+    let next_cursor = page_query.cut(&mut page, |r| (r.created_at, r.id));
     let calibrations = page
         .into_iter()
         .map(CalibrationView::from_record)
@@ -868,13 +812,7 @@ pub async fn list_calibrations(
         next_cursor: next_cursor.clone(),
     })
     .into_response();
-    if let Some(c) = next_cursor
-        && let Ok(v) = HeaderValue::from_str(&format!(
-            "</v1/calibrations?limit={limit}&cursor={c}>; rel=\"next\""
-        ))
-    {
-        response.headers_mut().insert(header::LINK, v);
-    }
+    page_query.link_next(&mut response, "/v1/calibrations", next_cursor.as_deref());
     Ok(response)
 }
 

@@ -419,10 +419,24 @@ impl AppState {
 
     /// A staging directory for an upload, removed again unless kept.
     pub(crate) async fn stage_upload(&self, id: Uuid) -> Result<Staging, ApiError> {
+        self.stage(Staged::Job, id).await
+    }
+
+    /// A fresh staging directory for a calibration's upload.
+    pub(crate) async fn stage_calibration(&self, id: Uuid) -> Result<Staging, ApiError> {
+        self.stage(Staged::Calibration, id).await
+    }
+
+    async fn stage(&self, kind: Staged, id: Uuid) -> Result<Staging, ApiError> {
         let store = self.inner.store.clone();
-        let path = tokio::task::spawn_blocking(move || store.stage_inputs(id)).await??;
+        let path = tokio::task::spawn_blocking(move || match kind {
+            Staged::Job => store.stage_inputs(id),
+            Staged::Calibration => store.stage_calibration(id),
+        })
+        .await??;
         Ok(Staging {
             state: self.clone(),
+            kind,
             id,
             path,
             keep: false,
@@ -492,10 +506,18 @@ impl AppState {
     }
 }
 
-/// An upload's staging directory; removed (with the job's directory) when dropped unless
-/// [`keep`](Staging::keep) was called.
+/// What a [`Staging`] directory receives.
+#[derive(Debug, Clone, Copy)]
+enum Staged {
+    Job,
+    Calibration,
+}
+
+/// An upload's staging directory; removed (with the job's or calibration's directory)
+/// when dropped unless [`keep`](Staging::keep) was called.
 pub(crate) struct Staging {
     state: AppState,
+    kind: Staged,
     id: Uuid,
     path: PathBuf,
     keep: bool,
@@ -506,11 +528,15 @@ impl Staging {
         &self.path
     }
 
-    /// Make the upload the job's inputs.
+    /// Make the upload the job's inputs (or the calibration's files), durably.
     pub(crate) async fn commit(&mut self) -> Result<(), ApiError> {
         let store = self.state.inner.store.clone();
-        let id = self.id;
-        tokio::task::spawn_blocking(move || store.commit_inputs(id)).await??;
+        let (kind, id) = (self.kind, self.id);
+        tokio::task::spawn_blocking(move || match kind {
+            Staged::Job => store.commit_inputs(id),
+            Staged::Calibration => store.commit_calibration(id),
+        })
+        .await??;
         Ok(())
     }
 
@@ -525,10 +551,14 @@ impl Drop for Staging {
             return;
         }
         let store = self.state.inner.store.clone();
-        let id = self.id;
+        let (kind, id) = (self.kind, self.id);
         let remove = move || {
-            if let Err(e) = store.remove_job(id) {
-                tracing::warn!(job = %id, error = %e, "cannot remove a refused upload");
+            let removed = match kind {
+                Staged::Job => store.remove_job(id),
+                Staged::Calibration => store.remove_calibration(id),
+            };
+            if let Err(e) = removed {
+                tracing::warn!(?kind, %id, error = %e, "cannot remove a refused upload");
             }
         };
         match tokio::runtime::Handle::try_current() {

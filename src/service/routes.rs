@@ -647,41 +647,74 @@ pub async fn list_jobs(
     caller: Caller,
     ApiQuery(q): ApiQuery<ListQuery>,
 ) -> Result<Response, ApiError> {
-    let limit = q.limit.unwrap_or(20);
-    if !(1..=100).contains(&limit) {
-        return Err(ApiError::bad_request(format!(
-            "limit must be between 1 and 100, got {limit}"
-        )));
-    }
-    let before = q.cursor.as_deref().map(parse_cursor).transpose()?;
-    let limit = limit as usize;
+    let page_query = PageQuery::parse(&q)?;
+    let (limit, before) = (page_query.limit, page_query.before);
     let scope = caller.scope();
     let mut page = state
         .repo(move |r| r.list(scope.as_deref(), limit + 1, before))
         .await?;
-    let next_cursor = if page.len() > limit {
-        page.truncate(limit);
-        page.last()
-            .map(|r| format!("{}_{}", r.created_at, r.id.simple()))
-    } else {
-        None
-    };
+    let next_cursor = page_query.cut(&mut page, |r| (r.created_at, r.id));
     let mut response = Json(JobList {
         jobs: page.into_iter().map(JobView::from_record).collect(),
         next_cursor: next_cursor.clone(),
     })
     .into_response();
-    if let Some(c) = next_cursor
-        && let Ok(v) = HeaderValue::from_str(&format!(
-            "</v1/jobs?limit={limit}&cursor={c}>; rel=\"next\""
-        ))
-    {
-        response.headers_mut().insert(header::LINK, v);
-    }
+    page_query.link_next(&mut response, "/v1/jobs", next_cursor.as_deref());
     Ok(response)
 }
 
-pub(super) fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
+/// One page of a list: `limit` rows (1 to 100, 20 unless asked) after the `cursor` row.
+pub(super) struct PageQuery {
+    pub limit: usize,
+    /// (created_at, id) of the last row of the previous page.
+    pub before: Option<(i64, Uuid)>,
+}
+
+impl PageQuery {
+    pub(super) fn parse(q: &ListQuery) -> Result<Self, ApiError> {
+        let limit = q.limit.unwrap_or(20);
+        if !(1..=100).contains(&limit) {
+            return Err(ApiError::bad_request(format!(
+                "limit must be between 1 and 100, got {limit}"
+            )));
+        }
+        Ok(Self {
+            limit: limit as usize,
+            before: q.cursor.as_deref().map(parse_cursor).transpose()?,
+        })
+    }
+
+    /// Cut `rows`, fetched as `limit + 1`, to the page; the next page's cursor (from the
+    /// last row's `key`) when there is more.
+    pub(super) fn cut<T>(
+        &self,
+        rows: &mut Vec<T>,
+        key: impl Fn(&T) -> (i64, Uuid),
+    ) -> Option<String> {
+        if rows.len() <= self.limit {
+            return None;
+        }
+        rows.truncate(self.limit);
+        rows.last().map(|r| {
+            let (at, id) = key(r);
+            format!("{at}_{}", id.simple())
+        })
+    }
+
+    /// `Link: <path?limit=…&cursor=…>; rel="next"` when there is a next page.
+    pub(super) fn link_next(&self, response: &mut Response, path: &str, next: Option<&str>) {
+        if let Some(c) = next
+            && let Ok(v) = HeaderValue::from_str(&format!(
+                "<{path}?limit={}&cursor={c}>; rel=\"next\"",
+                self.limit
+            ))
+        {
+            response.headers_mut().insert(header::LINK, v);
+        }
+    }
+}
+
+fn parse_cursor(c: &str) -> Result<(i64, Uuid), ApiError> {
     let bad = || {
         ApiError::bad_request(format!(
             "invalid cursor {c:?}: pass a next_cursor as it was given"
