@@ -3,7 +3,7 @@
 
 mod bench;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -71,6 +71,11 @@ struct ReconstructArgs {
     /// Where to write the outputs.
     #[arg(long, short)]
     out: PathBuf,
+    /// Folder for the decoded images while the solve reads them by band (unlinked files,
+    /// 2 bytes per pixel per 16-bit gray image, gone when the run ends). Default: the
+    /// output folder, or its nearest existing parent. Not a tmpfs: that holds them in memory.
+    #[arg(long)]
+    scratch_dir: Option<PathBuf>,
     /// Options as a JSON file (the HTTP API's `options` part); flags below override it.
     #[arg(long)]
     options: Option<PathBuf>,
@@ -274,6 +279,14 @@ impl ReconstructArgs {
 
     /// Which mask the folder's set gets: --mask-file, else the folder's mask.png unless
     /// the user chose a mode that takes none of its own accord (auto or none).
+    fn scratch_dir(&self) -> PathBuf {
+        if let Some(dir) = &self.scratch_dir {
+            return dir.clone();
+        }
+        let beside = self.out.ancestors().find(|a| a.is_dir());
+        beside.map_or_else(|| PathBuf::from("."), Path::to_path_buf)
+    }
+
     fn dir_mask(&self, chosen: Option<MaskMode>) -> DirMask<'_> {
         match (&self.mask_file, chosen) {
             (Some(file), _) => DirMask::File(file),
@@ -286,7 +299,13 @@ impl ReconstructArgs {
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let (mut opts, chosen) = args.options()?;
     let start = std::time::Instant::now();
-    let set = stream::open_dir(&args.dir, args.dir_mask(chosen), &Limits::default())?;
+    let scratch = args.scratch_dir();
+    let set = stream::open_dir(
+        &args.dir,
+        args.dir_mask(chosen),
+        &Limits::default(),
+        &scratch,
+    )?;
     // A folder's own mask.png stands for `--mask given` unless a mode was chosen.
     if chosen.is_none() && set.info().mask.is_some() && args.mask_file.is_none() {
         opts.mask = MaskMode::Given;

@@ -38,7 +38,7 @@ fn many_images_reconstruct_without_holding_the_stack() {
     photostereo::service::release_free_heap();
     std::fs::write("/proc/self/clear_refs", "5").expect("resetting the peak");
     let base = peak();
-    let opened = stream::open_dir(&set, DirMask::Folder, &Limits::default()).unwrap();
+    let opened = stream::open_dir(&set, DirMask::Folder, &Limits::default(), dir.path()).unwrap();
     let out = dir.path().join("out");
     let report = pipeline::run(opened, &Options::default(), &out, &mut RunToEnd).unwrap();
     let grown = peak().saturating_sub(base);

@@ -180,7 +180,9 @@ fn timed_job(set: &SizeResult, opts: &Options, out: &Path) -> anyhow::Result<Job
     let base = status_bytes("VmRSS");
     let reset = reset_peak();
     let start = Instant::now();
-    let decoded = stream::open_dir(&set.dir, intake::DirMask::Folder, &limits)
+    // The decoded images go beside the output, as the CLI's do.
+    let scratch = out.parent().unwrap_or(out);
+    let decoded = stream::open_dir(&set.dir, intake::DirMask::Folder, &limits, scratch)
         .with_context(|| format!("decoding the {}² set", set.size))?;
     let decode_ms = ms(start.elapsed());
     let report = pipeline::run(decoded, opts, out, &mut photostereo::core::RunToEnd)

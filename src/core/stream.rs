@@ -1,27 +1,35 @@
 //! Image files read in bands of rows, in lockstep over the set, so that a job holds a band
 //! per image rather than the whole 16-bit stack ([`Streamed`], a [`Stack`]).
 //!
-//! Two passes over the files. The first reads every image once (in parallel over the
-//! images) and keeps only what must be known of the whole set before any band is solved:
+//! Each image is decoded once, in a first pass over the set (in parallel over the images),
+//! into a scratch file of its own (its spill: the decoded samples, row after row). The pass
+//! keeps in memory only what must be known of the whole set before any band is solved:
 //! each image's size, depth and whether it carries colour, and the rows the robust
-//! pre-pass samples (see [`bands::sampled_rows`]). The second reads the bands in order;
-//! each band's images are decoded in parallel. Non-interlaced 8/16-bit PNGs without a
-//! palette are decoded row by row through the `png` crate in both passes; every other
-//! file is decoded whole once (by [`intake::decode`]) and kept decoded until the solve
-//! has read it, so it costs one decoded image. A row-read PNG's first pass can also be
-//! done ahead ([`prescan`], e.g. while the rest of an upload arrives): it keeps only the
-//! sampled rows, and [`open_with`] then starts with the bands.
+//! pre-pass samples (see [`bands::sampled_rows`]). The solve then reads the bands back from
+//! the spills (positioned reads, each band's images in parallel), with no second decode.
+//! Non-interlaced 8/16-bit PNGs without a palette are decoded row by row through the `png`
+//! crate straight into their spill; every other file is decoded whole (by
+//! [`intake::decode`]), spilled and dropped, so the first pass holds at most one decoded
+//! image per thread. The first pass over one file can be done ahead ([`prescan`], e.g.
+//! while the rest of an upload arrives) and handed to [`open_with`].
+//!
+//! Spills are made in the caller's scratch directory and unlinked from the start
+//! (`tempfile::tempfile_in`): their space is freed when the set (or the prescan) is
+//! dropped, whether the run succeeds, fails or is stopped, and a crash leaves nothing
+//! behind. They take the decoded samples' size (2 bytes per pixel for 16-bit gray), so the
+//! directory should be on a disk, not a tmpfs, which would hold them in memory.
 //!
 //! A band is converted exactly as [`intake::load`] converts a whole image (the same
 //! per-pixel functions over the band as a small image), so the planes, and with them
 //! every result, are the same as the set loaded whole.
 
 use std::fs::File;
-use std::io::{BufReader, Read, Seek};
+use std::io::{BufReader, BufWriter, Read, Seek, Write};
 use std::ops::Range;
+use std::os::unix::fs::FileExt;
 use std::path::Path;
 
-use image::{DynamicImage, ImageBuffer, ImageFormat};
+use image::{ColorType, DynamicImage, ImageBuffer, ImageFormat};
 use rayon::prelude::*;
 
 use super::InputError;
@@ -33,35 +41,51 @@ use super::lights::Light;
 /// bound on the images' memory, whatever their number.
 const BAND_BYTES: usize = 32 << 20;
 
-/// [`intake::load_dir`], streamed: the folder's set as a [`Stack`].
-pub fn open_dir(dir: &Path, mask: DirMask<'_>, limits: &Limits) -> Result<Streamed, InputError> {
+/// [`intake::load_dir`], streamed: the folder's set as a [`Stack`], spilled to `scratch`.
+pub fn open_dir(
+    dir: &Path,
+    mask: DirMask<'_>,
+    limits: &Limits,
+    scratch: &Path,
+) -> Result<Streamed, InputError> {
     let found = intake::dir_files(dir, mask)?;
-    let set = open(found.lights, &found.files, found.mask.as_ref(), limits)?;
+    let set = open(
+        found.lights,
+        &found.files,
+        found.mask.as_ref(),
+        limits,
+        scratch,
+    )?;
     Ok(set.noted(found.notes))
 }
 
 /// [`intake::load`], streamed: the first pass over the files (errors as `load` reports
-/// them, the first in table order), leaving the bands to be read by the solve.
+/// them, the first in table order), spilling each image to `scratch`, leaving the bands to
+/// be read by the solve.
 pub fn open(
     lights: Vec<Light>,
     files: &[NamedFile],
     mask: Option<&NamedFile>,
     limits: &Limits,
+    scratch: &Path,
 ) -> Result<Streamed, InputError> {
-    open_with(lights, files, mask, limits, |_| None)
+    open_with(lights, files, mask, limits, scratch, |_| None)
 }
 
-/// One image's first pass done ahead by [`prescan`]: its sampled rows, not its planes.
+/// One image's first pass done ahead by [`prescan`]: its spill and sampled rows.
 pub struct Prescanned(Scanned);
 
-/// The first pass over a PNG read row by row, from an open handle to it (read from its
-/// start), with the limits [`open_with`] will be given. `None` when it is left to
-/// `open_with`: files decoded whole (their decoded image would be held until the job),
-/// and every error, which `open_with` reports as it would without a prescan.
-pub fn prescan(mut file: File, limits: &Limits) -> Option<Prescanned> {
-    file.rewind().ok()?;
-    let (reader, kind) = png_reader(file).ok()?;
-    scan_rows(reader, kind?, limits).ok().map(Prescanned)
+/// The first pass over an image file, from an open handle to it (read from its start),
+/// with the limits [`open_with`] will be given, spilling to `scratch`. `None` on every
+/// error, which `open_with` then reports as it would without a prescan.
+pub fn prescan(file: File, limits: &Limits, scratch: &Path) -> Option<Prescanned> {
+    let unnamed = NamedFile {
+        name: String::new(),
+        path: Default::default(),
+    };
+    scan_file(file, &unnamed, limits, scratch)
+        .ok()
+        .map(Prescanned)
 }
 
 /// [`open`], taking image `i` of `files` from `prescanned(i)` when that has it (the
@@ -72,20 +96,14 @@ pub fn open_with(
     files: &[NamedFile],
     mask: Option<&NamedFile>,
     limits: &Limits,
+    scratch: &Path,
     prescanned: impl Fn(usize) -> Option<Result<Prescanned, InputError>> + Sync,
 ) -> Result<Streamed, InputError> {
     let ordered = intake::check_files(&lights, files, limits)?;
     let scanned: Vec<Scanned> = (ordered.par_iter())
         .map(|&i| match prescanned(i) {
-            Some(ready) => ready.map(|Prescanned(mut s)| {
-                // Its second pass reads the file where the set has it.
-                s.source = Source::Png {
-                    file: files[i].clone(),
-                    reader: None,
-                };
-                s
-            }),
-            None => scan(&files[i], limits),
+            Some(ready) => ready.map(|Prescanned(s)| s),
+            None => scan(&files[i], limits, scratch),
         })
         .collect::<Vec<_>>()
         .into_iter()
@@ -106,7 +124,8 @@ pub fn open_with(
         }
         let scaled = light.direction.map(|c| (c * light.intensity) as f32);
         images.push(Image {
-            source: s.source,
+            name: light.name.clone(),
+            spill: s.spill,
             colour: s.colour,
             gains,
             scaled,
@@ -150,7 +169,7 @@ pub fn open_with(
     })
 }
 
-/// A set whose files are read band by band (see the module docs).
+/// A set whose images are read back from their spills band by band (see the module docs).
 pub struct Streamed {
     info: SetInfo,
     samples: Samples,
@@ -196,9 +215,12 @@ impl Stack for Streamed {
         self.next_row = rows.end;
         let (width, count) = (self.info.width, rows.len());
         let colour = self.info.colour;
-        let read: Vec<(Vec<u16>, Option<image::Rgb32FImage>)> = (self.images.par_iter_mut())
+        let read: Vec<(Vec<u16>, Option<image::Rgb32FImage>)> = (self.images.par_iter())
             .map(|i| {
-                let raw = i.source.rows(rows.clone(), width)?;
+                let raw = (i.spill.rows(rows.clone(), width)).map_err(|e| InputError::Decode {
+                    name: i.name.clone(),
+                    reason: format!("reading its decoded rows back from the scratch file: {e}"),
+                })?;
                 Ok(i.convert(raw, colour))
             })
             .collect::<Vec<_>>()
@@ -224,7 +246,9 @@ impl Stack for Streamed {
 
 /// One image of a [`Streamed`] set.
 struct Image {
-    source: Source,
+    /// The light table's name for it.
+    name: String,
+    spill: Spill,
     /// The image's own colour (its plane is balanced under an RGB light only then).
     colour: bool,
     gains: Option<[f64; 3]>,
@@ -263,40 +287,89 @@ fn add_moments(moments: &mut [f32], rgb: &image::Rgb32FImage, s: [f32; 3]) {
         });
 }
 
-/// Where an image's rows come from.
-enum Source {
-    /// Read row by row; the reader is opened again for the second pass.
-    Png {
-        file: NamedFile,
-        reader: Option<Box<PngRows>>,
-    },
-    /// Decoded whole in the first pass.
-    Whole(DynamicImage),
+/// An image's decoded samples in an unlinked scratch file: its rows one after another, in
+/// the layout of the `DynamicImage` it decodes to (native byte order).
+struct Spill {
+    file: File,
+    color: ColorType,
+    row_bytes: usize,
 }
 
-type PngRows = png::Reader<BufReader<File>>;
+impl Spill {
+    /// A new, empty spill in `dir`, written through a buffer.
+    fn create(dir: &Path) -> std::io::Result<BufWriter<File>> {
+        Ok(BufWriter::with_capacity(
+            1 << 20,
+            tempfile::tempfile_in(dir)?,
+        ))
+    }
 
-impl Source {
-    /// Rows `rows` (the next ones) as a `width`-wide image.
-    fn rows(&mut self, rows: Range<usize>, width: usize) -> Result<DynamicImage, InputError> {
-        match self {
-            Source::Whole(img) => {
-                Ok(img.crop_imm(0, rows.start as u32, width as u32, rows.len() as u32))
+    /// Rows `rows` as a `width`-wide image, read back.
+    fn rows(&self, rows: Range<usize>, width: usize) -> std::io::Result<DynamicImage> {
+        let at = (rows.start * self.row_bytes) as u64;
+        let len = rows.len() * self.row_bytes;
+        let (w, h) = (width as u32, rows.len() as u32);
+        let bytes = |len: usize| -> std::io::Result<Vec<u8>> {
+            let mut v = vec![0u8; len];
+            self.file.read_exact_at(&mut v, at)?;
+            Ok(v)
+        };
+        let wide = || -> std::io::Result<Vec<u16>> {
+            let mut v = vec![0u16; len / 2];
+            self.file
+                .read_exact_at(bytemuck::cast_slice_mut(&mut v), at)?;
+            Ok(v)
+        };
+        let float = || -> std::io::Result<Vec<f32>> {
+            let mut v = vec![0f32; len / 4];
+            self.file
+                .read_exact_at(bytemuck::cast_slice_mut(&mut v), at)?;
+            Ok(v)
+        };
+        let fits = "rows of the spilled size";
+        Ok(match self.color {
+            ColorType::L8 => {
+                DynamicImage::ImageLuma8(ImageBuffer::from_raw(w, h, bytes(len)?).expect(fits))
             }
-            Source::Png { file, reader } => {
-                if reader.is_none() {
-                    *reader = Some(Box::new(open_png(file)?.0));
-                }
-                let r = reader.as_mut().expect("opened above");
-                read_png_rows(r, rows.len()).map_err(|e| png_error(file, e))
+            ColorType::La8 => {
+                DynamicImage::ImageLumaA8(ImageBuffer::from_raw(w, h, bytes(len)?).expect(fits))
             }
-        }
+            ColorType::Rgb8 => {
+                DynamicImage::ImageRgb8(ImageBuffer::from_raw(w, h, bytes(len)?).expect(fits))
+            }
+            ColorType::Rgba8 => {
+                DynamicImage::ImageRgba8(ImageBuffer::from_raw(w, h, bytes(len)?).expect(fits))
+            }
+            ColorType::L16 => {
+                DynamicImage::ImageLuma16(ImageBuffer::from_raw(w, h, wide()?).expect(fits))
+            }
+            ColorType::La16 => {
+                DynamicImage::ImageLumaA16(ImageBuffer::from_raw(w, h, wide()?).expect(fits))
+            }
+            ColorType::Rgb16 => {
+                DynamicImage::ImageRgb16(ImageBuffer::from_raw(w, h, wide()?).expect(fits))
+            }
+            ColorType::Rgba16 => {
+                DynamicImage::ImageRgba16(ImageBuffer::from_raw(w, h, wide()?).expect(fits))
+            }
+            ColorType::Rgb32F => {
+                DynamicImage::ImageRgb32F(ImageBuffer::from_raw(w, h, float()?).expect(fits))
+            }
+            ColorType::Rgba32F => {
+                DynamicImage::ImageRgba32F(ImageBuffer::from_raw(w, h, float()?).expect(fits))
+            }
+            other => {
+                return Err(std::io::Error::other(format!(
+                    "no spill layout for {other:?}"
+                )));
+            }
+        })
     }
 }
 
 /// What the first pass learned of one image.
 struct Scanned {
-    source: Source,
+    spill: Spill,
     width: usize,
     height: usize,
     depth: u8,
@@ -305,31 +378,69 @@ struct Scanned {
     sampled: Vec<DynamicImage>,
 }
 
-/// The first pass over one image: PNGs that can be read row by row are, others whole.
-fn scan(file: &NamedFile, limits: &Limits) -> Result<Scanned, InputError> {
+/// The first pass over one image file.
+fn scan(file: &NamedFile, limits: &Limits, scratch: &Path) -> Result<Scanned, InputError> {
+    let f = File::open(&file.path).map_err(|e| InputError::io(&file.path, e))?;
+    scan_file(f, file, limits, scratch)
+}
+
+/// The first pass over an open image file (read from its start): PNGs that can be read row
+/// by row are, others whole; either way into a spill in `scratch`.
+fn scan_file(
+    mut f: File,
+    file: &NamedFile,
+    limits: &Limits,
+    scratch: &Path,
+) -> Result<Scanned, InputError> {
+    let io = |e: std::io::Error| InputError::io(&file.path, e);
+    let spill_error = |e: std::io::Error| {
+        InputError::io(
+            scratch,
+            format!("writing the decoded {:?} to a scratch file: {e}", file.name),
+        )
+    };
+    f.rewind().map_err(io)?;
     let mut head = [0u8; 64];
-    let got = File::open(&file.path)
-        .and_then(|mut f| read_up_to(&mut f, &mut head))
-        .map_err(|e| InputError::io(&file.path, e))?;
+    let got = read_up_to(&mut f, &mut head).map_err(io)?;
+    f.rewind().map_err(io)?;
     if image::guess_format(&head[..got]).ok() == Some(ImageFormat::Png)
-        && let Some(scanned) = scan_png(file, limits)?
+        // Otherwise the whole decode names the problem, or reads what rows cannot.
+        && let Ok((reader, Some(kind))) = png_reader(f.try_clone().map_err(io)?)
     {
-        return Ok(scanned);
+        return match scan_rows(reader, kind, limits, scratch) {
+            Ok(scanned) => Ok(scanned),
+            Err(RowScan::TooLarge { width, height }) => Err(InputError::TooLarge {
+                name: file.name.clone(),
+                width: width as u64,
+                height: height as u64,
+                pixels: width as u64 * height as u64,
+                limit: limits.max_pixels_per_image,
+            }),
+            Err(RowScan::Spill(e)) => Err(spill_error(e)),
+            Err(RowScan::Broken(reason)) => whole_decode_error(f, file, limits, &reason),
+        };
     }
-    let bytes = std::fs::read(&file.path).map_err(|e| InputError::io(&file.path, e))?;
+    let bytes = read_whole(&mut f).map_err(io)?;
     let img = intake::decode(&file.name, &bytes, limits)?;
     drop(bytes);
     let (width, height) = (img.width() as usize, img.height() as usize);
     let sampled = (bands::sampled_rows(width, height))
         .map(|r| img.crop_imm(0, r as u32, width as u32, 1))
         .collect();
+    let mut out = Spill::create(scratch).map_err(spill_error)?;
+    out.write_all(img.as_bytes()).map_err(spill_error)?;
+    let spill = Spill {
+        file: out.into_inner().map_err(|e| spill_error(e.into_error()))?,
+        color: img.color(),
+        row_bytes: width * usize::from(img.color().bytes_per_pixel()),
+    };
     Ok(Scanned {
         width,
         height,
         depth: intake::bit_depth(&img),
         colour: intake::has_colour(&img),
         sampled,
-        source: Source::Whole(img),
+        spill,
     })
 }
 
@@ -344,49 +455,39 @@ fn read_up_to(f: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
     Ok(got)
 }
 
-/// The first pass over a PNG read row by row, or `None` when it must be decoded whole
-/// (palette, interlacing, transparency chunk, under 8 bits: the conversions the `image`
-/// crate applies are left to it).
-fn scan_png(file: &NamedFile, limits: &Limits) -> Result<Option<Scanned>, InputError> {
-    let Ok((reader, kind)) = open_png(file) else {
-        return Ok(None); // the whole decode names the problem
-    };
-    let Some(kind) = kind else {
-        return Ok(None);
-    };
-    match scan_rows(reader, kind, limits) {
-        Ok(mut scanned) => {
-            scanned.source = Source::Png {
-                file: file.clone(),
-                reader: None,
-            };
-            Ok(Some(scanned))
-        }
-        Err(RowScan::TooLarge { width, height }) => Err(InputError::TooLarge {
-            name: file.name.clone(),
-            width: width as u64,
-            height: height as u64,
-            pixels: width as u64 * height as u64,
-            limit: limits.max_pixels_per_image,
-        }),
-        Err(RowScan::Broken(reason)) => whole_decode_error(file, limits, &reason),
-    }
+/// The whole file, from its start.
+fn read_whole(f: &mut File) -> std::io::Result<Vec<u8>> {
+    f.rewind()?;
+    let mut bytes = Vec::new();
+    f.read_to_end(&mut bytes)?;
+    Ok(bytes)
 }
 
 /// Why a row scan stopped (the file's own error is named by the caller, who knows it).
 enum RowScan {
-    TooLarge { width: usize, height: usize },
+    TooLarge {
+        width: usize,
+        height: usize,
+    },
     Broken(String),
+    /// Writing the spill failed (a full disk, most likely).
+    Spill(std::io::Error),
 }
 
-/// Every row of a PNG once: its size, depth, colour and sampled rows. The source it
-/// returns is a placeholder for the caller to name the file in.
-fn scan_rows(mut reader: PngRows, kind: PngKind, limits: &Limits) -> Result<Scanned, RowScan> {
+/// Every row of a PNG once, into a spill in `scratch`: its size, depth, colour and
+/// sampled rows.
+fn scan_rows(
+    mut reader: PngRows,
+    kind: PngKind,
+    limits: &Limits,
+    scratch: &Path,
+) -> Result<Scanned, RowScan> {
     let info = reader.info();
     let (width, height) = (info.width as usize, info.height as usize);
     if width as u64 * height as u64 > limits.max_pixels_per_image {
         return Err(RowScan::TooLarge { width, height });
     }
+    let mut out = Spill::create(scratch).map_err(RowScan::Spill)?;
     let mut sampled_at = bands::sampled_rows(width, height).peekable();
     let mut sampled = Vec::new();
     let mut colour = false;
@@ -407,40 +508,38 @@ fn scan_rows(mut reader: PngRows, kind: PngKind, limits: &Limits) -> Result<Scan
             sampled.extend_from_slice(&row);
             count += 1;
         }
+        kind.to_native(&mut row);
+        out.write_all(&row).map_err(RowScan::Spill)?;
     }
+    let spill = Spill {
+        file: (out.into_inner()).map_err(|e| RowScan::Spill(e.into_error()))?,
+        color: kind.color_type(),
+        row_bytes,
+    };
     Ok(Scanned {
         width,
         height,
         depth: kind.depth,
         colour,
         sampled: vec![kind.image(width, count, sampled)],
-        source: Source::Png {
-            file: NamedFile {
-                name: String::new(),
-                path: Default::default(),
-            },
-            reader: None,
-        },
+        spill,
     })
 }
 
 /// An error the row reader met: the whole decode's message for the same file (the one
 /// [`intake::load`] gives), or the reader's own when the whole decode succeeds.
-fn whole_decode_error<T>(file: &NamedFile, limits: &Limits, reason: &str) -> Result<T, InputError> {
-    let bytes = std::fs::read(&file.path).map_err(|e| InputError::io(&file.path, e))?;
+fn whole_decode_error<T>(
+    mut f: File,
+    file: &NamedFile,
+    limits: &Limits,
+    reason: &str,
+) -> Result<T, InputError> {
+    let bytes = read_whole(&mut f).map_err(|e| InputError::io(&file.path, e))?;
     intake::decode(&file.name, &bytes, limits)?;
     Err(InputError::Decode {
         name: file.name.clone(),
         reason: reason.to_string(),
     })
-}
-
-/// A second-pass read error (the file changed between the passes, or the disk failed).
-fn png_error(file: &NamedFile, e: png::DecodingError) -> InputError {
-    InputError::Decode {
-        name: file.name.clone(),
-        reason: e.to_string(),
-    }
 }
 
 /// Sample layout of PNG rows as the reader gives them (16-bit big-endian).
@@ -462,6 +561,30 @@ impl PngKind {
         let s = usize::from(self.depth / 8);
         row.chunks_exact(px)
             .any(|p| p[0..s] != p[s..2 * s] || p[s..2 * s] != p[2 * s..3 * s])
+    }
+
+    /// The layout of the image `image` decodes the file to.
+    fn color_type(self) -> ColorType {
+        match (self.channels, self.depth) {
+            (1, 8) => ColorType::L8,
+            (2, 8) => ColorType::La8,
+            (3, 8) => ColorType::Rgb8,
+            (4, 8) => ColorType::Rgba8,
+            (1, _) => ColorType::L16,
+            (2, _) => ColorType::La16,
+            (3, _) => ColorType::Rgb16,
+            _ => ColorType::Rgba16,
+        }
+    }
+
+    /// A row's 16-bit samples from big-endian to native order (as the spill keeps them).
+    fn to_native(self, row: &mut [u8]) {
+        if self.depth == 16 {
+            for s in row.chunks_exact_mut(2) {
+                let v = u16::from_be_bytes([s[0], s[1]]);
+                s.copy_from_slice(&v.to_ne_bytes());
+            }
+        }
     }
 
     /// `rows` rows of raw bytes as an image of the kind `image` decodes the file to.
@@ -486,13 +609,10 @@ impl PngKind {
     }
 }
 
-/// A row reader for the file, and its layout when rows can be taken as they come.
-fn open_png(file: &NamedFile) -> Result<(PngRows, Option<PngKind>), InputError> {
-    let f = File::open(&file.path).map_err(|e| InputError::io(&file.path, e))?;
-    png_reader(f).map_err(|e| png_error(file, e))
-}
+type PngRows = png::Reader<BufReader<File>>;
 
-/// [`open_png`] over an open file, read from where it stands.
+/// A row reader over an open PNG, read from where it stands, and its layout when rows
+/// can be taken as they come.
 fn png_reader(f: File) -> Result<(PngRows, Option<PngKind>), png::DecodingError> {
     let mut decoder = png::Decoder::new(BufReader::with_capacity(16 << 10, f));
     decoder.set_transformations(png::Transformations::EXPAND);
@@ -510,38 +630,14 @@ fn png_reader(f: File) -> Result<(PngRows, Option<PngKind>), png::DecodingError>
     Ok((reader, kind.filter(|_| plain)))
 }
 
-/// The next `rows` rows of a PNG.
-fn read_png_rows(r: &mut PngRows, rows: usize) -> Result<DynamicImage, png::DecodingError> {
-    let info = r.info();
-    let width = info.width as usize;
-    let kind = PngKind {
-        channels: info.color_type.samples(),
-        depth: if info.bit_depth == png::BitDepth::Sixteen {
-            16
-        } else {
-            8
-        },
-    };
-    let row_bytes = kind.row_bytes(width);
-    let mut raw = vec![0u8; row_bytes * rows];
-    for row in raw.chunks_exact_mut(row_bytes) {
-        if r.read_row(row)?.is_none() {
-            return Err(png::DecodingError::IoError(std::io::Error::new(
-                std::io::ErrorKind::UnexpectedEof,
-                "the image data ends early",
-            )));
-        }
-    }
-    Ok(kind.image(width, rows, raw))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::core::lights::{Intensity, make_light};
 
-    /// Images of every kind the reader handles: 16-bit gray PNG, 8-bit RGB PNG (colour),
-    /// 16-bit RGBA PNG, interlaced or palette PNG (decoded whole) and BMP (whole).
+    /// Images of every kind the reader handles: 8- and 16-bit gray PNG, 8- and 16-bit RGB
+    /// PNG (colour), 16-bit RGBA PNG (read by rows); palette PNG, TIFF and BMP (decoded
+    /// whole).
     fn write_set(
         dir: &Path,
         kind: &str,
@@ -553,9 +649,24 @@ mod tests {
         let mut files = Vec::new();
         for i in 0..count {
             let v = |x: u32, y: u32, c: u32| ((x * 7 + y * 13 + c * 5 + i as u32 * 11) % 256) as u8;
-            let name = format!("{i}.{}", if kind == "bmp" { "bmp" } else { "png" });
+            let ext = match kind {
+                "bmp" => "bmp",
+                "tiff" => "tiff",
+                _ => "png",
+            };
+            let name = format!("{i}.{ext}");
             let path = dir.join(&name);
             match kind {
+                "gray8" => image::GrayImage::from_fn(w, h, |x, y| image::Luma([v(x, y, 0)]))
+                    .save(&path)
+                    .unwrap(),
+                "rgb16" | "tiff" => image::ImageBuffer::from_fn(w, h, |x, y| {
+                    let c = |k| v(x, y, k) as u16 * 250 + y as u16;
+                    image::Rgb([c(0), c(1), c(2)])
+                })
+                .save(&path)
+                .unwrap(),
+                "palette" => write_palette_png(&path, w, h, |x, y| v(x, y, 0) % 16),
                 "gray16" => image::ImageBuffer::from_fn(w, h, |x, y| {
                     image::Luma([v(x, y, 0) as u16 * 250 + x as u16])
                 })
@@ -574,12 +685,54 @@ mod tests {
                 .unwrap(),
                 _ => unreachable!(),
             }
-            let d = [0.1 * i as f64 - 0.2, 0.05 * i as f64, 1.0];
+            let a = i as f64 * 2.1;
+            let d = [0.3 * a.cos(), 0.3 * a.sin(), 1.0];
             let intensity = rgb_light.then_some(Intensity::Rgb([0.9, 0.6 + 0.01 * i as f64, 0.4]));
             lights.push(make_light(i + 1, &name, d, intensity).unwrap());
             files.push(NamedFile { name, path });
         }
         (lights, files)
+    }
+
+    /// An 8-bit palette PNG of 16 colours (indices from `index`).
+    fn write_palette_png(path: &Path, w: u32, h: u32, index: impl Fn(u32, u32) -> u8) {
+        let mut e = png::Encoder::new(std::io::BufWriter::new(File::create(path).unwrap()), w, h);
+        e.set_color(png::ColorType::Indexed);
+        e.set_depth(png::BitDepth::Eight);
+        let palette: Vec<u8> = (0..16u8)
+            .flat_map(|k| [k * 16, 255 - k * 9, k * 5])
+            .collect();
+        e.set_palette(palette);
+        let mut writer = e.write_header().unwrap();
+        let data: Vec<u8> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| index(x, y))
+            .collect();
+        writer.write_image_data(&data).unwrap();
+    }
+
+    /// Open descriptors of this process that point into `dir` (the spills, which are
+    /// unlinked, show as `dir/#inode (deleted)` or a deleted named file).
+    fn spills_open(dir: &Path) -> usize {
+        (std::fs::read_dir("/proc/self/fd").unwrap())
+            .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+            .filter(|target| target.starts_with(dir))
+            .count()
+    }
+
+    /// Waits up to 5 s for every spill in `dir` to be closed (a run drops its set on a
+    /// thread of its own), and that nothing is left in it.
+    fn assert_no_spills(dir: &Path, when: &str) {
+        let start = std::time::Instant::now();
+        while spills_open(dir) > 0 && start.elapsed().as_secs() < 5 {
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        assert_eq!(spills_open(dir), 0, "spills still open after {when}");
+        let left: Vec<_> = std::fs::read_dir(dir).unwrap().collect();
+        assert!(
+            left.is_empty(),
+            "left in the scratch directory after {when}: {left:?}"
+        );
     }
 
     /// Every band read in order, concatenated per image; and the moments.
@@ -600,16 +753,22 @@ mod tests {
     #[test]
     fn bands_are_the_planes_intake_decodes_whole() {
         for (kind, rgb_light) in [
+            ("gray8", false),
             ("gray16", false),
             ("rgb8", true),
             ("rgb8", false),
+            ("rgb16", true),
             ("rgba16", false),
+            ("palette", true),
+            ("tiff", true),
             ("bmp", true),
         ] {
             let dir = tempfile::tempdir().unwrap();
+            let scratch = tempfile::tempdir().unwrap();
             let (lights, files) = write_set(dir.path(), kind, 5, rgb_light);
             let whole = intake::load(lights.clone(), &files, None, &Limits::default()).unwrap();
-            let mut s = open(lights, &files, None, &Limits::default()).unwrap();
+            let mut s = open(lights, &files, None, &Limits::default(), scratch.path()).unwrap();
+            assert_eq!(spills_open(scratch.path()), 5, "{kind}: one spill an image");
             // Small bands, so that the reader is asked for many.
             s.band_rows = 4;
             assert_eq!(s.info.bit_depth, whole.bit_depth, "{kind}");
@@ -630,33 +789,119 @@ mod tests {
                 assert_eq!(moments.len(), m.len());
                 assert!(most < 1e-5, "{kind}: moments differ by {most}");
             }
+            drop(s);
+            assert_no_spills(scratch.path(), kind);
         }
+    }
+
+    /// A spilled set's job writes exactly the artifacts of the set loaded whole.
+    #[test]
+    fn spilled_sets_reconstruct_bit_identically() {
+        use crate::core::{Options, RunToEnd, bands::InMemory, pipeline};
+        for (kind, rgb_light) in [("gray16", false), ("rgb8", true), ("tiff", true)] {
+            let dir = tempfile::tempdir().unwrap();
+            let scratch = tempfile::tempdir().unwrap();
+            let out = tempfile::tempdir().unwrap();
+            let (lights, files) = write_set(dir.path(), kind, 6, rgb_light);
+            let limits = Limits::default();
+            let opts = Options::default();
+            let whole = intake::load(lights.clone(), &files, None, &limits).unwrap();
+            let (a, b) = (out.path().join("whole"), out.path().join("spilled"));
+            pipeline::run(InMemory::new(whole), &opts, &a, &mut RunToEnd).unwrap();
+            let s = open(lights, &files, None, &limits, scratch.path()).unwrap();
+            pipeline::run(s, &opts, &b, &mut RunToEnd).unwrap();
+            let mut compared = 0;
+            for entry in std::fs::read_dir(&a).unwrap() {
+                let name = entry.unwrap().file_name();
+                if name == "result.json" {
+                    continue; // its timings differ
+                }
+                let (x, y) = (std::fs::read(a.join(&name)), std::fs::read(b.join(&name)));
+                assert!(x.unwrap() == y.unwrap(), "{kind}: {name:?} differs");
+                compared += 1;
+            }
+            assert!(compared >= 3, "{kind}: {compared} artifacts");
+            assert_no_spills(scratch.path(), kind);
+        }
+    }
+
+    /// Spills are closed, and nothing is left in the scratch directory, after a run that
+    /// succeeds, a set that fails to open and a run that is stopped.
+    #[test]
+    fn spills_go_after_success_error_and_cancel() {
+        use crate::core::progress::Stage;
+        use crate::core::{Options, RunError, RunToEnd, pipeline};
+        let dir = tempfile::tempdir().unwrap();
+        let scratch = tempfile::tempdir().unwrap();
+        let out = tempfile::tempdir().unwrap();
+        let limits = Limits::default();
+        let (lights, files) = write_set(dir.path(), "gray16", 6, false);
+
+        let s = open(lights.clone(), &files, None, &limits, scratch.path()).unwrap();
+        assert_eq!(spills_open(scratch.path()), 6);
+        let opts = Options::default();
+        pipeline::run(s, &opts, &out.path().join("a"), &mut RunToEnd).unwrap();
+        assert_no_spills(scratch.path(), "success");
+
+        let s = open(lights.clone(), &files, None, &limits, scratch.path()).unwrap();
+        let mut stop = |stage: Stage| stage != Stage::Integrate;
+        let stopped = pipeline::run(s, &opts, &out.path().join("b"), &mut stop);
+        assert!(matches!(stopped, Err(RunError::Cancelled)), "{stopped:?}");
+        assert_no_spills(scratch.path(), "cancel");
+
+        // The last image broken: the others were spilled before its error.
+        let bytes = std::fs::read(&files[5].path).unwrap();
+        std::fs::write(&files[5].path, &bytes[..bytes.len() / 2]).unwrap();
+        let e = open(lights, &files, None, &limits, scratch.path()).err();
+        assert!(e.expect("a broken image").to_string().contains("5.png"));
+        assert_no_spills(scratch.path(), "error");
+    }
+
+    /// A scratch directory that cannot take the spills is an error naming it.
+    #[test]
+    fn a_scratch_directory_that_fails_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let (lights, files) = write_set(dir.path(), "gray16", 3, false);
+        let missing = dir.path().join("no-such-dir");
+        let e = open(lights, &files, None, &Limits::default(), &missing)
+            .err()
+            .expect("no scratch directory")
+            .to_string();
+        assert!(e.contains("no-such-dir") && e.contains("scratch"), "{e}");
     }
 
     #[test]
     fn prescanned_images_give_the_same_set() {
         let dir = tempfile::tempdir().unwrap();
+        let scratch = tempfile::tempdir().unwrap();
         let limits = Limits::default();
-        let (lights, files) = write_set(dir.path(), "rgb8", 4, true);
-        let mut plain = open(lights.clone(), &files, None, &limits).unwrap();
-        let ahead = |i: usize| {
-            let f = File::open(&files[i].path).unwrap();
-            i.is_multiple_of(2)
-                .then(|| Ok(prescan(f, &limits).expect("a PNG read by rows")))
-        };
-        let mut prescanned = open_with(lights, &files, None, &limits, ahead).unwrap();
-        assert_eq!(plain.samples.planes, prescanned.samples.planes);
-        assert_eq!(read_all(&mut plain), read_all(&mut prescanned));
-        // Files decoded whole are left to the set.
-        let (_, bmps) = write_set(dir.path(), "bmp", 1, false);
-        assert!(prescan(File::open(&bmps[0].path).unwrap(), &limits).is_none());
+        for kind in ["rgb8", "bmp"] {
+            let (lights, files) = write_set(dir.path(), kind, 4, true);
+            let mut plain = open(lights.clone(), &files, None, &limits, scratch.path()).unwrap();
+            let ahead = |i: usize| {
+                let mut f = File::open(&files[i].path).unwrap();
+                // Read from its start, wherever the handle stands.
+                f.seek(std::io::SeekFrom::End(0)).unwrap();
+                i.is_multiple_of(2)
+                    .then(|| Ok(prescan(f, &limits, scratch.path()).expect("scanned ahead")))
+            };
+            let mut prescanned =
+                open_with(lights, &files, None, &limits, scratch.path(), ahead).unwrap();
+            assert_eq!(plain.samples.planes, prescanned.samples.planes);
+            assert_eq!(read_all(&mut plain), read_all(&mut prescanned));
+        }
+        // Errors are left to the set.
+        std::fs::write(dir.path().join("junk"), b"not an image").unwrap();
+        let junk = File::open(dir.path().join("junk")).unwrap();
+        assert!(prescan(junk, &limits, scratch.path()).is_none());
+        assert_no_spills(scratch.path(), "prescans dropped");
     }
 
     #[test]
     fn bands_out_of_order_are_refused() {
         let dir = tempfile::tempdir().unwrap();
         let (lights, files) = write_set(dir.path(), "gray16", 3, false);
-        let mut s = open(lights, &files, None, &Limits::default()).unwrap();
+        let mut s = open(lights, &files, None, &Limits::default(), dir.path()).unwrap();
         assert!(s.band(0..5).is_ok());
         let e = s.band(10..12).err().expect("a skipped band").to_string();
         assert!(e.contains("out of order"), "{e}");
@@ -669,7 +914,7 @@ mod tests {
         let bytes = std::fs::read(&files[2].path).unwrap();
         std::fs::write(&files[2].path, &bytes[..bytes.len() * 2 / 3]).unwrap();
         let whole = intake::load(lights.clone(), &files, None, &Limits::default());
-        let streamed = open(lights, &files, None, &Limits::default());
+        let streamed = open(lights, &files, None, &Limits::default(), dir.path());
         let (a, b) = (
             whole.err().unwrap().to_string(),
             streamed.err().unwrap().to_string(),

@@ -591,7 +591,9 @@ fn open_inputs(
             .unwrap_or_default(),
     );
     let taken = AtomicUsize::new(0);
-    let set = stream::open_with(lights, files, mask, &inner.config.limits(), |i| {
+    // The decoded images go beside the stored inputs, as the upload's scans put them.
+    let scratch = inner.store.inputs(id);
+    let set = stream::open_with(lights, files, mask, &inner.config.limits(), &scratch, |i| {
         if clock.halted() {
             return Some(Err(InputError::Decode {
                 name: files[i].name.clone(),

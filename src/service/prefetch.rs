@@ -1,15 +1,17 @@
-//! The first pass over an upload's images ([`stream::prescan`]) while the rest of it
-//! arrives, so that its job starts with the bands rather than reading every file twice.
+//! The first pass over an upload's images ([`stream::prescan`]: each decoded once into an
+//! unlinked scratch file beside the stored inputs) while the rest of it arrives, so that
+//! its job only reads the bands back and decodes nothing.
 //!
 //! Purely an optimisation: the inputs are still written and committed as before, and a job
-//! without a prefetched set (after a restart, when no slot was free, for archives and
-//! files the first pass decodes whole) scans them from disk. What is held is the sampled
-//! rows (about 12 000 pixels an image), never the planes. A slot is held from the first
-//! image until the job takes the scans or the set is dropped; at most `decode_ahead` sets
-//! exist at once.
+//! without a prefetched set (after a restart, when no slot was free, for archives) scans
+//! them from disk. What is held in memory is the sampled rows (about 12 000 pixels an
+//! image), never the planes; the decoded images are on disk, freed with the set. A slot is
+//! held from the first image until the job takes the scans or the set is dropped; at most
+//! `decode_ahead` sets exist at once.
 
 use std::collections::HashMap;
 use std::fs::File;
+use std::path::Path;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
@@ -103,17 +105,19 @@ struct State {
 
 impl Prefetch {
     /// Start scanning a completely written image on the rayon pool. `file` is its stored
-    /// name, `source` the written file (read from its start).
-    pub fn start(&self, file: String, source: File) {
+    /// name, `source` the written file (read from its start), `scratch` where its decoded
+    /// copy goes (an unlinked file, freed with the scan).
+    pub fn start(&self, file: String, source: File, scratch: &Path) {
         lock(&self.shared.state).pending += 1;
         let shared = self.shared.clone();
         let limits = self.limits;
+        let scratch = scratch.to_path_buf();
         rayon::spawn(move || {
             let result = if lock(&shared.state).dropped {
                 None
             } else {
                 // Errors are left to the job, which reports them as without a scan.
-                stream::prescan(source, &limits)
+                stream::prescan(source, &limits, &scratch)
             };
             let mut state = lock(&shared.state);
             state.pending -= 1;
@@ -177,8 +181,8 @@ mod tests {
         gray_png(&dir.path().join("000.img"), 7);
         std::fs::write(dir.path().join("001.img"), b"not an image").unwrap();
         let open = |f: &str| File::open(dir.path().join(f)).unwrap();
-        a.start("000.img".into(), open("000.img"));
-        a.start("001.img".into(), open("001.img"));
+        a.start("000.img".into(), open("000.img"), dir.path());
+        a.start("001.img".into(), open("001.img"), dir.path());
         let id = Uuid::new_v4();
         p.park(id, a);
         let results = p.take(id).unwrap().finish();
@@ -187,7 +191,7 @@ mod tests {
         assert!(!results.contains_key("001.img"), "left to the job");
 
         let b = p.begin().expect("the slot is free again");
-        b.start("000.img".into(), open("000.img"));
+        b.start("000.img".into(), open("000.img"), dir.path());
         p.park(id, b);
         p.discard(id);
         assert_eq!(p.held(), 0);

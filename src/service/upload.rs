@@ -238,7 +238,7 @@ pub async fn receive(
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
                 if let Some(p) = prefetch {
-                    p.start(file.clone(), written);
+                    p.start(file.clone(), written, dir);
                 }
                 parts.images.push(StoredImage {
                     name,
