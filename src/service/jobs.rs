@@ -4,8 +4,8 @@
 //! repo is the durable copy), one line per tenant: workers serve the tenants with waiting
 //! jobs in turn (round-robin), so one tenant's backlog does not hold up another's next
 //! job. `--workers` plain threads take jobs from it, so never more
-//! than that many run at once; each opens its stored inputs with `stream::open_with` (read
-//! back from the store band by band) and runs `pipeline::run` into a staged
+//! than that many run at once; each opens its stored inputs with `stream::open_with` (each
+//! image decoded once into a scratch file beside them, read back band by band) and runs `pipeline::run` into a staged
 //! output directory that is renamed into place when the job succeeds. Progress goes to the
 //! repo at every stage; the progress callback is also where cancellation, the time limit
 //! and shutdown stop a job.
@@ -570,7 +570,7 @@ fn execute(
 }
 
 /// The first pass over the job's images, taking those scanned during the upload when
-/// there are any; the bands are read from the store by the solve. Once `clock` says stop,
+/// there are any; the solve reads the bands back from their scratch copies. Once `clock` says stop,
 /// the images not yet started are not scanned and the set, which then holds a placeholder
 /// error for them, is dropped.
 fn open_inputs(
