@@ -436,3 +436,70 @@ async fn s3_down_refuses_submissions_with_503_and_accepted_jobs_wait_it_out() {
     s.wait_succeeded(c["id"].as_str().unwrap()).await;
     s.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole() {
+    use photostereo::service::blobs::BlobStore;
+    use photostereo::service::s3::{PART_BYTES, S3Store};
+    let Some(weed) = Weed::start("a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole")
+    else {
+        return;
+    };
+    let data = tempfile::tempdir().unwrap();
+    let store = {
+        let _env = weed::ENV.lock().unwrap_or_else(|p| p.into_inner());
+        weed.set_env();
+        let scratch = data.path().join("scratch");
+        let rt = tokio::runtime::Handle::current();
+        Arc::new(
+            S3Store::open(
+                &weed.store_url("parts"),
+                &scratch,
+                rt,
+                Duration::from_secs(3600),
+            )
+            .unwrap(),
+        )
+    };
+    let id = uuid::Uuid::new_v4();
+    // Two and a half parts of bytes that do not repeat with the part size.
+    let big: Vec<u8> = (0..PART_BYTES * 5 / 2)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
+        .collect();
+    let (s, b) = (store.clone(), big.clone());
+    tokio::task::spawn_blocking(move || {
+        let staged = s.stage_inputs(id).unwrap();
+        std::fs::write(staged.join("000.img"), &b).unwrap();
+        std::fs::write(staged.join("manifest.json"), b"{}").unwrap();
+        s.commit_inputs(id).unwrap();
+        assert!(!staged.exists(), "the staged copy goes once committed");
+    })
+    .await
+    .unwrap();
+    let bucket = bucket(&weed);
+    let key = object_store::path::Path::from(format!("parts/jobs/{id}/input/000.img"));
+    let meta = object_store::ObjectStoreExt::head(&*bucket, &key)
+        .await
+        .unwrap();
+    assert_eq!(meta.size, big.len() as u64);
+    let etag = meta.e_tag.unwrap_or_default();
+    eprintln!("{key}: {} bytes, ETag {etag}", meta.size);
+    assert!(
+        etag.trim_matches('"').ends_with("-3"),
+        "a 3-part multipart upload: {etag}"
+    );
+    let s = store.clone();
+    tokio::task::spawn_blocking(move || {
+        assert!(s.has_inputs(id).unwrap());
+        let dir = s.fetch_inputs(id).unwrap();
+        assert!(
+            std::fs::read(dir.join("000.img")).unwrap() == big,
+            "fetched back whole"
+        );
+        s.remove_job(id).unwrap();
+        assert!(!s.has_inputs(id).unwrap());
+    })
+    .await
+    .unwrap();
+    assert!(keys(&bucket, &format!("parts/jobs/{id}")).await.is_empty());
+}
