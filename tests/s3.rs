@@ -32,7 +32,7 @@ async fn s3_server(
     let mut c = config(data);
     c.store = Some(weed.store_url(prefix));
     tune(&mut c);
-    let _env = weed::ENV.lock().unwrap_or_else(|p| p.into_inner());
+    let _env = weed::ENV.lock().await;
     weed.set_env();
     TestServer::start(c).await
 }
@@ -447,7 +447,7 @@ async fn a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole() {
     };
     let data = tempfile::tempdir().unwrap();
     let store = {
-        let _env = weed::ENV.lock().unwrap_or_else(|p| p.into_inner());
+        let _env = weed::ENV.lock().await;
         weed.set_env();
         let scratch = data.path().join("scratch");
         let rt = tokio::runtime::Handle::current();

@@ -440,10 +440,11 @@ fn settle(
                 std::thread::sleep(Duration::from_millis(20));
             }
             inner.repo.requeue(id).and_then(|requeued| {
-                if requeued && !ctl.interrupt.load(Ordering::SeqCst) {
-                    if let Some(rec) = inner.repo.get(id)? {
-                        inner.jobs.push(id, &rec.tenant);
-                    }
+                if requeued
+                    && !ctl.interrupt.load(Ordering::SeqCst)
+                    && let Some(rec) = inner.repo.get(id)?
+                {
+                    inner.jobs.push(id, &rec.tenant);
                 }
                 Ok(None)
             })

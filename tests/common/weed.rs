@@ -8,7 +8,6 @@
 use std::net::TcpListener;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 pub const ACCESS_KEY: &str = "photostereo-test";
@@ -17,7 +16,7 @@ pub const BUCKET: &str = "photostereo";
 
 /// The object store reads its settings from the environment when a service opens; tests
 /// in one process open their services one at a time under this lock.
-pub static ENV: Mutex<()> = Mutex::new(());
+pub static ENV: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 pub struct Weed {
     child: Option<Child>,
