@@ -9,17 +9,26 @@
 //! calibrations/{id}/files/          its lights.csv, overlay.png, lights.png
 //! ```
 //!
-//! The reconstruction core reads and writes local files, so the store hands out local
-//! directories; a remote store (S3 and the like) would stage through a local cache and
-//! upload on `commit_outputs`. Nothing a caller sends ever becomes a path: directories
-//! are named by the job's UUID, files by the service.
+//! The reconstruction core reads and writes local files, so every store stages uploads
+//! and outputs in local directories and hands a job its inputs as one; a remote store
+//! ([`super::s3::S3Store`]) uploads them at commit and fetches a job's inputs back for
+//! its worker. Nothing a caller sends ever becomes a path or a key: directories are
+//! named by the job's UUID, files by the service.
+//!
+//! The methods block (callers are worker threads and the blocking pool), except
+//! [`BlobStore::read`], which serves downloads from the async handlers.
 
 use std::io;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
+use axum::body::Bytes;
+use futures_util::future::BoxFuture;
+use futures_util::stream::BoxStream;
 use serde::{Deserialize, Serialize};
 use uuid::Uuid;
 
+use super::repo::ArtifactInfo;
 use super::util::sync_dir;
 
 /// File names inside a job's input directory.
@@ -51,42 +60,115 @@ pub struct ManifestEntry {
     pub file: String,
 }
 
-/// Where job inputs and artifacts live.
+/// A stored file that the service serves.
+#[derive(Debug, Clone, Copy)]
+pub enum Served<'a> {
+    /// A succeeded job's artifact, as its record lists it.
+    Artifact { job: Uuid, info: &'a ArtifactInfo },
+    /// One of a calibration's files, as its record lists it.
+    Calibration { id: Uuid, info: &'a ArtifactInfo },
+}
+
+impl Served<'_> {
+    pub fn info(&self) -> &ArtifactInfo {
+        match self {
+            Served::Artifact { info, .. } | Served::Calibration { info, .. } => info,
+        }
+    }
+}
+
+/// A download's bytes, in order.
+pub type ByteStream = BoxStream<'static, io::Result<Bytes>>;
+
+/// Artifacts in a local directory, for the code that reads files (re-shading). A copy
+/// fetched from a remote store is removed on drop.
+pub struct LocalArtifacts {
+    dir: PathBuf,
+    fetched: bool,
+}
+
+impl LocalArtifacts {
+    /// A copy made for this caller, removed on drop.
+    pub(super) fn fetched(dir: PathBuf) -> Self {
+        Self { dir, fetched: true }
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+}
+
+impl Drop for LocalArtifacts {
+    fn drop(&mut self) {
+        if self.fetched {
+            let _ = std::fs::remove_dir_all(&self.dir);
+        }
+    }
+}
+
+/// The object store did not answer (or refused): the request may succeed later, so the
+/// service answers 503 and a job waits rather than fails. Carried inside an
+/// [`io::Error`]; see [`is_unavailable`].
+#[derive(Debug, thiserror::Error)]
+#[error("the object store is unavailable: {0}")]
+pub struct Unavailable(pub String);
+
+/// Whether `e` says the store is unavailable for now.
+pub fn is_unavailable(e: &io::Error) -> bool {
+    e.get_ref().is_some_and(|inner| inner.is::<Unavailable>())
+}
+
+/// Where job inputs, artifacts and calibration files live.
 pub trait BlobStore: Send + Sync + 'static {
-    /// A fresh, empty directory to receive a job's upload into.
+    /// A fresh, empty local directory to receive a job's upload into.
     fn stage_inputs(&self, id: Uuid) -> io::Result<PathBuf>;
     /// Make the staged upload the job's inputs (durably).
     fn commit_inputs(&self, id: Uuid) -> io::Result<()>;
-    /// The committed inputs.
-    fn inputs(&self, id: Uuid) -> PathBuf;
+    /// Whether the job's committed inputs are there (its manifest is written last).
+    fn has_inputs(&self, id: Uuid) -> io::Result<bool>;
+    /// The committed inputs in a local directory, fetched from the store when it keeps
+    /// them elsewhere (for the worker that runs the job).
+    fn fetch_inputs(&self, id: Uuid) -> io::Result<PathBuf>;
     fn remove_inputs(&self, id: Uuid) -> io::Result<()>;
-    /// A fresh, empty directory for a reconstruction to write into.
+    /// A fresh, empty local directory for a reconstruction to write into.
     fn stage_outputs(&self, id: Uuid) -> io::Result<PathBuf>;
-    /// Make the staged outputs the job's artifacts, all at once (durably).
-    fn commit_outputs(&self, id: Uuid) -> io::Result<()>;
-    /// Remove staged and committed outputs.
-    fn discard_outputs(&self, id: Uuid) -> io::Result<()>;
-    /// The committed artifacts' directory.
-    fn outputs(&self, id: Uuid) -> PathBuf;
-    /// Remove everything of a job (a missing job is not an error).
+    /// Make the staged outputs the job's artifacts for this attempt, all at once
+    /// (durably), setting each one's `key` where the store keeps it under its own name.
+    fn commit_outputs(
+        &self,
+        id: Uuid,
+        attempt: &str,
+        artifacts: &mut [ArtifactInfo],
+    ) -> io::Result<()>;
+    /// Remove the attempt's staged and committed outputs.
+    fn discard_outputs(&self, id: Uuid, attempt: &str) -> io::Result<()>;
+    /// Bytes `range` (all when `None`) of a stored file.
+    fn read(
+        &self,
+        file: Served<'_>,
+        range: Option<Range<u64>>,
+    ) -> BoxFuture<'static, io::Result<ByteStream>>;
+    /// A succeeded job's artifacts in a local directory.
+    fn local_artifacts(&self, id: Uuid, artifacts: &[&ArtifactInfo]) -> io::Result<LocalArtifacts>;
+    /// Remove everything of a job, every attempt's outputs too (a missing job is not an
+    /// error).
     fn remove_job(&self, id: Uuid) -> io::Result<()>;
-    /// Every job that has a directory.
+    /// Every job that has files which no upload in flight can still be writing.
     fn job_ids(&self) -> io::Result<Vec<Uuid>>;
     /// Remove what an interrupted upload or reconstruction left behind.
     fn remove_partials(&self, id: Uuid) -> io::Result<()>;
-    /// Bytes available to this process on the store's file system.
+    /// Bytes available to this process on the local file system it stages on.
     fn free_bytes(&self) -> io::Result<u64>;
-    /// Write, sync and remove a probe file.
+    /// Write and remove a probe (locally, and in the store).
     fn probe_writable(&self) -> io::Result<()>;
-    /// A fresh, empty directory to receive a calibration's upload and make its files in.
+    /// A fresh, empty local directory to receive a calibration's upload and make its
+    /// files in.
     fn stage_calibration(&self, id: Uuid) -> io::Result<PathBuf>;
     /// Make the staged directory the calibration's files (durably).
     fn commit_calibration(&self, id: Uuid) -> io::Result<()>;
-    /// The committed files of a calibration.
-    fn calibration(&self, id: Uuid) -> PathBuf;
     /// Remove everything of a calibration (a missing one is not an error).
     fn remove_calibration(&self, id: Uuid) -> io::Result<()>;
-    /// Every calibration that has a directory.
+    /// Every calibration that has files which no upload in flight can still be writing.
     fn calibration_ids(&self) -> io::Result<Vec<Uuid>>;
 }
 
@@ -152,8 +234,12 @@ impl BlobStore for LocalStore {
         sync_dir(&self.root)
     }
 
-    fn inputs(&self, id: Uuid) -> PathBuf {
-        self.job(id).join("input")
+    fn has_inputs(&self, id: Uuid) -> io::Result<bool> {
+        Ok(self.job(id).join("input").join(MANIFEST_FILE).is_file())
+    }
+
+    fn fetch_inputs(&self, id: Uuid) -> io::Result<PathBuf> {
+        Ok(self.job(id).join("input"))
     }
 
     fn remove_inputs(&self, id: Uuid) -> io::Result<()> {
@@ -166,19 +252,52 @@ impl BlobStore for LocalStore {
         Ok(dir)
     }
 
-    fn commit_outputs(&self, id: Uuid) -> io::Result<()> {
+    /// One server per data directory runs a job's attempts one after another, so the
+    /// attempt's outputs are the job's `output/`.
+    fn commit_outputs(&self, id: Uuid, _: &str, _: &mut [ArtifactInfo]) -> io::Result<()> {
         let job = self.job(id);
         Self::commit_dir(&job.join("output.partial"), &job.join("output"))
     }
 
-    fn discard_outputs(&self, id: Uuid) -> io::Result<()> {
+    fn discard_outputs(&self, id: Uuid, _: &str) -> io::Result<()> {
         let job = self.job(id);
         remove_dir_if_exists(&job.join("output.partial"))?;
         remove_dir_if_exists(&job.join("output"))
     }
 
-    fn outputs(&self, id: Uuid) -> PathBuf {
-        self.job(id).join("output")
+    fn read(
+        &self,
+        file: Served<'_>,
+        range: Option<Range<u64>>,
+    ) -> BoxFuture<'static, io::Result<ByteStream>> {
+        let path = match file {
+            Served::Artifact { job, info } => self.job(job).join("output").join(&info.name),
+            Served::Calibration { id, info } => self
+                .calibrations
+                .join(id.to_string())
+                .join("files")
+                .join(&info.name),
+        };
+        Box::pin(async move {
+            use futures_util::StreamExt;
+            use tokio::io::{AsyncReadExt, AsyncSeekExt};
+            let mut file = tokio::fs::File::open(&path).await?;
+            let stream = match range {
+                None => tokio_util::io::ReaderStream::new(file).boxed(),
+                Some(r) => {
+                    file.seek(io::SeekFrom::Start(r.start)).await?;
+                    tokio_util::io::ReaderStream::new(file.take(r.end - r.start)).boxed()
+                }
+            };
+            Ok(stream)
+        })
+    }
+
+    fn local_artifacts(&self, id: Uuid, _: &[&ArtifactInfo]) -> io::Result<LocalArtifacts> {
+        Ok(LocalArtifacts {
+            dir: self.job(id).join("output"),
+            fetched: false,
+        })
     }
 
     fn remove_job(&self, id: Uuid) -> io::Result<()> {
@@ -217,10 +336,6 @@ impl BlobStore for LocalStore {
         let dir = self.calibrations.join(id.to_string());
         Self::commit_dir(&dir.join("files.partial"), &dir.join("files"))?;
         sync_dir(&self.calibrations)
-    }
-
-    fn calibration(&self, id: Uuid) -> PathBuf {
-        self.calibrations.join(id.to_string()).join("files")
     }
 
     fn remove_calibration(&self, id: Uuid) -> io::Result<()> {
@@ -281,13 +396,13 @@ mod tests {
         let staged = store.stage_inputs(id).unwrap();
         std::fs::write(staged.join("000.img"), b"x").unwrap();
         store.commit_inputs(id).unwrap();
-        assert!(store.inputs(id).join("000.img").is_file());
+        assert!(store.fetch_inputs(id).unwrap().join("000.img").is_file());
         assert!(!staged.exists());
         let out = store.stage_outputs(id).unwrap();
         std::fs::write(out.join("result.json"), b"{}").unwrap();
-        assert!(!store.outputs(id).exists());
-        store.commit_outputs(id).unwrap();
-        assert!(store.outputs(id).join("result.json").is_file());
+        assert!(!store.job(id).join("output").exists());
+        store.commit_outputs(id, "1", &mut []).unwrap();
+        assert!(store.job(id).join("output/result.json").is_file());
         assert_eq!(store.job_ids().unwrap(), vec![id]);
         assert!(store.free_bytes().unwrap() > 0);
         store.probe_writable().unwrap();

@@ -12,7 +12,6 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use axum::Json;
-use axum::body::Body;
 use axum::extract::{FromRequestParts, Multipart, Path as UrlPath, Request, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, StatusCode};
@@ -26,13 +25,15 @@ use crate::core::calibrate::{self, Calibration, Camera, Circle, CircleSource, Se
 use crate::core::intake::{self, Limits};
 
 use super::AppState;
+use super::blobs::Served;
 use super::config::{Config, MAX_LIGHTS_BYTES};
+use super::download;
 use super::error::{ApiError, Problem};
 use super::idempotency::{self, PartHasher};
 use super::repo::{ArtifactInfo, CalibrationRecord, Remembered};
 use super::routes::{
-    ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, artifact_response, not_modified,
-    not_modified_response, open_submission, owned_calibration, request_id,
+    ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, not_modified, not_modified_response,
+    open_submission, owned_calibration, request_id,
 };
 use super::tenants::Caller;
 use super::upload::{self, BodyTap};
@@ -691,6 +692,7 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
             name: name.to_string(),
             bytes: bytes.len() as u64,
             etag: strong_etag(crc32fast::hash(&bytes), bytes.len() as u64),
+            key: None,
         });
     }
     let measured = measured(&cal, &form, w, h, source);
@@ -874,18 +876,8 @@ async fn file(
     if not_modified(headers, &info.etag) {
         return Ok(not_modified_response(&info.etag, IMMUTABLE));
     }
-    let path = state.store().calibration(id).join(name);
-    let bytes = tokio::fs::read(&path)
-        .await
-        .map_err(|_| ApiError::not_found(format!("the {name} of calibration {id} is gone")))?;
-    Ok(artifact_response(
-        content_type,
-        &info.etag,
-        IMMUTABLE,
-        name,
-        bytes.len() as u64,
-        Body::from(bytes),
-    ))
+    let file = Served::Calibration { id, info };
+    download::stored(state, file, headers, content_type, IMMUTABLE).await
 }
 
 /// The calibration's light table, `name, x, y, z[, intensity]` (the seed's format, as

@@ -29,9 +29,18 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_LISTEN", default_value = "127.0.0.1:8080")]
     pub listen: String,
 
-    /// Directory for the job database and the jobs' inputs and artifacts.
+    /// Directory for the job database and the jobs' inputs and artifacts (with --store:
+    /// the database and a scratch directory for uploads and running jobs).
     #[arg(long, env = "PHOTOSTEREO_DATA_DIR", default_value = "./data")]
     pub data_dir: PathBuf,
+
+    /// Keep job inputs, artifacts and calibration files in an S3-compatible object store,
+    /// `s3://bucket[/prefix]`, shared by every instance [default: the data directory].
+    /// Connection settings come from AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID,
+    /// AWS_SECRET_ACCESS_KEY, AWS_REGION and AWS_ALLOW_HTTP (true for a plain-HTTP
+    /// endpoint); requests are path-style.
+    #[arg(long, env = "PHOTOSTEREO_STORE")]
+    pub store: Option<String>,
 
     /// Reconstructions that run at once [default: the number of CPU cores].
     #[arg(long, env = "PHOTOSTEREO_WORKERS", value_parser = clap::value_parser!(u32).range(1..=1024))]
@@ -179,6 +188,8 @@ pub struct ServeArgs {
 #[derive(Debug, Clone)]
 pub struct Config {
     pub data_dir: PathBuf,
+    /// `s3://bucket[/prefix]`; none: the data directory.
+    pub store: Option<String>,
     pub workers: usize,
     pub queue_length: usize,
     pub max_body_bytes: u64,
@@ -230,6 +241,7 @@ impl Config {
         let workers = default_workers();
         Self {
             data_dir: data_dir.into(),
+            store: None,
             workers,
             queue_length: 64,
             max_body_bytes: 2 << 30,
@@ -278,6 +290,7 @@ fn default_workers() -> usize {
 impl From<&ServeArgs> for Config {
     fn from(a: &ServeArgs) -> Self {
         let mut c = Config::new(a.data_dir.clone());
+        c.store = a.store.clone();
         c.workers = a
             .workers
             .map(|w| w as usize)

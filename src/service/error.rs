@@ -187,6 +187,16 @@ impl ApiError {
         e
     }
 
+    /// 416: a `Range` that no byte of the file satisfies.
+    pub fn range_not_satisfiable(detail: impl Into<String>) -> Self {
+        Self::new(
+            StatusCode::RANGE_NOT_SATISFIABLE,
+            "range-not-satisfiable",
+            "Range not satisfiable",
+            detail.into(),
+        )
+    }
+
     /// 507: not enough free disk space to accept a job.
     pub fn insufficient_storage(detail: impl Into<String>) -> Self {
         Self::new(
@@ -353,8 +363,18 @@ impl From<tokio::task::JoinError> for ApiError {
     }
 }
 
+/// An I/O error is the server's fault, except an object store that does not answer for
+/// now: 503, to be retried.
 impl From<std::io::Error> for ApiError {
     fn from(e: std::io::Error) -> Self {
-        Self::internal(format!("i/o: {e}"))
+        if super::blobs::is_unavailable(&e) {
+            tracing::warn!(error = %e, "the object store does not answer");
+            Self::unavailable(
+                super::config::RETRY_AFTER_SECS,
+                "the storage for job files does not answer; retry shortly",
+            )
+        } else {
+            Self::internal(format!("i/o: {e}"))
+        }
     }
 }

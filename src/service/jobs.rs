@@ -4,14 +4,17 @@
 //! repo is the durable copy), one line per tenant: workers serve the tenants with waiting
 //! jobs in turn (round-robin), so one tenant's backlog does not hold up another's next
 //! job. `--workers` plain threads take jobs from it, so never more
-//! than that many run at once; each opens its stored inputs with `stream::open_with` (each
-//! image decoded once into a scratch file beside them, read back band by band) and runs `pipeline::run` into a staged
-//! output directory that is renamed into place when the job succeeds. Progress goes to the
+//! than that many run at once; each fetches its stored inputs into local scratch, opens
+//! them with `stream::open_with` (each image decoded once into a scratch file beside
+//! them, read back band by band) and runs `pipeline::run` into a staged output directory
+//! that the store commits when the job succeeds, under a key of this attempt's own. A
+//! store that does not answer makes the job wait and run again, never fail. Progress goes to the
 //! repo at every stage; the progress callback is also where cancellation, the time limit
 //! and shutdown stop a job.
 
 use std::collections::{HashMap, VecDeque};
 use std::panic::AssertUnwindSafe;
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -30,7 +33,7 @@ use crate::core::stream::{self, Streamed};
 use crate::core::{InputError, Options};
 
 use super::Inner;
-use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest};
+use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest, is_unavailable};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus};
@@ -309,11 +312,25 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
     }
 }
 
+/// How long a job waits before it is queued again when the store does not answer.
+const STORE_RETRY: Duration = Duration::from_secs(2);
+
 /// Why a job stopped without a result.
 enum Stop {
     /// The progress callback said stop (cancel, interrupt or time limit).
     Stopped,
+    /// The store did not answer: the job goes back to the queue.
+    StoreUnavailable(String),
     Error(ApiError),
+}
+
+/// A store error: unavailable (the job waits) or the job's failure.
+fn store_error(e: std::io::Error, doing: &str) -> Stop {
+    if is_unavailable(&e) {
+        Stop::StoreUnavailable(format!("{doing}: {e}"))
+    } else {
+        ApiError::internal(format!("{doing}: {e}")).into()
+    }
 }
 
 impl From<ApiError> for Stop {
@@ -345,6 +362,8 @@ fn process(inner: &Inner, id: Uuid) {
     let _enter = span.enter();
     tracing::info!("job started");
 
+    // A fresh id per attempt keys its outputs, so attempts never write over each other.
+    let attempt = Uuid::new_v4().simple().to_string();
     let mut clock = StageClock {
         inner,
         id,
@@ -353,17 +372,27 @@ fn process(inner: &Inner, id: Uuid) {
         current: None,
         timed_out: AtomicBool::new(false),
     };
-    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| execute(inner, id, &mut clock)))
-        .unwrap_or_else(|panic| {
-            let what = panic_message(&*panic);
-            tracing::error!(panic = %what, "the reconstruction panicked");
-            Err(Stop::Error(ApiError::job_failed(
-                "internal error: the reconstruction crashed; see the server logs",
-            )))
-        });
+    let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| {
+        execute(inner, id, &attempt, &mut clock)
+    }))
+    .unwrap_or_else(|panic| {
+        let what = panic_message(&*panic);
+        tracing::error!(panic = %what, "the reconstruction panicked");
+        Err(Stop::Error(ApiError::job_failed(
+            "internal error: the reconstruction crashed; see the server logs",
+        )))
+    });
     clock.close();
     let timed_out = clock.timed_out.load(Ordering::SeqCst);
-    settle(inner, id, &ctl, outcome, timed_out, started.elapsed());
+    settle(
+        inner,
+        id,
+        &attempt,
+        &ctl,
+        outcome,
+        timed_out,
+        started.elapsed(),
+    );
     drop(running);
     inner.jobs.unregister(id);
 }
@@ -372,6 +401,7 @@ fn process(inner: &Inner, id: Uuid) {
 fn settle(
     inner: &Inner,
     id: Uuid,
+    attempt: &str,
     ctl: &RunControl,
     outcome: Result<(serde_json::Value, Vec<ArtifactInfo>), Stop>,
     timed_out: bool,
@@ -401,6 +431,25 @@ fn settle(
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
         Err(Stop::Stopped) => Ok(Some(JobStatus::Cancelled)), // the DELETE recorded it
+        Err(Stop::StoreUnavailable(why)) => {
+            tracing::warn!(error = %why, "the store does not answer; the job runs again");
+            let until = Instant::now() + STORE_RETRY;
+            while Instant::now() < until
+                && !ctl.cancel.load(Ordering::SeqCst)
+                && !ctl.interrupt.load(Ordering::SeqCst)
+            {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            inner.repo.requeue(id).and_then(|requeued| {
+                if requeued
+                    && !ctl.interrupt.load(Ordering::SeqCst)
+                    && let Some(rec) = inner.repo.get(id)?
+                {
+                    inner.jobs.push(id, &rec.tenant);
+                }
+                Ok(None)
+            })
+        }
         Err(Stop::Error(e)) => {
             tracing::info!(
                 status = e.status().as_u16(),
@@ -434,8 +483,8 @@ fn settle(
         Ok(Some(rec)) if rec.status.is_terminal() => inner
             .store
             .remove_inputs(id)
-            .and_then(|_| inner.store.discard_outputs(id)),
-        Ok(Some(_)) => inner.store.discard_outputs(id),
+            .and_then(|_| inner.store.discard_outputs(id, attempt)),
+        Ok(Some(_)) => inner.store.discard_outputs(id, attempt),
         Err(e) => {
             tracing::error!(error = %e, "cannot read the job back");
             Ok(())
@@ -516,6 +565,7 @@ impl Progress for StageClock<'_> {
 fn execute(
     inner: &Inner,
     id: Uuid,
+    attempt: &str,
     clock: &mut StageClock<'_>,
 ) -> Result<(serde_json::Value, Vec<ArtifactInfo>), Stop> {
     let record = inner
@@ -525,7 +575,10 @@ fn execute(
         .ok_or(Stop::Stopped)?;
     let options: Options = serde_json::from_value(record.options)
         .map_err(|e| ApiError::invalid(format!("options: {e}")))?;
-    let input = inner.store.inputs(id);
+    let input = inner
+        .store
+        .fetch_inputs(id)
+        .map_err(|e| store_error(e, "fetching the job's inputs"))?;
     let manifest: Manifest = std::fs::read(input.join(MANIFEST_FILE))
         .map_err(ApiError::from)
         .and_then(|b| {
@@ -550,7 +603,7 @@ fn execute(
         name: m.name.clone(),
         path: input.join(&m.file),
     });
-    let set = open_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, clock)?;
+    let set = open_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, &input, clock)?;
     let set = set.noted(manifest.notes.clone());
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
@@ -561,11 +614,11 @@ fn execute(
         Err(RunError::Cancelled) => return Err(Stop::Stopped),
         Err(e) => return Err(ApiError::from(e).into()),
     };
+    let mut artifacts = list_artifacts(&out).map_err(ApiError::from)?;
     inner
         .store
-        .commit_outputs(id)
-        .map_err(|e| ApiError::internal(format!("committing the outputs of {id}: {e}")))?;
-    let artifacts = list_artifacts(&inner.store.outputs(id)).map_err(ApiError::from)?;
+        .commit_outputs(id, attempt, &mut artifacts)
+        .map_err(|e| store_error(e, "committing the outputs"))?;
     Ok((summarize(&report), artifacts))
 }
 
@@ -580,6 +633,7 @@ fn open_inputs(
     files: &[NamedFile],
     mask: Option<&NamedFile>,
     manifest: &Manifest,
+    scratch: &Path,
     clock: &StageClock<'_>,
 ) -> Result<Streamed, Stop> {
     // Waits for scans still running (on rayon: this is a worker thread, not a pool one).
@@ -591,9 +645,8 @@ fn open_inputs(
             .unwrap_or_default(),
     );
     let taken = AtomicUsize::new(0);
-    // The decoded images go beside the stored inputs, as the upload's scans put them.
-    let scratch = inner.store.inputs(id);
-    let set = stream::open_with(lights, files, mask, &inner.config.limits(), &scratch, |i| {
+    // The decoded images go beside the (fetched) inputs, as the upload's scans put them.
+    let set = stream::open_with(lights, files, mask, &inner.config.limits(), scratch, |i| {
         if clock.halted() {
             return Some(Err(InputError::Decode {
                 name: files[i].name.clone(),
@@ -629,6 +682,7 @@ fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
                     name: name.to_string(),
                     bytes: meta.len(),
                     etag: strong_etag(crc32_file(&path)?, meta.len()),
+                    key: None,
                 })),
                 _ => Ok(None),
             }

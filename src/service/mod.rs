@@ -6,7 +6,8 @@
 //! - [`events`]: a job's server-sent event stream.
 //! - [`jobs`]: the bounded queue and worker pool that run reconstructions.
 //! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite).
-//! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory).
+//! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory,
+//!   or [`s3`]: an S3-compatible object store).
 //! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
 //! - [`config`]: [`ServeArgs`] (flags + environment) and [`Config`].
 //!
@@ -16,6 +17,7 @@ mod app;
 pub mod blobs;
 mod calibrations;
 pub mod config;
+mod download;
 pub mod error;
 mod events;
 mod health;
@@ -27,6 +29,7 @@ mod prefetch;
 mod quota;
 pub mod repo;
 pub mod routes;
+pub mod s3;
 pub mod tenants;
 mod upload;
 mod util;
@@ -62,7 +65,7 @@ pub use health::{HealthcheckArgs, healthcheck};
 pub use upload::{parse_options, unpack_archive};
 pub use util::release_free_heap;
 
-use blobs::{BlobStore, LocalStore, MANIFEST_FILE};
+use blobs::{BlobStore, LocalStore};
 use jobs::JobQueue;
 use metrics::{Metrics, Snapshot};
 use prefetch::{Prefetch, Prefetcher};
@@ -132,8 +135,19 @@ impl AppState {
         let data_lock = lock_data_dir(&config.data_dir)?;
         let db = config.data_dir.join("jobs.sqlite");
         let repo = SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?;
-        let store = LocalStore::open(&config.data_dir)
-            .with_context(|| format!("opening {}", config.data_dir.display()))?;
+        let store: Arc<dyn BlobStore> = match &config.store {
+            None => Arc::new(
+                LocalStore::open(&config.data_dir)
+                    .with_context(|| format!("opening {}", config.data_dir.display()))?,
+            ),
+            // Another instance may be committing an upload the repo does not know yet.
+            Some(url) => Arc::new(s3::S3Store::open(
+                url,
+                &config.data_dir.join("scratch"),
+                tokio::runtime::Handle::current(),
+                config.upload_timeout + Duration::from_secs(3600),
+            )?),
+        };
         let (stop, _) = watch::channel(false);
         let config_uploads = config.max_uploads.max(1);
         let config_workers = config.workers.max(1);
@@ -143,7 +157,7 @@ impl AppState {
             prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
             config,
             repo: Arc::new(repo),
-            store: Arc::new(store),
+            store,
             metrics: Metrics::default(),
             keys: std::sync::RwLock::new(Arc::new(keys)),
             submissions,
@@ -573,7 +587,7 @@ impl Drop for Staging {
 /// Startup: drop leftovers, put unfinished jobs back in the queue (oldest first).
 fn recover(inner: &Inner) -> anyhow::Result<usize> {
     let known: HashSet<Uuid> = inner.repo.ids()?.into_iter().collect();
-    for id in inner.store.job_ids()? {
+    for id in listed(inner.store.job_ids(), "jobs") {
         let tidy = if known.contains(&id) {
             inner.store.remove_partials(id).and_then(|()| {
                 // A stop between recording a job's end and removing its inputs.
@@ -592,7 +606,7 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
     // Calibration files are committed before their record: files without one are a
     // calibration that was never answered.
     let calibrations: HashSet<Uuid> = inner.repo.calibration_ids()?.into_iter().collect();
-    for id in inner.store.calibration_ids()? {
+    for id in listed(inner.store.calibration_ids(), "calibrations") {
         if !calibrations.contains(&id)
             && let Err(e) = inner.store.remove_calibration(id)
         {
@@ -604,7 +618,8 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
         if rec.status == JobStatus::Running {
             inner.repo.requeue(rec.id)?;
         }
-        if !inner.store.inputs(rec.id).join(MANIFEST_FILE).is_file() {
+        // A store that does not answer now may later: the job is queued and waits.
+        if let Ok(false) = inner.store.has_inputs(rec.id) {
             let problem = ApiError::job_failed(
                 "the job's input files are gone (the data directory changed while the service was stopped)",
             )
@@ -618,6 +633,15 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
     }
     sweep_expired(inner);
     Ok(queued)
+}
+
+/// What a store listing found; nothing (and a warning) when the store does not answer,
+/// so that a start never waits for it.
+fn listed(ids: std::io::Result<Vec<Uuid>>, what: &str) -> Vec<Uuid> {
+    ids.unwrap_or_else(|e| {
+        tracing::warn!(error = %e, "cannot list the stored {what}; leftovers stay");
+        Vec::new()
+    })
 }
 
 /// Delete finished jobs past the retention period: the record first (the job is gone from

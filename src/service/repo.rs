@@ -70,6 +70,10 @@ pub struct ArtifactInfo {
     pub bytes: u64,
     /// Strong entity tag, quotes included.
     pub etag: String,
+    /// Where the store keeps it, when under a name of its own (an object store's
+    /// attempt-specific key); none in the data directory.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub key: Option<String>,
 }
 
 /// A job as the repo stores it. Times are milliseconds since the Unix epoch.
@@ -1122,6 +1126,7 @@ mod tests {
             name: name.into(),
             bytes,
             etag: "\"x\"".into(),
+            key: None,
         };
         let done = Finish::Succeeded {
             result: serde_json::json!({}),
@@ -1171,6 +1176,7 @@ mod tests {
                 name: "lights.csv".into(),
                 bytes: 17,
                 etag: "\"x\"".into(),
+                key: None,
             }],
         };
         let (a1, b1, a2) = (cal("a", 10), cal("b", 11), cal("a", 12));

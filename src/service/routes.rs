@@ -9,7 +9,6 @@ use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
-use tokio_util::io::ReaderStream;
 use utoipa::{IntoParams, ToSchema};
 use uuid::Uuid;
 
@@ -18,6 +17,8 @@ use crate::core::error::panic_message;
 use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
+use super::blobs::Served;
+use super::download;
 use super::error::{ApiError, PROBLEM_JSON, Problem};
 use super::idempotency::{self, PartHasher};
 use super::jobs::PushError;
@@ -802,6 +803,8 @@ pub async fn delete_job(
         ("name" = String, Path, description = "Artifact name (the job's `artifacts` list those it produced)"),
         ArtifactQuery,
         ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
+        ("Range" = Option<String>, Header, description = "One byte range, `bytes=first-last`, `bytes=first-` or `bytes=-suffix` (stored artifacts; several ranges get the whole file)"),
+        ("If-Range" = Option<String>, Header, description = "The ETag the Range applies to; another ETag gets the whole file"),
     ),
     responses(
         (status = 200, description = "The artifact (Content-Type by name: image/png, image/x-exr, model/gltf-binary, model/gltf+json, application/json)",
@@ -816,12 +819,19 @@ pub async fn delete_job(
                 ("ETag" = String, description = "Strong entity tag"),
                 ("Cache-Control" = String, description = "private, max-age=31536000, immutable"),
             )),
+        (status = 206, description = "The byte range asked for (Content-Range says which)",
+            headers(
+                ("Content-Range" = String, description = "bytes first-last/length"),
+                ("ETag" = String, description = "Strong entity tag"),
+            )),
         (status = 304, description = "Not modified (If-None-Match matched)"),
         (status = 400, description = "`light` given for an artifact other than shaded.png", body = Problem, content_type = "application/problem+json"),
         (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
         (status = 404, description = "No such job, or no such artifact (unknown name, or not produced by this job)", body = Problem, content_type = "application/problem+json"),
         (status = 409, description = "The job has not succeeded (queued, running, failed or cancelled)", body = Problem, content_type = "application/problem+json"),
+        (status = 416, description = "No byte of the artifact is in the Range (Content-Range: bytes */length)", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid `light`", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "The storage for job files does not answer (Retry-After)", body = Problem, content_type = "application/problem+json"),
     ),
     security((), ("bearer" = []))
 )]
@@ -866,9 +876,18 @@ pub async fn get_artifact(
                 missing.join(" or ")
             )));
         }
-        let dir = state.store().outputs(id);
-        let png = tokio::task::spawn_blocking(move || outputs::shaded_png_from_dir(&dir, light))
-            .await??;
+        let store = state.inner.store.clone();
+        let needed: Vec<_> = job
+            .artifacts
+            .iter()
+            .filter(|a| a.name == "albedo.png" || a.name == "normal.png")
+            .cloned()
+            .collect();
+        let png = tokio::task::spawn_blocking(move || {
+            let local = store.local_artifacts(id, &needed.iter().collect::<Vec<_>>())?;
+            Ok::<_, ApiError>(outputs::shaded_png_from_dir(local.dir(), light)?)
+        })
+        .await??;
         let etag = strong_etag(crc32fast::hash(&png), png.len() as u64);
         if not_modified(&headers, &etag) {
             return Ok(not_modified_response(&etag, RESHADED));
@@ -890,18 +909,8 @@ pub async fn get_artifact(
     if not_modified(&headers, &info.etag) {
         return Ok(not_modified_response(&info.etag, IMMUTABLE));
     }
-    let path = state.store().outputs(id).join(&info.name);
-    let file = tokio::fs::File::open(&path)
-        .await
-        .map_err(|_| ApiError::not_found(format!("the artifact {name} of job {id} is gone")))?;
-    Ok(artifact_response(
-        content_type,
-        &info.etag,
-        IMMUTABLE,
-        &name,
-        info.bytes,
-        Body::from_stream(ReaderStream::new(file)),
-    ))
+    let file = Served::Artifact { job: id, info };
+    download::stored(&state, file, &headers, content_type, IMMUTABLE).await
 }
 
 /// `x,y,z`: three finite numbers, not all zero.
