@@ -591,19 +591,7 @@ fn execute(
         return Err(Stop::Stopped);
     }
     let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
-    let files: Vec<NamedFile> = manifest
-        .images
-        .iter()
-        .map(|e| NamedFile {
-            name: e.name.clone(),
-            path: input.join(&e.file),
-        })
-        .collect();
-    let mask = manifest.mask.as_ref().map(|m| NamedFile {
-        name: m.name.clone(),
-        path: input.join(&m.file),
-    });
-    let set = open_inputs(inner, id, lights, &files, mask.as_ref(), &manifest, &input, clock)?;
+    let set = open_inputs(inner, id, lights, &input, &manifest, clock)?;
     let set = set.noted(manifest.notes.clone());
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
@@ -630,12 +618,22 @@ fn open_inputs(
     inner: &Inner,
     id: Uuid,
     lights: Vec<lights::Light>,
-    files: &[NamedFile],
-    mask: Option<&NamedFile>,
+    input: &Path,
     manifest: &Manifest,
-    scratch: &Path,
     clock: &StageClock<'_>,
 ) -> Result<Streamed, Stop> {
+    let files: Vec<NamedFile> = manifest
+        .images
+        .iter()
+        .map(|e| NamedFile {
+            name: e.name.clone(),
+            path: input.join(&e.file),
+        })
+        .collect();
+    let mask = manifest.mask.as_ref().map(|m| NamedFile {
+        name: m.name.clone(),
+        path: input.join(&m.file),
+    });
     // Waits for scans still running (on rayon: this is a worker thread, not a pool one).
     let ready = Mutex::new(
         inner
@@ -646,17 +644,24 @@ fn open_inputs(
     );
     let taken = AtomicUsize::new(0);
     // The decoded images go beside the (fetched) inputs, as the upload's scans put them.
-    let set = stream::open_with(lights, files, mask, &inner.config.limits(), scratch, |i| {
-        if clock.halted() {
-            return Some(Err(InputError::Decode {
-                name: files[i].name.clone(),
-                reason: "not decoded: the job was stopped".into(),
-            }));
-        }
-        let found = lock(&ready).remove(&manifest.images[i].file)?;
-        taken.fetch_add(1, Ordering::Relaxed);
-        Some(Ok(found))
-    });
+    let set = stream::open_with(
+        lights,
+        &files,
+        mask.as_ref(),
+        &inner.config.limits(),
+        input,
+        |i| {
+            if clock.halted() {
+                return Some(Err(InputError::Decode {
+                    name: files[i].name.clone(),
+                    reason: "not decoded: the job was stopped".into(),
+                }));
+            }
+            let found = lock(&ready).remove(&manifest.images[i].file)?;
+            taken.fetch_add(1, Ordering::Relaxed);
+            Some(Ok(found))
+        },
+    );
     if clock.halted() {
         return Err(Stop::Stopped);
     }
