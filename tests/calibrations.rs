@@ -8,7 +8,7 @@ use std::path::Path;
 
 use common::*;
 use photostereo::core::lights;
-use photostereo::core::synth::{self, ChromeSet};
+use photostereo::core::synth::ChromeSet;
 use reqwest::Method;
 use reqwest::multipart::{Form, Part};
 use serde_json::Value;
@@ -597,19 +597,7 @@ async fn a_job_with_a_calibration_matches_the_job_with_the_true_lights_within_ha
     // A chrome capture and an object under the same 24 lights.
     let chrome = ChromeSet::standard(8, 71);
     let sphere_dir = rendered(&chrome);
-    let object = tempfile::tempdir().unwrap();
-    let capture = synth::Capture {
-        noise_sigma: 0.002,
-        ..Default::default()
-    };
-    synth::write_set(
-        object.path(),
-        &synth::Scene::sphere(128),
-        &chrome.lights,
-        &capture,
-    )
-    .unwrap();
-    let truth = synth::read_truth(object.path()).unwrap();
+    let (object, truth) = sphere_under(&chrome.lights);
 
     let cal = create(&s, chrome_form(sphere_dir.path()), None).await;
     let cal_id = cal["id"].as_str().unwrap();

@@ -16,7 +16,7 @@ use common::*;
 use futures_util::TryStreamExt;
 use object_store::ObjectStore;
 use object_store::aws::AmazonS3Builder;
-use photostereo::core::synth::{self, ChromeSet};
+use photostereo::core::synth::ChromeSet;
 use photostereo::service::Config;
 use reqwest::multipart::Form;
 use serde_json::Value;
@@ -240,19 +240,7 @@ async fn jobs_and_calibrations_in_s3_answer_as_on_the_data_directory() {
     let chrome = ChromeSet::standard(8, 71);
     let sphere = tempfile::tempdir().unwrap();
     chrome.write(sphere.path(), None).unwrap();
-    let object = tempfile::tempdir().unwrap();
-    let capture = synth::Capture {
-        noise_sigma: 0.002,
-        ..Default::default()
-    };
-    synth::write_set(
-        object.path(),
-        &synth::Scene::sphere(128),
-        &chrome.lights,
-        &capture,
-    )
-    .unwrap();
-    let truth = synth::read_truth(object.path()).unwrap();
+    let (object, truth) = sphere_under(&chrome.lights);
     let mut normals = Vec::new();
     for s in [&s3, &local] {
         let form = images_of(sphere.path())

@@ -151,6 +151,19 @@ impl TestServer {
     }
 }
 
+/// A 128² sphere rendered under `lights` with a little noise (σ 0.002), and its truth:
+/// the object a calibration's lights are checked on.
+pub fn sphere_under(lights: &[[f64; 3]]) -> (tempfile::TempDir, synth::Truth) {
+    let object = tempfile::tempdir().unwrap();
+    let capture = Capture {
+        noise_sigma: 0.002,
+        ..Default::default()
+    };
+    synth::write_set(object.path(), &Scene::sphere(128), lights, &capture).unwrap();
+    let truth = synth::read_truth(object.path()).unwrap();
+    (object, truth)
+}
+
 /// The image files of a data-set folder, sorted by name.
 pub fn images_of(dir: &Path) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
