@@ -817,7 +817,23 @@ mod tests {
                     continue; // its timings differ
                 }
                 let (x, y) = (std::fs::read(a.join(&name)), std::fs::read(b.join(&name)));
-                assert!(x.unwrap() == y.unwrap(), "{kind}: {name:?} differs");
+                let (x, y) = (x.unwrap(), y.unwrap());
+                if name == "albedo_rgb.png" {
+                    // `intake::load` adds each image's colour moments as its decode
+                    // finishes (in parallel, so the f32 sums' order varies run to run);
+                    // the spilled set adds them in table order. Within one level.
+                    let decode = |v: &[u8]| image::load_from_memory(v).unwrap().to_rgb8();
+                    let (x, y) = (decode(&x), decode(&y));
+                    let most = (x.as_raw().iter().zip(y.as_raw()))
+                        .map(|(p, q)| p.abs_diff(*q))
+                        .max();
+                    assert!(
+                        most <= Some(1),
+                        "{kind}: albedo_rgb.png differs by {most:?}"
+                    );
+                } else {
+                    assert!(x == y, "{kind}: {name:?} differs");
+                }
                 compared += 1;
             }
             assert!(compared >= 3, "{kind}: {compared} artifacts");
