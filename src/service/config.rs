@@ -35,7 +35,8 @@ pub struct ServeArgs {
     pub data_dir: PathBuf,
 
     /// Keep job inputs, artifacts and calibration files in an S3-compatible object store,
-    /// `s3://bucket[/prefix]`, shared by every instance [default: the data directory].
+    /// `s3://bucket[/prefix]` [default: the data directory]; instances that share a
+    /// prefix must share the job database.
     /// Connection settings come from AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID,
     /// AWS_SECRET_ACCESS_KEY, AWS_REGION and AWS_ALLOW_HTTP (true for a plain-HTTP
     /// endpoint); requests are path-style.
