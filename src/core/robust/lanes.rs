@@ -6,7 +6,9 @@
 //! over the lit observations. Every other pixel (a cast shadow, a highlight, a penumbra:
 //! something to set aside) is left to the per-pixel fit.
 //!
-//! The column loops have no branches and run over contiguous rows, so they vectorise.
+//! Columns go in chunks of [`W`], one vector register wide: each chunk's sums stay in
+//! registers while the loop runs over the lights, so a pass over a chunk stores nothing
+//! but its inlier sets, and a chunk stops re-fitting as soon as its own sets repeat.
 
 use super::{Fit, Model, SATURATED, SCALE, implausible};
 
@@ -14,47 +16,20 @@ use super::{Fit, Model, SATURATED, SCALE, implausible};
 /// the per-pixel fit, which has the full search.
 const ROUNDS: usize = 3;
 
-/// Per-thread buffers for one row, `cols` lanes each (`keep`: `lights × cols`).
+/// Columns per chunk: eight f32 lanes, one AVX2 register.
+const W: usize = 8;
+type V = [f32; W];
+const ZERO: V = [0.0; W];
+
+/// Per-thread buffers: one chunk's inlier sets, `W` lanes per light.
 pub(super) struct Lanes {
-    g: [Vec<f32>; 3],
-    g_all: [Vec<f32>; 3],
-    m: [Vec<f32>; 6],
-    rhs: [Vec<f32>; 3],
-    count: Vec<f32>,
-    /// Round 0's count: observations above the dark level and below saturation.
-    lit: Vec<f32>,
-    keep: Vec<f32>,
-    tol: Vec<f32>,
-    changed: Vec<f32>,
-    bad: Vec<f32>,
-    sse: Vec<f32>,
-    sse_in: Vec<f32>,
-    sse_all: Vec<f32>,
-    cost: Vec<f32>,
-    cost_all: Vec<f32>,
-    within: Vec<f32>,
+    keep: Vec<V>,
 }
 
 impl Lanes {
-    pub(super) fn new(cols: usize, lights: usize) -> Self {
-        let v = || vec![0f32; cols];
+    pub(super) fn new(lights: usize) -> Self {
         Self {
-            g: [v(), v(), v()],
-            g_all: [v(), v(), v()],
-            m: [v(), v(), v(), v(), v(), v()],
-            rhs: [v(), v(), v()],
-            count: v(),
-            lit: v(),
-            keep: vec![0.0; cols * lights],
-            tol: v(),
-            changed: v(),
-            bad: v(),
-            sse: v(),
-            sse_in: v(),
-            sse_all: v(),
-            cost: v(),
-            cost_all: v(),
-            within: v(),
+            keep: vec![ZERO; lights],
         }
     }
 }
@@ -77,186 +52,192 @@ multiversion! {
 
 #[inline(always)]
 fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<Settled>) {
+    out.clear();
+    let cols = rows.first().map_or(0, |r| r.len());
+    s.keep.resize(rows.len(), ZERO);
+    for c0 in (0..cols).step_by(W) {
+        let fits = settle_chunk(model, rows, c0, &mut s.keep);
+        out.extend(fits.into_iter().take(cols - c0));
+    }
+}
+
+/// One chunk's `W` lanes of row `row` from column `c0`, in [0, 1] units; past the row's
+/// end, zeros (lanes whose answer is dropped).
+#[inline(always)]
+fn load(row: &[u16], c0: usize) -> V {
+    let mut v = ZERO;
+    match row.get(c0..c0 + W) {
+        Some(x) => {
+            for j in 0..W {
+                v[j] = x[j] as f32 * SCALE;
+            }
+        }
+        None => {
+            for (j, &x) in row[c0..].iter().enumerate() {
+                v[j] = x as f32 * SCALE;
+            }
+        }
+    }
+    v
+}
+
+/// Least squares sums: the normal matrix packed (xx, xy, xz, yy, yz, zz), the right-hand
+/// side and the number of observations, per lane.
+#[derive(Clone, Copy)]
+struct Sums {
+    m: [V; 6],
+    rhs: [V; 3],
+    count: V,
+}
+
+impl Sums {
+    const EMPTY: Sums = Sums {
+        m: [ZERO; 6],
+        rhs: [ZERO; 3],
+        count: ZERO,
+    };
+
+    #[inline(always)]
+    fn add(&mut self, l: [f32; 3], o: [f32; 6], w: V, y: V) {
+        for j in 0..W {
+            let wy = w[j] * y[j];
+            for i in 0..6 {
+                self.m[i][j] += w[j] * o[i];
+            }
+            for i in 0..3 {
+                self.rhs[i][j] += wy * l[i];
+            }
+            self.count[j] += w[j];
+        }
+    }
+}
+
+/// The final check's sums against a fit (see [`settle_chunk`]).
+#[derive(Clone, Copy)]
+struct Check {
+    changed: V,
+    bad: V,
+    sse: V,
+    sse_in: V,
+    sse_all: V,
+    cost: V,
+    cost_all: V,
+    within: V,
+}
+
+#[inline(always)]
+fn settle_chunk(model: &Model, rows: &[&[u16]], c0: usize, keep: &mut [V]) -> [Settled; W] {
     let n = rows.len();
-    let cols = rows[0].len();
-    debug_assert!(cols <= s.tol.len());
     let (black, dark) = (model.black, model.dark);
     // Round 0: least squares over the observations above the dark level and below
     // saturation, and (for the background) over all of them.
-    clear(&mut s.m);
-    clear(&mut s.rhs);
-    clear(&mut s.g_all);
-    s.count.fill(0.0);
+    let mut sums = Sums::EMPTY;
+    let mut g_all = [ZERO; 3];
     for (k, row) in rows.iter().enumerate() {
         let (l, p, o) = (model.lights[k], model.pinv[k], outer(model.lights[k]));
-        let row = &row[..cols];
-        let [m0, m1, m2, m3, m4, m5] = &mut s.m;
-        let (m0, m1, m2, m3, m4, m5) = (
-            &mut m0[..cols],
-            &mut m1[..cols],
-            &mut m2[..cols],
-            &mut m3[..cols],
-            &mut m4[..cols],
-            &mut m5[..cols],
-        );
-        let [b0, b1, b2] = &mut s.rhs;
-        let (b0, b1, b2) = (&mut b0[..cols], &mut b1[..cols], &mut b2[..cols]);
-        let [a0, a1, a2] = &mut s.g_all;
-        let (a0, a1, a2) = (&mut a0[..cols], &mut a1[..cols], &mut a2[..cols]);
-        let count = &mut s.count[..cols];
-        let keep = &mut s.keep[k * cols..(k + 1) * cols];
-        for c in 0..cols {
-            let v = row[c] as f32 * SCALE;
-            let y = v - black;
-            let w = if y > dark && v < SATURATED { 1.0 } else { 0.0 };
-            keep[c] = w;
-            let wy = w * y;
-            m0[c] += w * o[0];
-            m1[c] += w * o[1];
-            m2[c] += w * o[2];
-            m3[c] += w * o[3];
-            m4[c] += w * o[4];
-            m5[c] += w * o[5];
-            b0[c] += wy * l[0];
-            b1[c] += wy * l[1];
-            b2[c] += wy * l[2];
-            count[c] += w;
-            a0[c] += p[0] * y;
-            a1[c] += p[1] * y;
-            a2[c] += p[2] * y;
+        let v = load(row, c0);
+        let mut y = ZERO;
+        let mut w = ZERO;
+        for j in 0..W {
+            y[j] = v[j] - black;
+            w[j] = if y[j] > dark && v[j] < SATURATED {
+                1.0
+            } else {
+                0.0
+            };
+            for i in 0..3 {
+                g_all[i][j] += p[i] * y[j];
+            }
         }
+        keep[k] = w;
+        sums.add(l, o, w, y);
     }
     // Fewer than 3 lit observations: the per-pixel fit's answer is least squares over
     // all, flagged; more than 4 are needed for the per-pixel fit to test outliers at all.
-    s.lit.copy_from_slice(&s.count);
-    solve_lanes(s);
-    for round in 1..=ROUNDS {
-        // Tolerances of the current fit, then the observations it explains.
-        for c in 0..cols {
-            let g = [s.g[0][c], s.g[1][c], s.g[2][c]];
-            s.tol[c] = model.tol(g);
+    let lit = sums.count;
+    let mut g = solve(&sums);
+    let mut tol = ZERO;
+    let mut check;
+    let mut round = 1;
+    loop {
+        // Tolerances of the current fit; then, in one pass, the observations it explains
+        // and the final check against it. Whichever round is the last (a repeat, or the
+        // last allowed), that pass's check is the answer.
+        for j in 0..W {
+            tol[j] = model.tol([g[0][j], g[1][j], g[2][j]]);
         }
-        clear(&mut s.m);
-        clear(&mut s.rhs);
-        s.count.fill(0.0);
-        s.changed.fill(0.0);
+        check = Check {
+            changed: ZERO,
+            bad: ZERO,
+            sse: ZERO,
+            sse_in: ZERO,
+            sse_all: ZERO,
+            cost: ZERO,
+            cost_all: ZERO,
+            within: ZERO,
+        };
         for (k, row) in rows.iter().enumerate() {
-            let (l, o) = (model.lights[k], outer(model.lights[k]));
-            let row = &row[..cols];
-            let keep = &mut s.keep[k * cols..(k + 1) * cols];
-            let [gx, gy, gz] = &s.g;
-            let (gx, gy, gz) = (&gx[..cols], &gy[..cols], &gz[..cols]);
-            let [m0, m1, m2, m3, m4, m5] = &mut s.m;
-            let (m0, m1, m2, m3, m4, m5) = (
-                &mut m0[..cols],
-                &mut m1[..cols],
-                &mut m2[..cols],
-                &mut m3[..cols],
-                &mut m4[..cols],
-                &mut m5[..cols],
-            );
-            let [b0, b1, b2] = &mut s.rhs;
-            let (b0, b1, b2) = (&mut b0[..cols], &mut b1[..cols], &mut b2[..cols]);
-            let (count, changed, tol) =
-                (&mut s.count[..cols], &mut s.changed[..cols], &s.tol[..cols]);
-            for c in 0..cols {
-                let v = row[c] as f32 * SCALE;
-                let y = v - black;
-                let pred = gx[c] * l[0] + gy[c] * l[1] + gz[c] * l[2];
-                let w = if pred > 0.0 && (y - pred).abs() <= tol[c] && v < SATURATED {
+            let l = model.lights[k];
+            let v = load(row, c0);
+            let mut w = ZERO;
+            for j in 0..W {
+                let y = v[j] - black;
+                let pred = g[0][j] * l[0] + g[1][j] * l[1] + g[2][j] * l[2];
+                w[j] = if pred > 0.0 && (y - pred).abs() <= tol[j] && v[j] < SATURATED {
                     1.0
                 } else {
                     0.0
                 };
-                changed[c] += (w - keep[c]).abs();
-                keep[c] = w;
-                let wy = w * y;
-                m0[c] += w * o[0];
-                m1[c] += w * o[1];
-                m2[c] += w * o[2];
-                m3[c] += w * o[3];
-                m4[c] += w * o[4];
-                m5[c] += w * o[5];
-                b0[c] += wy * l[0];
-                b1[c] += wy * l[1];
-                b2[c] += wy * l[2];
-                count[c] += w;
+                check.changed[j] += (w[j] - keep[k][j]).abs();
+                // Every observation explained, and the costs the per-pixel fit compares.
+                let r = v[j] - (pred.max(0.0) + black).min(1.0);
+                let explained =
+                    w[j] > 0.0 || v[j] >= SATURATED || (pred <= 0.0 && y.abs() <= tol[j]);
+                check.bad[j] += if explained { 0.0 } else { 1.0 };
+                check.sse[j] += r * r;
+                check.sse_in[j] += w[j] * r * r;
+                let pa = g_all[0][j] * l[0] + g_all[1][j] * l[1] + g_all[2][j] * l[2];
+                let ra = v[j] - (pa.max(0.0) + black).min(1.0);
+                check.sse_all[j] += ra * ra;
+                // The per-pixel fit compares the two candidates over the observations
+                // the robust fit re-renders within the tolerance.
+                let near = if r.abs() <= tol[j] { 1.0 } else { 0.0 };
+                check.cost[j] += near * r * r;
+                check.cost_all[j] += near * ra * ra;
+                check.within[j] += near;
             }
+            keep[k] = w;
         }
-        if s.changed.iter().all(|&d| d == 0.0) {
-            break; // every column's set repeated: the fits are final
+        if check.changed.iter().all(|&d| d == 0.0) || round == ROUNDS {
+            // Every lane's set repeated (its fit, and `sums`, are final), or no re-fits
+            // left: lanes whose set still changes are left to the per-pixel fit.
+            break;
         }
-        if round < ROUNDS {
-            solve_lanes(s);
+        sums = Sums::EMPTY;
+        for (k, row) in rows.iter().enumerate() {
+            let v = load(row, c0);
+            let y = v.map(|v| v - black);
+            sums.add(model.lights[k], outer(model.lights[k]), keep[k], y);
         }
+        g = solve(&sums);
+        round += 1;
     }
-    // The final check, against the current fits `g` and the last sets `keep` (which the
-    // fits were solved from only where `changed` is 0): every observation explained,
-    // and the costs the per-pixel fit compares.
-    s.bad.fill(0.0);
-    s.sse.fill(0.0);
-    s.sse_in.fill(0.0);
-    s.sse_all.fill(0.0);
-    s.cost.fill(0.0);
-    s.cost_all.fill(0.0);
-    s.within.fill(0.0);
-    for (k, row) in rows.iter().enumerate() {
-        let l = model.lights[k];
-        let row = &row[..cols];
-        let keep = &s.keep[k * cols..(k + 1) * cols];
-        let [gx, gy, gz] = &s.g;
-        let (gx, gy, gz) = (&gx[..cols], &gy[..cols], &gz[..cols]);
-        let [a0, a1, a2] = &s.g_all;
-        let (a0, a1, a2) = (&a0[..cols], &a1[..cols], &a2[..cols]);
-        let tol = &s.tol[..cols];
-        let (bad, sse, sse_in, sse_all) = (
-            &mut s.bad[..cols],
-            &mut s.sse[..cols],
-            &mut s.sse_in[..cols],
-            &mut s.sse_all[..cols],
-        );
-        let (cost, cost_all, within) = (
-            &mut s.cost[..cols],
-            &mut s.cost_all[..cols],
-            &mut s.within[..cols],
-        );
-        for c in 0..cols {
-            let v = row[c] as f32 * SCALE;
-            let y = v - black;
-            let pred = gx[c] * l[0] + gy[c] * l[1] + gz[c] * l[2];
-            let r = v - (pred.max(0.0) + black).min(1.0);
-            let explained = keep[c] > 0.0 || v >= SATURATED || (pred <= 0.0 && y.abs() <= tol[c]);
-            bad[c] += if explained { 0.0 } else { 1.0 };
-            sse[c] += r * r;
-            sse_in[c] += keep[c] * r * r;
-            let pa = a0[c] * l[0] + a1[c] * l[1] + a2[c] * l[2];
-            let ra = v - (pa.max(0.0) + black).min(1.0);
-            sse_all[c] += ra * ra;
-            // The per-pixel fit compares the two candidates over the observations the
-            // robust fit re-renders within the tolerance.
-            let w = if r.abs() <= tol[c] { 1.0 } else { 0.0 };
-            cost[c] += w * r * r;
-            cost_all[c] += w * ra * ra;
-            within[c] += w;
-        }
-    }
-    out.clear();
-    out.extend((0..cols).map(|c| {
-        let g_all = [s.g_all[0][c], s.g_all[1][c], s.g_all[2][c]];
-        if s.lit[c] < 3.0 {
+    std::array::from_fn(|j| {
+        let g_all = [g_all[0][j], g_all[1][j], g_all[2][j]];
+        if lit[j] < 3.0 {
             return Settled::Fit(Fit {
                 g: g_all,
                 inliers: 0,
                 reliable: false,
-                sse_all: s.sse_all[c],
-                sse_inliers: s.sse_all[c],
+                sse_all: check.sse_all[j],
+                sse_inliers: check.sse_all[j],
             });
         }
-        let g = [s.g[0][c], s.g[1][c], s.g[2][c]];
-        let kept = s.count[c] as usize;
-        let clean = s.lit[c] > 4.0
-            && s.changed[c] == 0.0
-            && s.bad[c] == 0.0
+        let g = [g[0][j], g[1][j], g[2][j]];
+        let kept = sums.count[j] as usize;
+        let clean = lit[j] > 4.0
+            && check.changed[j] == 0.0
+            && check.bad[j] == 0.0
             && kept >= 3
             && g.iter().all(|v| v.is_finite());
         if !clean {
@@ -264,8 +245,8 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
         }
         // Least squares over every observation is the per-pixel fit's other candidate
         // when it set any aside; the lower shadow-aware cost wins.
-        if kept < n && s.cost_all[c] < s.cost[c] {
-            let inliers = s.within[c] as usize;
+        if kept < n && check.cost_all[j] < check.cost[j] {
+            let inliers = check.within[j] as usize;
             if implausible(g_all, inliers) {
                 return Settled::No;
             }
@@ -273,8 +254,8 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
                 g: g_all,
                 inliers,
                 reliable: true,
-                sse_all: s.sse_all[c],
-                sse_inliers: s.cost_all[c],
+                sse_all: check.sse_all[j],
+                sse_inliers: check.cost_all[j],
             });
         }
         if implausible(g, kept) {
@@ -284,19 +265,14 @@ fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<
             g,
             inliers: kept,
             reliable: true,
-            sse_all: s.sse[c],
-            sse_inliers: s.sse_in[c],
+            sse_all: check.sse[j],
+            sse_inliers: check.sse_in[j],
         })
-    }));
-}
-
-fn clear<const K: usize>(v: &mut [Vec<f32>; K]) {
-    for x in v.iter_mut() {
-        x.fill(0.0);
-    }
+    })
 }
 
 /// lᵢlᵢᵀ packed (xx, xy, xz, yy, yz, zz).
+#[inline(always)]
 fn outer(l: [f32; 3]) -> [f32; 6] {
     [
         l[0] * l[0],
@@ -308,13 +284,14 @@ fn outer(l: [f32; 3]) -> [f32; 6] {
     ]
 }
 
-/// g = M⁻¹ rhs per column by cofactors; a (near-)singular M gives non-finite g, which
+/// g = M⁻¹ rhs per lane by cofactors; a (near-)singular M gives non-finite g, which
 /// the final check leaves to the per-pixel fit.
-fn solve_lanes(s: &mut Lanes) {
+#[inline(always)]
+fn solve(s: &Sums) -> [V; 3] {
     let [m0, m1, m2, m3, m4, m5] = &s.m;
     let [b0, b1, b2] = &s.rhs;
-    let [gx, gy, gz] = &mut s.g;
-    for c in 0..gx.len() {
+    let mut g = [ZERO; 3];
+    for c in 0..W {
         let (a, b, cc, d, e, f) = (m0[c], m1[c], m2[c], m3[c], m4[c], m5[c]);
         let c00 = d * f - e * e;
         let c01 = cc * e - b * f;
@@ -329,8 +306,9 @@ fn solve_lanes(s: &mut Lanes) {
         } else {
             f32::NAN
         };
-        gx[c] = (c00 * b0[c] + c01 * b1[c] + c02 * b2[c]) * inv;
-        gy[c] = (c01 * b0[c] + c11 * b1[c] + c12 * b2[c]) * inv;
-        gz[c] = (c02 * b0[c] + c12 * b1[c] + c22 * b2[c]) * inv;
+        g[0][c] = (c00 * b0[c] + c01 * b1[c] + c02 * b2[c]) * inv;
+        g[1][c] = (c01 * b0[c] + c11 * b1[c] + c12 * b2[c]) * inv;
+        g[2][c] = (c02 * b0[c] + c12 * b1[c] + c22 * b2[c]) * inv;
     }
+    g
 }

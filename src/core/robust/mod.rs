@@ -446,9 +446,6 @@ fn gather(rows: &[&[u16]], c: usize, obs: &mut [f32]) {
     }
 }
 
-/// Columns the fast path works on at once: its ~20 lanes of f32 then fit in L1.
-const LANE_BLOCK: usize = 256;
-
 /// Estimate black level and noise of a set in memory (see [`estimate_from`]).
 pub fn estimate(set: &ImageSet) -> CaptureEstimate {
     let stack = InMemory::new(set);
@@ -602,16 +599,7 @@ impl Robust {
                     // by the per-pixel fit.
                     let mut settled = Vec::with_capacity(cols);
                     if n > 4 {
-                        let slices = &rows;
-                        // In blocks of columns whose lanes stay in the L1 cache.
-                        let mut l = lanes::Lanes::new(LANE_BLOCK.min(cols), n);
-                        let mut part = Vec::with_capacity(LANE_BLOCK);
-                        for c0 in (0..cols).step_by(LANE_BLOCK) {
-                            let c1 = (c0 + LANE_BLOCK).min(cols);
-                            let block: Vec<&[u16]> = slices.iter().map(|s| &s[c0..c1]).collect();
-                            lanes::settle_row(model, &block, &mut l, &mut part);
-                            settled.append(&mut part);
-                        }
+                        lanes::settle_row(model, &rows, &mut lanes::Lanes::new(n), &mut settled);
                     }
                     for c in 0..cols {
                         let fit = match settled.get(c) {
