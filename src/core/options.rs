@@ -44,11 +44,11 @@ pub enum Integration {
     /// Frankot–Chellappa projection onto integrable surfaces, via FFT, on the full frame.
     FrankotChellappa,
     /// Least-squares (Poisson) integration over the mask only.
-    #[default]
     Poisson,
     /// Poisson with each pixel's equations weighted by the solver's confidence: pixels
     /// with few usable observations (fallback normals) follow their neighbours instead of
     /// their own gradients, so they make no spikes.
+    #[default]
     WeightedPoisson,
     /// `weighted-poisson`, then re-weighted a few times so that edges whose gradient
     /// disagrees with the surface by far more than is typical (depth steps, the wrong
