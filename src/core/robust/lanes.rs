@@ -21,19 +21,6 @@ const W: usize = 8;
 type V = [f32; W];
 const ZERO: V = [0.0; W];
 
-/// Per-thread buffers: one chunk's inlier sets, `W` lanes per light.
-pub(super) struct Lanes {
-    keep: Vec<V>,
-}
-
-impl Lanes {
-    pub(super) fn new(lights: usize) -> Self {
-        Self {
-            keep: vec![ZERO; lights],
-        }
-    }
-}
-
 /// What the fast path decided for one column.
 pub(super) enum Settled {
     Fit(Fit),
@@ -42,21 +29,22 @@ pub(super) enum Settled {
 }
 
 /// Settle what can be settled of one row; `rows[k]` is the row in image `k`.
-pub(super) fn settle_row(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<Settled>) {
-    settle_row_dispatch(model, rows, s, out)
+pub(super) fn settle_row(model: &Model, rows: &[&[u16]], out: &mut Vec<Settled>) {
+    settle_row_dispatch(model, rows, out)
 }
 
 multiversion! {
-    fn settle_row_dispatch(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<Settled>) -> () => settle_row_body
+    fn settle_row_dispatch(model: &Model, rows: &[&[u16]], out: &mut Vec<Settled>) -> () => settle_row_body
 }
 
 #[inline(always)]
-fn settle_row_body(model: &Model, rows: &[&[u16]], s: &mut Lanes, out: &mut Vec<Settled>) {
+fn settle_row_body(model: &Model, rows: &[&[u16]], out: &mut Vec<Settled>) {
     out.clear();
     let cols = rows.first().map_or(0, |r| r.len());
-    s.keep.resize(rows.len(), ZERO);
+    // One chunk's inlier sets, `W` lanes per light.
+    let mut keep = vec![ZERO; rows.len()];
     for c0 in (0..cols).step_by(W) {
-        let fits = settle_chunk(model, rows, c0, &mut s.keep);
+        let fits = settle_chunk(model, rows, c0, &mut keep);
         out.extend(fits.into_iter().take(cols - c0));
     }
 }

@@ -599,7 +599,7 @@ impl Robust {
                     // by the per-pixel fit.
                     let mut settled = Vec::with_capacity(cols);
                     if n > 4 {
-                        lanes::settle_row(model, &rows, &mut lanes::Lanes::new(n), &mut settled);
+                        lanes::settle_row(model, &rows, &mut settled);
                     }
                     for c in 0..cols {
                         let fit = match settled.get(c) {
