@@ -294,40 +294,22 @@ fn irls(
     settled: f32,
     halt: Halt,
 ) -> (Vec<f32>, usize) {
-    use self::poisson::{edge_slope, finite};
     let comps = Components::new(mask, h, w);
     let (bx, by) = multigrid::edge_weights(mask, weights, h, w, MIN_EDGE_WEIGHT);
-    let g = |i: usize| [finite(p[i]), finite(q[i])];
-    let n = h * w;
     // An edge's weight is positive exactly when it joins two mask pixels. East edges step
-    // one pixel (x slopes, component 0), south edges one row (y slopes, component 1).
-    let slopes = |base: &[f32], step: usize, k: usize| -> Vec<f32> {
-        (0..n)
-            .into_par_iter()
-            .map(|i| {
-                if base[i] > 0.0 {
-                    edge_slope(g(i), g(i + step), k)
-                } else {
-                    0.0
-                }
-            })
-            .collect()
-    };
-    let (gx, gy) = (slopes(&bx, 1, 0), slopes(&by, w, 1));
-    let (mut wx, mut wy) = (bx.clone(), by.clone());
-    // Each round's solve starts from the previous heights, which the new weights change
-    // only where residuals were large (all rounds on the 2048² sphere: 13 CG iterations
-    // instead of 30).
-    let mut start = None;
+    // one pixel (x slopes), south edges one row (y slopes).
+    let (gx, gy) = poisson::edge_slopes(p, q, &bx, &by, h, w);
+    let n = h * w;
+    // The first round solves with the base weights, lent to its operator.
+    let st = WeightStencil::new(h, w, bx, by);
+    let mut z = solve_masked(&st, p, q, &comps, None, halt);
+    let (bx, by) = st.into_weights();
     // The previous round's heights, to see how far this round moved them (one more
     // height map in memory, 4 bytes a pixel).
     let mut previous: Vec<f32> = Vec::new();
     let mut round = 0;
     loop {
-        let st = WeightStencil::new(h, w, wx, wy);
-        let mut z = solve_masked(&st, p, q, &comps, start.take(), halt);
-        let moved = (round > 0).then(|| largest_change(&z, &previous, mask));
-        if round == IRLS_ROUNDS || moved.is_some_and(|m| m <= settled) || halt() {
+        if round == IRLS_ROUNDS || halt() {
             comps.remove_means(&mut z);
             return (z, round);
         }
@@ -351,22 +333,118 @@ fn irls(
         };
         let tau = nth_nonnegative(2 * n, edge_abs, |edges| edges / 2)
             .map_or(MIN_BREAK, |mad| (3.0 * 1.4826 * mad).max(MIN_BREAK));
+        // Where the new weights leave the heights a solution (the smooth surfaces this
+        // default meets: the weights hardly vary), the round's solve would return them
+        // unchanged: stop before forming its operator and multigrid hierarchy.
+        let edges = Edges {
+            base: [&bx, &by],
+            slope: [&gx, &gy],
+            w,
+        };
+        if settled >= 0.0 && edges.reweighted_rel_residual(&z, tau) <= poisson::TOL {
+            comps.remove_means(&mut z);
+            return (z, round);
+        }
         let reweight = |base: &[f32], g: &[f32], step: usize| -> Vec<f32> {
             (0..n)
                 .into_par_iter()
                 .map(|i| {
                     if base[i] > 0.0 {
-                        let r = residual(base, g, step, i) / tau;
-                        (base[i] / (1.0 + r * r)).max(MIN_EDGE_WEIGHT)
+                        cauchy_weight(base[i], residual(base, g, step, i), tau)
                     } else {
                         0.0
                     }
                 })
                 .collect()
         };
-        (wx, wy) = (reweight(&bx, &gx, 1), reweight(&by, &gy, w));
+        let st = WeightStencil::new(h, w, reweight(&bx, &gx, 1), reweight(&by, &gy, w));
         previous.clone_from(&z);
-        start = Some(z);
+        // Each round's solve starts from the previous heights, which the new weights change
+        // only where residuals were large (all rounds on the 2048² sphere: 13 CG iterations
+        // instead of 30).
+        z = solve_masked(&st, p, q, &comps, Some(z), halt);
+        if largest_change(&z, &previous, mask) <= settled {
+            comps.remove_means(&mut z);
+            return (z, round);
+        }
+    }
+}
+
+/// A re-weighting round's weight for an edge of base weight `base` and residual `r`.
+#[inline(always)]
+fn cauchy_weight(base: f32, r: f32, tau: f32) -> f32 {
+    let t = r / tau;
+    (base / (1.0 + t * t)).max(MIN_EDGE_WEIGHT)
+}
+
+/// The edge equations `z_j − z_i = g_ij` of [`irls`]: base weights and slopes of the east
+/// (`[0]`, step 1) and south (`[1]`, step `w`) edges of each pixel.
+struct Edges<'a> {
+    base: [&'a [f32]; 2],
+    slope: [&'a [f32]; 2],
+    w: usize,
+}
+
+impl Edges<'_> {
+    /// `‖b − A z‖ / ‖b‖` for the system whose edge weights are [`cauchy_weight`]s of the
+    /// residuals at `z`, summed edge by edge without forming it: per pixel, `A z − b` is
+    /// the weighted residuals of the edges leaving it minus those of the edges entering it.
+    fn reweighted_rel_residual(&self, z: &[f32], tau: f32) -> f64 {
+        let w = self.w;
+        if w == 0 {
+            return 0.0;
+        }
+        let h = z.len() / w;
+        // (weight × residual, weight × slope) of edge `i` in direction `k`; 0 where none.
+        let edge = |k: usize, i: usize| -> [f32; 2] {
+            let base = self.base[k][i];
+            if base > 0.0 {
+                let g = self.slope[k][i];
+                let r = z[i + [1, w][k]] - z[i] - g;
+                let wt = cauchy_weight(base, r, tau);
+                [wt * r, wt * g]
+            } else {
+                [0.0; 2]
+            }
+        };
+        // Bands of rows, each edge formed once: a row's east edges, and the south edges of
+        // the row and of the one above. Band sums are added in order: the same answer on
+        // every run and machine.
+        const ROWS: usize = 16;
+        let sums: Vec<[f64; 2]> = (0..h.div_ceil(ROWS))
+            .into_par_iter()
+            .map(|band| {
+                let (r0, r1) = (band * ROWS, ((band + 1) * ROWS).min(h));
+                let mut north: Vec<[f32; 2]> = (0..w)
+                    .map(|c| {
+                        if r0 > 0 {
+                            edge(1, (r0 - 1) * w + c)
+                        } else {
+                            [0.0; 2]
+                        }
+                    })
+                    .collect();
+                let mut sum = [0f64; 2];
+                for r in r0..r1 {
+                    let mut west = [0f32; 2];
+                    for (c, north) in north.iter_mut().enumerate() {
+                        let i = r * w + c;
+                        let (east, south) = (edge(0, i), edge(1, i));
+                        // A z − b at pixel i: edges leaving it minus edges entering it.
+                        for k in 0..2 {
+                            let v = east[k] + south[k] - west[k] - north[k];
+                            sum[k] += f64::from(v) * f64::from(v);
+                        }
+                        (west, *north) = (east, south);
+                    }
+                }
+                sum
+            })
+            .collect();
+        let [rr, bb] = sums
+            .iter()
+            .fold([0.0; 2], |a, b| [a[0] + b[0], a[1] + b[1]]);
+        if bb > 0.0 { (rr / bb).sqrt() } else { 0.0 }
     }
 }
 

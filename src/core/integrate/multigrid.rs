@@ -213,6 +213,11 @@ impl WeightStencil {
         Self::new(h, w, wx, wy)
     }
 
+    /// The edge weights `(wx, wy)` back, for a caller that lent them.
+    pub(super) fn into_weights(self) -> (Vec<f32>, Vec<f32>) {
+        (self.wx, self.wy)
+    }
+
     fn row<'a>(&self, v: &'a [f32], r: usize) -> &'a [f32] {
         &v[r * self.w..(r + 1) * self.w]
     }

@@ -62,7 +62,7 @@ pub(super) fn finite(v: f32) -> f32 {
 /// plain mean of the slopes (trapezoidal rule) overshoots by whole pixels per edge — are
 /// integrated without bias; on gentle slopes `n_z ≈ 1` and it is the trapezoidal rule
 /// (second order either way).
-#[inline(always)]
+#[cfg(test)]
 pub(super) fn edge_slope(a: [f32; 2], b: [f32; 2], k: usize) -> f32 {
     weighted_slope(normal_z(a[0], a[1]), a[k], normal_z(b[0], b[1]), b[k])
 }
@@ -95,6 +95,45 @@ pub(super) fn rhs<S: Stencil>(st: &S, p: &[f32], q: &[f32]) -> Vec<f32> {
         .enumerate()
         .for_each(|(k, band)| rhs_band(st, p, q, k * rows, band, &mut RhsScratch::new(w)));
     b
+}
+
+/// [`edge_slope`] of every edge whose weight is positive, each pixel's weight formed once:
+/// east edges (`bx`) in the first vector, south edges (`by`) in the second, 0 elsewhere.
+pub(super) fn edge_slopes(
+    p: &[f32],
+    q: &[f32],
+    bx: &[f32],
+    by: &[f32],
+    h: usize,
+    w: usize,
+) -> (Vec<f32>, Vec<f32>) {
+    let (mut gx, mut gy) = (vec![0f32; h * w], vec![0f32; h * w]);
+    if w == 0 {
+        return (gx, gy);
+    }
+    gx.par_chunks_mut(w)
+        .zip(gy.par_chunks_mut(w))
+        .enumerate()
+        .for_each_init(
+            || (SlopeRow::new(w), SlopeRow::new(w)),
+            |(cur, below), (r, (gx, gy))| {
+                let (bx, by) = (&bx[r * w..(r + 1) * w], &by[r * w..(r + 1) * w]);
+                cur.load(p, q, r);
+                if r + 1 < h {
+                    below.load(p, q, r + 1);
+                }
+                // A positive weight means the neighbour exists (column c + 1, row r + 1).
+                for c in 0..w {
+                    if bx[c] > 0.0 {
+                        gx[c] = weighted_slope(cur.nz[c], cur.p[c], cur.nz[c + 1], cur.p[c + 1]);
+                    }
+                    if by[c] > 0.0 {
+                        gy[c] = weighted_slope(cur.nz[c], cur.q[c], below.nz[c], below.q[c]);
+                    }
+                }
+            },
+        );
+    (gx, gy)
 }
 
 /// One image row as [`rhs_band`] reads it: finite slopes and their weights.

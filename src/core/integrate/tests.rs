@@ -865,3 +865,72 @@ fn robust_poisson_stops_re_weighting_once_heights_settle() {
     let (_, rounds) = solve(&p, &q, SETTLED);
     assert_eq!(rounds, IRLS_ROUNDS, "a surface still moving stopped early");
 }
+
+#[test]
+fn edge_slopes_and_the_re_weighted_residual_match_the_formed_system() {
+    use self::poisson::{edge_slope, finite};
+    let (n, rad) = (96, 30.0);
+    let s = hemisphere(47.5, 47.5, rad);
+    let mask = disc(n, n, 47.5, 47.5, 0.95 * rad);
+    let (p, mut q) = gradients(&normals_of(&s, &mask), &mask);
+    // Wrong normals along a band, so that the Cauchy weights vary across the mask.
+    for r in 30..60 {
+        q[[r, 45]] += 2.0;
+    }
+    let m = contiguous(mask.view()).into_owned();
+    let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+    let (bx, by) = multigrid::edge_weights(&m, None, n, n, MIN_EDGE_WEIGHT);
+    let slopes = |base: &[f32], step: usize, k: usize| -> Vec<f32> {
+        (0..n * n)
+            .map(|i| {
+                let g = |i: usize| [finite(ps[i]), finite(qs[i])];
+                if base[i] > 0.0 {
+                    edge_slope(g(i), g(i + step), k)
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    };
+    let (gx, gy) = (slopes(&bx, 1, 0), slopes(&by, n, 1));
+    // Each pixel's weight formed once: the same bits as edge by edge.
+    let (ex, ey) = poisson::edge_slopes(&ps, &qs, &bx, &by, n, n);
+    assert!(gx.iter().zip(&ex).all(|(a, b)| a.to_bits() == b.to_bits()));
+    assert!(gy.iter().zip(&ey).all(|(a, b)| a.to_bits() == b.to_bits()));
+    let comps = Components::new(&m, n, n);
+    let z = poisson_heights(&ps, &qs, &m, n, n, None, NEVER);
+    let edges = Edges {
+        base: [&bx, &by],
+        slope: [&gx, &gy],
+        w: n,
+    };
+    for tau in [0.05f32, 0.3, 1e6] {
+        // The system formed as a re-weighting round forms it, and its residual at z.
+        let weights = |base: &[f32], g: &[f32], step: usize| -> Vec<f32> {
+            (0..n * n)
+                .map(|i| {
+                    if base[i] > 0.0 {
+                        cauchy_weight(base[i], z[i + step] - z[i] - g[i], tau)
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        };
+        let st = WeightStencil::new(n, n, weights(&bx, &gx, 1), weights(&by, &gy, n));
+        let mut b = poisson::rhs(&st, &ps, &qs);
+        comps.remove_means(&mut b);
+        let mut az = vec![0f32; n * n];
+        multigrid::apply(&st, &z, &mut az);
+        let norm = |v: &mut dyn Iterator<Item = f32>| v.map(|x| f64::from(x).powi(2)).sum::<f64>();
+        let formed = (norm(&mut b.iter().zip(&az).map(|(b, a)| b - a))
+            / norm(&mut b.iter().copied()))
+        .sqrt();
+        let summed = edges.reweighted_rel_residual(&z, tau);
+        eprintln!("τ {tau}: formed {formed:.3e}, summed {summed:.3e}");
+        assert!(
+            (formed - summed).abs() <= 1e-3 * formed.max(1e-6),
+            "τ {tau}: formed {formed:e}, summed {summed:e}"
+        );
+    }
+}
