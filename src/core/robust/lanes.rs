@@ -143,6 +143,10 @@ fn settle_chunk(model: &Model, rows: &[&[u16]], c0: usize, keep: &mut [V]) -> [S
     // Fewer than 3 lit observations: the per-pixel fit's answer is least squares over
     // all, flagged; more than 4 are needed for the per-pixel fit to test outliers at all.
     let lit = sums.count;
+    if lit.iter().all(|&l| l < 3.0) {
+        // Background: only that answer's residuals are needed.
+        return background_chunk(model, rows, c0, &g_all);
+    }
     let mut g = solve(&sums);
     let mut tol = ZERO;
     let mut check;
@@ -184,8 +188,7 @@ fn settle_chunk(model: &Model, rows: &[&[u16]], c0: usize, keep: &mut [V]) -> [S
                 check.bad[j] += if explained { 0.0 } else { 1.0 };
                 check.sse[j] += r * r;
                 check.sse_in[j] += w[j] * r * r;
-                let pa = g_all[0][j] * l[0] + g_all[1][j] * l[1] + g_all[2][j] * l[2];
-                let ra = v[j] - (pa.max(0.0) + black).min(1.0);
+                let ra = residual_all(&g_all, l, v[j], black, j);
                 check.sse_all[j] += ra * ra;
                 // The per-pixel fit compares the two candidates over the observations
                 // the robust fit re-renders within the tolerance.
@@ -211,16 +214,10 @@ fn settle_chunk(model: &Model, rows: &[&[u16]], c0: usize, keep: &mut [V]) -> [S
         round += 1;
     }
     std::array::from_fn(|j| {
-        let g_all = [g_all[0][j], g_all[1][j], g_all[2][j]];
         if lit[j] < 3.0 {
-            return Settled::Fit(Fit {
-                g: g_all,
-                inliers: 0,
-                reliable: false,
-                sse_all: check.sse_all[j],
-                sse_inliers: check.sse_all[j],
-            });
+            return unlit(&g_all, check.sse_all[j], j);
         }
+        let g_all = [g_all[0][j], g_all[1][j], g_all[2][j]];
         let g = [g[0][j], g[1][j], g[2][j]];
         let kept = sums.count[j] as usize;
         let clean = lit[j] > 4.0
@@ -256,6 +253,43 @@ fn settle_chunk(model: &Model, rows: &[&[u16]], c0: usize, keep: &mut [V]) -> [S
             sse_all: check.sse[j],
             sse_inliers: check.sse_in[j],
         })
+    })
+}
+
+/// A chunk none of whose columns has 3 lit observations: least squares over all of them,
+/// flagged, with the same residual sums as [`settle_chunk`]'s check forms.
+#[inline(always)]
+fn background_chunk(model: &Model, rows: &[&[u16]], c0: usize, g_all: &[V; 3]) -> [Settled; W] {
+    let black = model.black;
+    let mut sse_all = ZERO;
+    for (k, row) in rows.iter().enumerate() {
+        let l = model.lights[k];
+        let v = load(row, c0);
+        for j in 0..W {
+            let ra = residual_all(g_all, l, v[j], black, j);
+            sse_all[j] += ra * ra;
+        }
+    }
+    std::array::from_fn(|j| unlit(g_all, sse_all[j], j))
+}
+
+/// Lane `j`'s observation `v` of light `l` less least squares over all observations'
+/// rendering of it (clipped as the image is).
+#[inline(always)]
+fn residual_all(g_all: &[V; 3], l: [f32; 3], v: f32, black: f32, j: usize) -> f32 {
+    let pa = g_all[0][j] * l[0] + g_all[1][j] * l[1] + g_all[2][j] * l[2];
+    v - (pa.max(0.0) + black).min(1.0)
+}
+
+/// Lane `j` with fewer than 3 lit observations: least squares over all of them, flagged.
+#[inline(always)]
+fn unlit(g_all: &[V; 3], sse_all: f32, j: usize) -> Settled {
+    Settled::Fit(Fit {
+        g: [g_all[0][j], g_all[1][j], g_all[2][j]],
+        inliers: 0,
+        reliable: false,
+        sse_all,
+        sse_inliers: sse_all,
     })
 }
 
