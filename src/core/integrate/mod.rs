@@ -304,6 +304,11 @@ fn irls(
     let st = WeightStencil::new(h, w, bx, by);
     let mut z = solve_masked(&st, p, q, &comps, None, halt);
     let (bx, by) = st.into_weights();
+    let edges = Edges {
+        base: [&bx, &by],
+        slope: [&gx, &gy],
+        w,
+    };
     // The previous round's heights, to see how far this round moved them (one more
     // height map in memory, 4 bytes a pixel).
     let mut previous: Vec<f32> = Vec::new();
@@ -314,50 +319,27 @@ fn irls(
             return (z, round);
         }
         round += 1;
-        // The residual `z_j − z_i − g_ij` of edge `i` (0 where there is none).
-        let residual = |base: &[f32], g: &[f32], step: usize, i: usize| {
-            if base[i] > 0.0 {
-                z[i + step] - z[i] - g[i]
-            } else {
-                0.0
-            }
-        };
         // τ from the median absolute residual over the edges (east ones, then south).
         let edge_abs = |j: usize| {
-            let (base, g, step, i) = if j < n {
-                (&bx, &gx, 1, j)
-            } else {
-                (&by, &gy, w, j - n)
-            };
-            (base[i] > 0.0).then(|| residual(base, g, step, i).abs())
+            let (k, i) = if j < n { (0, j) } else { (1, j - n) };
+            (edges.base[k][i] > 0.0).then(|| edges.residual(k, i, &z).abs())
         };
         let tau = nth_nonnegative(2 * n, edge_abs, |edges| edges / 2)
             .map_or(MIN_BREAK, |mad| (3.0 * 1.4826 * mad).max(MIN_BREAK));
         // Where the new weights leave the heights a solution (the smooth surfaces this
         // default meets: the weights hardly vary), the round's solve would return them
         // unchanged: stop before forming its operator and multigrid hierarchy.
-        let edges = Edges {
-            base: [&bx, &by],
-            slope: [&gx, &gy],
-            w,
-        };
         if settled >= 0.0 && edges.reweighted_rel_residual(&z, tau) <= poisson::TOL {
             comps.remove_means(&mut z);
             return (z, round);
         }
-        let reweight = |base: &[f32], g: &[f32], step: usize| -> Vec<f32> {
+        let reweight = |k: usize| -> Vec<f32> {
             (0..n)
                 .into_par_iter()
-                .map(|i| {
-                    if base[i] > 0.0 {
-                        cauchy_weight(base[i], residual(base, g, step, i), tau)
-                    } else {
-                        0.0
-                    }
-                })
+                .map(|i| edges.weight(k, i, &z, tau))
                 .collect()
         };
-        let st = WeightStencil::new(h, w, reweight(&bx, &gx, 1), reweight(&by, &gy, w));
+        let st = WeightStencil::new(h, w, reweight(0), reweight(1));
         previous.clone_from(&z);
         // Each round's solve starts from the previous heights, which the new weights change
         // only where residuals were large (all rounds on the 2048² sphere: 13 CG iterations
@@ -386,6 +368,23 @@ struct Edges<'a> {
 }
 
 impl Edges<'_> {
+    /// The residual `z_j − z_i − g_ij` of edge `i` in direction `k`, where there is one.
+    #[inline(always)]
+    fn residual(&self, k: usize, i: usize, z: &[f32]) -> f32 {
+        z[i + [1, self.w][k]] - z[i] - self.slope[k][i]
+    }
+
+    /// The re-weighted weight of edge `i` in direction `k` (0 where there is none).
+    #[inline(always)]
+    fn weight(&self, k: usize, i: usize, z: &[f32], tau: f32) -> f32 {
+        let base = self.base[k][i];
+        if base > 0.0 {
+            cauchy_weight(base, self.residual(k, i, z), tau)
+        } else {
+            0.0
+        }
+    }
+
     /// `‖b − A z‖ / ‖b‖` for the system whose edge weights are [`cauchy_weight`]s of the
     /// residuals at `z`, summed edge by edge without forming it: per pixel, `A z − b` is
     /// the weighted residuals of the edges leaving it minus those of the edges entering it.
@@ -399,10 +398,9 @@ impl Edges<'_> {
         let edge = |k: usize, i: usize| -> [f32; 2] {
             let base = self.base[k][i];
             if base > 0.0 {
-                let g = self.slope[k][i];
-                let r = z[i + [1, w][k]] - z[i] - g;
+                let r = self.residual(k, i, z);
                 let wt = cauchy_weight(base, r, tau);
-                [wt * r, wt * g]
+                [wt * r, wt * self.slope[k][i]]
             } else {
                 [0.0; 2]
             }
