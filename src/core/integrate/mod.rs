@@ -257,6 +257,10 @@ const IRLS_ROUNDS: usize = 4;
 /// Smallest residual scale, in pixels per edge, below which `robust-poisson` lets nothing
 /// go: height errors that small are noise, not depth steps.
 const MIN_BREAK: f32 = 0.05;
+/// Edges whose residuals `robust-poisson`'s τ is taken from, at least (all of them up to
+/// twice this): the median of 2²⁰ residuals is within a fraction of a percent of the whole
+/// frame's (τ's role is a scale, not a precise value), and a 2048² frame has 8 times as many.
+const TAU_SAMPLE: usize = 1 << 20;
 /// Re-weighting stops once a round moves no height by more than this many pixels: ten
 /// times below the ~0.1 px integration is judged by, and later rounds move less still
 /// (2048² rendered sphere, largest change per round: 0.050, 0.005, 0.0013, 0.0003 px).
@@ -266,8 +270,8 @@ const SETTLED: f32 = 0.01;
 
 /// Iteratively reweighted least squares with Cauchy weights on the edge equations
 /// `z_j − z_i = g_ij`: each round, an edge's weight is its base weight (confidence, or 1)
-/// over `1 + (r/τ)²`, `r` its residual and `τ` three robust standard deviations of all
-/// residuals (floored at [`MIN_BREAK`]). Edges across a depth step, or next to a wrong
+/// over `1 + (r/τ)²`, `r` its residual and `τ` three robust standard deviations of the
+/// residuals (of at least [`TAU_SAMPLE`] of them; floored at [`MIN_BREAK`]). Edges across a depth step, or next to a wrong
 /// normal, carry residuals far beyond τ and stop pulling their neighbours.
 fn robust_poisson(
     p: &[f32],
@@ -312,6 +316,9 @@ fn irls(
     // The previous round's heights, to see how far this round moved them (one more
     // height map in memory, 4 bytes a pixel).
     let mut previous: Vec<f32> = Vec::new();
+    // Past 2 × TAU_SAMPLE edges, τ's median comes from an evenly spread sample; an odd
+    // stride keeps it from taking the same columns on every row.
+    let stride = ((2 * n) / TAU_SAMPLE).max(1) | 1;
     let mut round = 0;
     loop {
         if round == IRLS_ROUNDS || halt() {
@@ -319,12 +326,14 @@ fn irls(
             return (z, round);
         }
         round += 1;
-        // τ from the median absolute residual over the edges (east ones, then south).
-        let edge_abs = |j: usize| {
+        // τ from the median absolute residual over the edges (east ones, then south), or
+        // over every `stride`-th of them.
+        let edge_abs = |t: usize| {
+            let j = t * stride;
             let (k, i) = if j < n { (0, j) } else { (1, j - n) };
             (edges.base[k][i] > 0.0).then(|| edges.residual(k, i, &z).abs())
         };
-        let tau = nth_nonnegative(2 * n, edge_abs, |edges| edges / 2)
+        let tau = nth_nonnegative((2 * n).div_ceil(stride), edge_abs, |edges| edges / 2)
             .map_or(MIN_BREAK, |mad| (3.0 * 1.4826 * mad).max(MIN_BREAK));
         // Where the new weights leave the heights a solution (the smooth surfaces this
         // default meets: the weights hardly vary), the round's solve would return them
