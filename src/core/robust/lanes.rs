@@ -116,36 +116,37 @@ struct Check {
 fn settle_chunk(model: &Model, rows: &[&[f32]], c0: usize, keep: &mut [V]) -> [Settled; W] {
     let n = rows.len();
     let (black, dark) = (model.black, model.dark);
-    // Round 0: least squares over the observations above the dark level and below
-    // saturation, and (for the background) over all of them.
-    let mut sums = Sums::EMPTY;
+    // Round 0: the observations above the dark level and below saturation, and least
+    // squares over all observations (the background's answer, and the final check's
+    // other candidate); a second pass sums the kept ones where a column has 3 of them.
+    // Two passes, each with few accumulators, keep them all in registers.
+    let mut lit = ZERO;
     let mut g_all = [ZERO; 3];
     for (k, row) in rows.iter().enumerate() {
-        let (l, p, o) = (model.lights[k], model.pinv[k], outer(model.lights[k]));
+        let p = model.pinv[k];
         let v = load(row, c0);
-        let mut y = ZERO;
         let mut w = ZERO;
         for j in 0..W {
-            y[j] = v[j] - black;
-            w[j] = if y[j] > dark && v[j] < SATURATED {
+            let y = v[j] - black;
+            w[j] = if y > dark && v[j] < SATURATED {
                 1.0
             } else {
                 0.0
             };
+            lit[j] += w[j];
             for i in 0..3 {
-                g_all[i][j] += p[i] * y[j];
+                g_all[i][j] += p[i] * y;
             }
         }
         keep[k] = w;
-        sums.add(l, o, w, y);
     }
     // Fewer than 3 lit observations: the per-pixel fit's answer is least squares over
     // all, flagged; more than 4 are needed for the per-pixel fit to test outliers at all.
-    let lit = sums.count;
     if lit.iter().all(|&l| l < 3.0) {
         // Background: only that answer's residuals are needed.
         return background_chunk(model, rows, c0, &g_all);
     }
+    let mut sums = kept_sums(model, rows, c0, keep);
     let mut g = solve(&sums);
     let mut tol = ZERO;
     let mut check;
@@ -203,12 +204,7 @@ fn settle_chunk(model: &Model, rows: &[&[f32]], c0: usize, keep: &mut [V]) -> [S
             // left: lanes whose set still changes are left to the per-pixel fit.
             break;
         }
-        sums = Sums::EMPTY;
-        for (k, row) in rows.iter().enumerate() {
-            let v = load(row, c0);
-            let y = v.map(|v| v - black);
-            sums.add(model.lights[k], outer(model.lights[k]), keep[k], y);
-        }
+        sums = kept_sums(model, rows, c0, keep);
         g = solve(&sums);
         round += 1;
     }
@@ -253,6 +249,17 @@ fn settle_chunk(model: &Model, rows: &[&[f32]], c0: usize, keep: &mut [V]) -> [S
             sse_inliers: check.sse_in[j],
         })
     })
+}
+
+/// The least squares sums over the observations in `keep`.
+#[inline(always)]
+fn kept_sums(model: &Model, rows: &[&[f32]], c0: usize, keep: &[V]) -> Sums {
+    let mut sums = Sums::EMPTY;
+    for (k, row) in rows.iter().enumerate() {
+        let y = load(row, c0).map(|v| v - model.black);
+        sums.add(model.lights[k], outer(model.lights[k]), keep[k], y);
+    }
+    sums
 }
 
 /// A chunk none of whose columns has 3 lit observations: least squares over all of them,
