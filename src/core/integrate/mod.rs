@@ -271,8 +271,9 @@ const SETTLED: f32 = 0.01;
 /// Iteratively reweighted least squares with Cauchy weights on the edge equations
 /// `z_j − z_i = g_ij`: each round, an edge's weight is its base weight (confidence, or 1)
 /// over `1 + (r/τ)²`, `r` its residual and `τ` three robust standard deviations of the
-/// residuals (of at least [`TAU_SAMPLE`] of them; floored at [`MIN_BREAK`]). Edges across a depth step, or next to a wrong
-/// normal, carry residuals far beyond τ and stop pulling their neighbours.
+/// residuals (of at least [`TAU_SAMPLE`] of them; floored at [`MIN_BREAK`]). Edges across
+/// a depth step, or next to a wrong normal, carry residuals far beyond τ and stop pulling
+/// their neighbours.
 fn robust_poisson(
     p: &[f32],
     q: &[f32],
