@@ -257,9 +257,10 @@ const IRLS_ROUNDS: usize = 4;
 /// Smallest residual scale, in pixels per edge, below which `robust-poisson` lets nothing
 /// go: height errors that small are noise, not depth steps.
 const MIN_BREAK: f32 = 0.05;
-/// Edges whose residuals `robust-poisson`'s τ is taken from, at least (all of them up to
-/// twice this): the median of 2²⁰ residuals is within a fraction of a percent of the whole
-/// frame's (τ's role is a scale, not a precise value), and a 2048² frame has 8 times as many.
+/// Edges whose residuals `robust-poisson`'s τ is taken from, about (all of them up to
+/// twice this; past that, those of evenly spaced rows): the median of 2²⁰ residuals is
+/// within a fraction of a percent of the whole frame's (τ's role is a scale, not a precise
+/// value), and a 2048² frame has 8 times as many.
 const TAU_SAMPLE: usize = 1 << 20;
 /// Re-weighting stops once a round moves no height by more than this many pixels: ten
 /// times below the ~0.1 px integration is judged by, and later rounds move less still
@@ -301,25 +302,21 @@ fn irls(
 ) -> (Vec<f32>, usize) {
     let comps = Components::new(mask, h, w);
     let (bx, by) = multigrid::edge_weights(mask, weights, h, w, MIN_EDGE_WEIGHT);
-    // An edge's weight is positive exactly when it joins two mask pixels. East edges step
-    // one pixel (x slopes), south edges one row (y slopes).
-    let (gx, gy) = poisson::edge_slopes(p, q, &bx, &by, h, w);
-    let n = h * w;
     // The first round solves with the base weights, lent to its operator.
     let st = WeightStencil::new(h, w, bx, by);
     let mut z = solve_masked(&st, p, q, &comps, None, halt);
     let (bx, by) = st.into_weights();
     let edges = Edges {
         base: [&bx, &by],
-        slope: [&gx, &gy],
+        p,
+        q,
         w,
     };
     // The previous round's heights, to see how far this round moved them (one more
     // height map in memory, 4 bytes a pixel).
     let mut previous: Vec<f32> = Vec::new();
-    // Past 2 × TAU_SAMPLE edges, τ's median comes from an evenly spread sample; an odd
-    // stride keeps it from taking the same columns on every row.
-    let stride = ((2 * n) / TAU_SAMPLE).max(1) | 1;
+    // Past 2 × TAU_SAMPLE edges, τ's median comes from every `stride`-th row.
+    let stride = ((2 * h * w) / TAU_SAMPLE).max(1);
     let mut round = 0;
     loop {
         if round == IRLS_ROUNDS || halt() {
@@ -327,14 +324,8 @@ fn irls(
             return (z, round);
         }
         round += 1;
-        // τ from the median absolute residual over the edges (east ones, then south), or
-        // over every `stride`-th of them.
-        let edge_abs = |t: usize| {
-            let j = t * stride;
-            let (k, i) = if j < n { (0, j) } else { (1, j - n) };
-            (edges.base[k][i] > 0.0).then(|| edges.residual(k, i, &z).abs())
-        };
-        let tau = nth_nonnegative((2 * n).div_ceil(stride), edge_abs, |edges| edges / 2)
+        let tau = edges
+            .median_abs_residual(&z, stride)
             .map_or(MIN_BREAK, |mad| (3.0 * 1.4826 * mad).max(MIN_BREAK));
         // Where the new weights leave the heights a solution (the smooth surfaces this
         // default meets: the weights hardly vary), the round's solve would return them
@@ -343,13 +334,8 @@ fn irls(
             comps.remove_means(&mut z);
             return (z, round);
         }
-        let reweight = |k: usize| -> Vec<f32> {
-            (0..n)
-                .into_par_iter()
-                .map(|i| edges.weight(k, i, &z, tau))
-                .collect()
-        };
-        let st = WeightStencil::new(h, w, reweight(0), reweight(1));
+        let (wx, wy) = edges.reweighted(&z, tau);
+        let st = WeightStencil::new(h, w, wx, wy);
         previous.clone_from(&z);
         // Each round's solve starts from the previous heights, which the new weights change
         // only where residuals were large (all rounds on the 2048² sphere: 13 CG iterations
@@ -369,30 +355,104 @@ fn cauchy_weight(base: f32, r: f32, tau: f32) -> f32 {
     (base / (1.0 + t * t)).max(MIN_EDGE_WEIGHT)
 }
 
-/// The edge equations `z_j − z_i = g_ij` of [`irls`]: base weights and slopes of the east
-/// (`[0]`, step 1) and south (`[1]`, step `w`) edges of each pixel.
+/// The edge equations `z_j − z_i = g_ij` of [`irls`]: base weights of the east (`[0]`,
+/// step 1) and south (`[1]`, step `w`) edges of each pixel, and the gradients their slopes
+/// come from ([`poisson::EdgeSlopes`], formed a row at a time in each pass).
 struct Edges<'a> {
     base: [&'a [f32]; 2],
-    slope: [&'a [f32]; 2],
+    p: &'a [f32],
+    q: &'a [f32],
     w: usize,
 }
 
 impl Edges<'_> {
-    /// The residual `z_j − z_i − g_ij` of edge `i` in direction `k`, where there is one.
-    #[inline(always)]
-    fn residual(&self, k: usize, i: usize, z: &[f32]) -> f32 {
-        z[i + [1, self.w][k]] - z[i] - self.slope[k][i]
+    fn rows(&self) -> usize {
+        self.p.len() / self.w.max(1)
     }
 
-    /// The re-weighted weight of edge `i` in direction `k` (0 where there is none).
-    #[inline(always)]
-    fn weight(&self, k: usize, i: usize, z: &[f32], tau: f32) -> f32 {
-        let base = self.base[k][i];
-        if base > 0.0 {
-            cauchy_weight(base, self.residual(k, i, z), tau)
-        } else {
-            0.0
+    /// Row `r`'s edge slopes into `s`.
+    fn load(&self, s: &mut poisson::EdgeSlopes, r: usize) {
+        let span = r * self.w..(r + 1) * self.w;
+        let [bx, by] = self.base;
+        s.load(self.p, self.q, &bx[span.clone()], &by[span], r);
+    }
+
+    /// Row `r`'s edges at heights `z`, per column `[east, south]`, each as (base weight,
+    /// residual `z_j − z_i − g_ij`, slope `g_ij`); all 0 where there is no edge.
+    fn row<'s>(
+        &'s self,
+        s: &'s mut poisson::EdgeSlopes,
+        z: &'s [f32],
+        r: usize,
+    ) -> impl Iterator<Item = [(f32, f32, f32); 2]> + 's {
+        self.load(s, r);
+        let (w, i) = (self.w, r * self.w);
+        let below = r + 1 < self.rows();
+        let (bx, by) = (&self.base[0][i..i + w], &self.base[1][i..i + w]);
+        (0..w).map(move |c| {
+            let zi = z[i + c];
+            let east = if bx[c] > 0.0 {
+                let g = s.east[c];
+                (bx[c], z[i + c + 1] - zi - g, g)
+            } else {
+                (0.0, 0.0, 0.0)
+            };
+            let south = if by[c] > 0.0 && below {
+                let g = s.south[c];
+                (by[c], z[i + c + w] - zi - g, g)
+            } else {
+                (0.0, 0.0, 0.0)
+            };
+            [east, south]
+        })
+    }
+
+    /// The median `|residual|` over the edges of every `stride`-th row (east edges and
+    /// south ones alike); `None` without edges there.
+    fn median_abs_residual(&self, z: &[f32], stride: usize) -> Option<f32> {
+        let w = self.w;
+        let sample: Vec<f32> = (0..self.rows().div_ceil(stride))
+            .into_par_iter()
+            .map_init(
+                || poisson::EdgeSlopes::new(w),
+                |s, k| -> Vec<f32> {
+                    (self.row(s, z, k * stride).flatten())
+                        .filter(|&(base, _, _)| base > 0.0)
+                        .map(|(_, r, _)| r.abs())
+                        .collect()
+                },
+            )
+            .flatten_iter()
+            .collect();
+        nth_nonnegative(sample.len(), |t| Some(sample[t]), |edges| edges / 2)
+    }
+
+    /// The re-weighted edge weights at heights `z` ([`cauchy_weight`]; 0 where there is no
+    /// edge): east edges, then south ones.
+    fn reweighted(&self, z: &[f32], tau: f32) -> (Vec<f32>, Vec<f32>) {
+        let (w, n) = (self.w, self.p.len());
+        let (mut wx, mut wy) = (vec![0f32; n], vec![0f32; n]);
+        if w == 0 {
+            return (wx, wy);
         }
+        let weight = |(base, r, _): (f32, f32, f32)| {
+            if base > 0.0 {
+                cauchy_weight(base, r, tau)
+            } else {
+                0.0
+            }
+        };
+        (wx.par_chunks_mut(w).zip(wy.par_chunks_mut(w)))
+            .enumerate()
+            .for_each_init(
+                || poisson::EdgeSlopes::new(w),
+                |s, (r, (wx, wy))| {
+                    for (c, [east, south]) in self.row(s, z, r).enumerate() {
+                        (wx[c], wy[c]) = (weight(east), weight(south));
+                    }
+                },
+            );
+        (wx, wy)
     }
 
     /// `‖b − A z‖ / ‖b‖` for the system whose edge weights are [`cauchy_weight`]s of the
@@ -403,14 +463,12 @@ impl Edges<'_> {
         if w == 0 {
             return 0.0;
         }
-        let h = z.len() / w;
-        // (weight × residual, weight × slope) of edge `i` in direction `k`; 0 where none.
-        let edge = |k: usize, i: usize| -> [f32; 2] {
-            let base = self.base[k][i];
+        let h = self.rows();
+        // (weight × residual, weight × slope) of an edge; 0 where there is none.
+        let terms = |(base, r, g): (f32, f32, f32)| -> [f32; 2] {
             if base > 0.0 {
-                let r = self.residual(k, i, z);
                 let wt = cauchy_weight(base, r, tau);
-                [wt * r, wt * self.slope[k][i]]
+                [wt * r, wt * g]
             } else {
                 [0.0; 2]
             }
@@ -421,33 +479,30 @@ impl Edges<'_> {
         const ROWS: usize = 16;
         let sums: Vec<[f64; 2]> = (0..h.div_ceil(ROWS))
             .into_par_iter()
-            .map(|band| {
-                let (r0, r1) = (band * ROWS, ((band + 1) * ROWS).min(h));
-                let mut north: Vec<[f32; 2]> = (0..w)
-                    .map(|c| {
-                        if r0 > 0 {
-                            edge(1, (r0 - 1) * w + c)
-                        } else {
-                            [0.0; 2]
+            .map_init(
+                || poisson::EdgeSlopes::new(w),
+                |s, band| {
+                    let (r0, r1) = (band * ROWS, ((band + 1) * ROWS).min(h));
+                    let mut north: Vec<[f32; 2]> = match r0.checked_sub(1) {
+                        Some(above) => self.row(s, z, above).map(|[_, s]| terms(s)).collect(),
+                        None => vec![[0.0; 2]; w],
+                    };
+                    let mut sum = [0f64; 2];
+                    for r in r0..r1 {
+                        let mut west = [0f32; 2];
+                        for ([east, south], north) in self.row(s, z, r).zip(north.iter_mut()) {
+                            let (east, south) = (terms(east), terms(south));
+                            // A z − b at the pixel: edges leaving it minus edges entering it.
+                            for k in 0..2 {
+                                let v = east[k] + south[k] - west[k] - north[k];
+                                sum[k] += f64::from(v) * f64::from(v);
+                            }
+                            (west, *north) = (east, south);
                         }
-                    })
-                    .collect();
-                let mut sum = [0f64; 2];
-                for r in r0..r1 {
-                    let mut west = [0f32; 2];
-                    for (c, north) in north.iter_mut().enumerate() {
-                        let i = r * w + c;
-                        let (east, south) = (edge(0, i), edge(1, i));
-                        // A z − b at pixel i: edges leaving it minus edges entering it.
-                        for k in 0..2 {
-                            let v = east[k] + south[k] - west[k] - north[k];
-                            sum[k] += f64::from(v) * f64::from(v);
-                        }
-                        (west, *north) = (east, south);
                     }
-                }
-                sum
-            })
+                    sum
+                },
+            )
             .collect();
         let [rr, bb] = sums
             .iter()

@@ -97,43 +97,55 @@ pub(super) fn rhs<S: Stencil>(st: &S, p: &[f32], q: &[f32]) -> Vec<f32> {
     b
 }
 
-/// [`edge_slope`] of every edge whose weight is positive, each pixel's weight formed once:
-/// east edges (`bx`) in the first vector, south edges (`by`) in the second, 0 elsewhere.
-pub(super) fn edge_slopes(
-    p: &[f32],
-    q: &[f32],
-    bx: &[f32],
-    by: &[f32],
-    h: usize,
-    w: usize,
-) -> (Vec<f32>, Vec<f32>) {
-    let (mut gx, mut gy) = (vec![0f32; h * w], vec![0f32; h * w]);
-    if w == 0 {
-        return (gx, gy);
+/// The [`edge_slope`]s of one row's edges, each pixel's weight formed once: `east[c]` of
+/// the edge from `(r, c)` to `(r, c + 1)`, `south[c]` of the one to `(r + 1, c)`, where
+/// that edge's weight is positive; 0 elsewhere. Formed row by row where they are used, so
+/// that no whole-frame slope map is stored or swept.
+pub(super) struct EdgeSlopes {
+    cur: SlopeRow,
+    below: SlopeRow,
+    pub(super) east: Vec<f32>,
+    pub(super) south: Vec<f32>,
+}
+
+impl EdgeSlopes {
+    pub(super) fn new(w: usize) -> Self {
+        Self {
+            cur: SlopeRow::new(w),
+            below: SlopeRow::new(w),
+            east: vec![0.0; w],
+            south: vec![0.0; w],
+        }
     }
-    gx.par_chunks_mut(w)
-        .zip(gy.par_chunks_mut(w))
-        .enumerate()
-        .for_each_init(
-            || (SlopeRow::new(w), SlopeRow::new(w)),
-            |(cur, below), (r, (gx, gy))| {
-                let (bx, by) = (&bx[r * w..(r + 1) * w], &by[r * w..(r + 1) * w]);
-                cur.load(p, q, r);
-                if r + 1 < h {
-                    below.load(p, q, r + 1);
-                }
-                // A positive weight means the neighbour exists (column c + 1, row r + 1).
-                for c in 0..w {
-                    if bx[c] > 0.0 {
-                        gx[c] = weighted_slope(cur.nz[c], cur.p[c], cur.nz[c + 1], cur.p[c + 1]);
-                    }
-                    if by[c] > 0.0 {
-                        gy[c] = weighted_slope(cur.nz[c], cur.q[c], below.nz[c], below.q[c]);
-                    }
-                }
-            },
-        );
-    (gx, gy)
+
+    /// Row `r`'s slopes, from the gradients `p`, `q` and the edge weights `bx`, `by` (row
+    /// `r` of each; a positive weight means the neighbour exists).
+    pub(super) fn load(&mut self, p: &[f32], q: &[f32], bx: &[f32], by: &[f32], r: usize) {
+        let w = self.east.len();
+        let h = p.len() / w.max(1);
+        let Self {
+            cur,
+            below,
+            east,
+            south,
+        } = self;
+        cur.load(p, q, r);
+        if r + 1 < h {
+            below.load(p, q, r + 1);
+        }
+        for c in 0..w {
+            east[c] = if bx[c] > 0.0 {
+                weighted_slope(cur.nz[c], cur.p[c], cur.nz[c + 1], cur.p[c + 1])
+            } else {
+                0.0
+            };
+            south[c] = if by[c] > 0.0 {
+                weighted_slope(cur.nz[c], cur.q[c], below.nz[c], below.q[c])
+            } else {
+                0.0
+            };
+        }
+    }
 }
 
 /// One image row as [`rhs_band`] reads it: finite slopes and their weights.

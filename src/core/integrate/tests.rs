@@ -867,7 +867,7 @@ fn robust_poisson_stops_re_weighting_once_heights_settle() {
 }
 
 #[test]
-fn edge_slopes_and_the_re_weighted_residual_match_the_formed_system() {
+fn edge_slopes_weights_and_the_re_weighted_residual_match_the_formed_system() {
     use self::poisson::{edge_slope, finite};
     let (n, rad) = (96, 30.0);
     let s = hemisphere(47.5, 47.5, rad);
@@ -893,15 +893,20 @@ fn edge_slopes_and_the_re_weighted_residual_match_the_formed_system() {
             .collect()
     };
     let (gx, gy) = (slopes(&bx, 1, 0), slopes(&by, n, 1));
-    // Each pixel's weight formed once: the same bits as edge by edge.
-    let (ex, ey) = poisson::edge_slopes(&ps, &qs, &bx, &by, n, n);
-    assert!(gx.iter().zip(&ex).all(|(a, b)| a.to_bits() == b.to_bits()));
-    assert!(gy.iter().zip(&ey).all(|(a, b)| a.to_bits() == b.to_bits()));
+    // Row by row, each pixel's weight formed once: the same bits as edge by edge.
+    let mut rows = poisson::EdgeSlopes::new(n);
+    for r in 0..n {
+        let i = r * n;
+        rows.load(&ps, &qs, &bx[i..i + n], &by[i..i + n], r);
+        assert!((gx[i..i + n].iter().zip(&rows.east)).all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!((gy[i..i + n].iter().zip(&rows.south)).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
     let comps = Components::new(&m, n, n);
     let z = poisson_heights(&ps, &qs, &m, n, n, None, NEVER);
     let edges = Edges {
         base: [&bx, &by],
-        slope: [&gx, &gy],
+        p: &ps,
+        q: &qs,
         w: n,
     };
     for tau in [0.05f32, 0.3, 1e6] {
@@ -917,7 +922,11 @@ fn edge_slopes_and_the_re_weighted_residual_match_the_formed_system() {
                 })
                 .collect()
         };
-        let st = WeightStencil::new(n, n, weights(&bx, &gx, 1), weights(&by, &gy, n));
+        let (wx, wy) = (weights(&bx, &gx, 1), weights(&by, &gy, n));
+        let (rx, ry) = edges.reweighted(&z, tau);
+        assert!((wx.iter().zip(&rx)).all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!((wy.iter().zip(&ry)).all(|(a, b)| a.to_bits() == b.to_bits()));
+        let st = WeightStencil::new(n, n, wx, wy);
         let mut b = poisson::rhs(&st, &ps, &qs);
         comps.remove_means(&mut b);
         let mut az = vec![0f32; n * n];
