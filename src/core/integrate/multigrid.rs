@@ -699,8 +699,13 @@ fn presmooth_band_body<S: Stencil>(
                 nb[c] = if d[c] > 0.0 { t } else { 0.0 };
             }
             let out = &mut cband[(r - r0) / 2 * cw..((r - r0) / 2 + 1) * cw];
-            for (cc, o) in out.iter_mut().enumerate() {
-                *o += nb[2 * cc] + nb.get(2 * cc + 1).copied().unwrap_or(0.0);
+            // Each pair of columns into its coarse cell (in pairs, which vectorises).
+            let (pairs, tail) = nb.as_chunks::<2>();
+            for (o, [a, b]) in out.iter_mut().zip(pairs) {
+                *o += a + b;
+            }
+            if let [t] = tail {
+                out[cw - 1] += t + 0.0;
             }
             xband[(r - r0) * w..(r - r0 + 1) * w].copy_from_slice(cur);
         }
