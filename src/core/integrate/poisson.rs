@@ -104,6 +104,8 @@ pub(super) fn rhs<S: Stencil>(st: &S, p: &[f32], q: &[f32]) -> Vec<f32> {
 pub(super) struct EdgeSlopes {
     cur: SlopeRow,
     below: SlopeRow,
+    /// The row `below` holds, so that rows taken in order form each pixel's weight once.
+    held: Option<usize>,
     pub(super) east: Vec<f32>,
     pub(super) south: Vec<f32>,
 }
@@ -113,6 +115,7 @@ impl EdgeSlopes {
         Self {
             cur: SlopeRow::new(w),
             below: SlopeRow::new(w),
+            held: None,
             east: vec![0.0; w],
             south: vec![0.0; w],
         }
@@ -123,27 +126,35 @@ impl EdgeSlopes {
     pub(super) fn load(&mut self, p: &[f32], q: &[f32], bx: &[f32], by: &[f32], r: usize) {
         let w = self.east.len();
         let h = p.len() / w.max(1);
+        if self.held == Some(r) {
+            std::mem::swap(&mut self.cur, &mut self.below);
+        } else {
+            self.cur.load(p, q, r);
+        }
+        self.held = (r + 1 < h).then(|| {
+            self.below.load(p, q, r + 1);
+            r + 1
+        });
         let Self {
             cur,
             below,
             east,
             south,
+            ..
         } = self;
-        cur.load(p, q, r);
-        if r + 1 < h {
-            below.load(p, q, r + 1);
+        let (bx, by, east, south) = (&bx[..w], &by[..w], &mut east[..w], &mut south[..w]);
+        // Every slope is formed and the missing edges' are dropped, so the loops have no
+        // branch (past the last row, `below` holds stale finite values).
+        for c in 0..w.saturating_sub(1) {
+            let v = weighted_slope(cur.nz[c], cur.p[c], cur.nz[c + 1], cur.p[c + 1]);
+            east[c] = if bx[c] > 0.0 { v } else { 0.0 };
+        }
+        if let Some(last) = east.last_mut() {
+            *last = 0.0;
         }
         for c in 0..w {
-            east[c] = if bx[c] > 0.0 {
-                weighted_slope(cur.nz[c], cur.p[c], cur.nz[c + 1], cur.p[c + 1])
-            } else {
-                0.0
-            };
-            south[c] = if by[c] > 0.0 {
-                weighted_slope(cur.nz[c], cur.q[c], below.nz[c], below.q[c])
-            } else {
-                0.0
-            };
+            let v = weighted_slope(cur.nz[c], cur.q[c], below.nz[c], below.q[c]);
+            south[c] = if by[c] > 0.0 { v } else { 0.0 };
         }
     }
 }
