@@ -453,9 +453,8 @@ impl Edges<'_> {
                 || EdgeRow::new(w),
                 |e, (r, (wx, wy))| {
                     self.load(e, z, r);
-                    for (out, base, res) in [(wx, 0, 0), (wy, 1, 1)]
-                        .map(|(o, b, k)| (o, self.base_row(r)[b], &e.res[k]))
-                    {
+                    let [bx, by] = self.base_row(r);
+                    for (out, base, res) in [(wx, bx, &e.res[0]), (wy, by, &e.res[1])] {
                         for c in 0..w {
                             let wt = cauchy_weight(base[c], res[c], tau);
                             out[c] = if base[c] > 0.0 { wt } else { 0.0 };
