@@ -348,11 +348,13 @@ fn irls(
     }
 }
 
-/// A re-weighting round's weight for an edge of base weight `base` and residual `r`.
+/// A re-weighting round's weight for an edge of base weight `base` and residual `r`; 0
+/// where the base weight is (no edge), whatever `r` holds there.
 #[inline(always)]
 fn cauchy_weight(base: f32, r: f32, tau: f32) -> f32 {
     let t = r / tau;
-    (base / (1.0 + t * t)).max(MIN_EDGE_WEIGHT)
+    let wt = (base / (1.0 + t * t)).max(MIN_EDGE_WEIGHT);
+    if base > 0.0 { wt } else { 0.0 }
 }
 
 /// The edge equations `z_j − z_i = g_ij` of [`irls`]: base weights of the east (`[0]`,
@@ -456,8 +458,7 @@ impl Edges<'_> {
                     let [bx, by] = self.base_row(r);
                     for (out, base, res) in [(wx, bx, &e.res[0]), (wy, by, &e.res[1])] {
                         for c in 0..w {
-                            let wt = cauchy_weight(base[c], res[c], tau);
-                            out[c] = if base[c] > 0.0 { wt } else { 0.0 };
+                            out[c] = cauchy_weight(base[c], res[c], tau);
                         }
                     }
                 },
@@ -484,7 +485,6 @@ impl Edges<'_> {
                 let [wr, wg] = out;
                 for c in 0..w {
                     let wt = cauchy_weight(base[c], res[c], tau);
-                    let wt = if base[c] > 0.0 { wt } else { 0.0 };
                     (wr[c], wg[c]) = (wt * res[c], wt * g[c]);
                 }
             }

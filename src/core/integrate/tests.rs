@@ -943,3 +943,51 @@ fn edge_slopes_weights_and_the_re_weighted_residual_match_the_formed_system() {
         );
     }
 }
+
+#[test]
+fn tau_sample_takes_every_edge_of_every_stride_th_row() {
+    use self::poisson::{edge_slope, finite};
+    let (n, rad) = (40, 14.0);
+    let s = hemisphere(19.5, 19.5, rad);
+    let mask = disc(n, n, 19.5, 19.5, 0.95 * rad);
+    let (p, mut q) = gradients(&normals_of(&s, &mask), &mask);
+    // Residuals that differ row by row, so that taking the wrong rows moves the median.
+    for r in 0..n {
+        for c in 0..n {
+            q[[r, c]] += 0.01 * r as f32;
+        }
+    }
+    let m = contiguous(mask.view()).into_owned();
+    let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+    let (bx, by) = multigrid::edge_weights(&m, None, n, n, MIN_EDGE_WEIGHT);
+    let z = poisson_heights(&ps, &qs, &m, n, n, None, NEVER);
+    let edges = Edges {
+        base: [&bx, &by],
+        p: &ps,
+        q: &qs,
+        w: n,
+    };
+    let g = |i: usize| [finite(ps[i]), finite(qs[i])];
+    for stride in [1, 3] {
+        // Edge by edge, over rows 0, stride, 2 × stride, …
+        let mut abs: Vec<f32> = Vec::new();
+        for r in (0..n).step_by(stride) {
+            for c in 0..n {
+                let i = r * n + c;
+                for (base, step, k) in [(&bx, 1, 0), (&by, n, 1)] {
+                    if base[i] > 0.0 {
+                        abs.push((z[i + step] - z[i] - edge_slope(g(i), g(i + step), k)).abs());
+                    }
+                }
+            }
+        }
+        abs.sort_by(f32::total_cmp);
+        let expected = abs[abs.len() / 2];
+        let got = edges.median_abs_residual(&z, stride);
+        assert_eq!(
+            got.map(f32::to_bits),
+            Some(expected.to_bits()),
+            "stride {stride}"
+        );
+    }
+}
