@@ -208,14 +208,42 @@ fn settle_chunk(model: &Model, rows: &[&[f32]], c0: usize, keep: &mut [V]) -> [S
         g = solve(&sums);
         round += 1;
     }
+    decide(
+        &Ended {
+            lit,
+            g_all,
+            g,
+            kept: sums.count,
+            check,
+        },
+        n,
+    )
+}
+
+/// A chunk's state when its rounds have ended.
+struct Ended {
+    lit: V,
+    g_all: [V; 3],
+    g: [V; 3],
+    kept: V,
+    check: Check,
+}
+
+/// Each lane's answer from its chunk's final state. Not inlined on purpose: reading lanes
+/// by a run-time index here would keep the chunk's sums in memory for the whole of
+/// [`settle_chunk`] (every accumulation a load and a store); given a copy, they stay in
+/// registers.
+#[inline(never)]
+fn decide(e: &Ended, n: usize) -> [Settled; W] {
+    let check = &e.check;
     std::array::from_fn(|j| {
-        if lit[j] < 3.0 {
-            return unlit(&g_all, check.sse_all[j], j);
+        let g_all = [e.g_all[0][j], e.g_all[1][j], e.g_all[2][j]];
+        if e.lit[j] < 3.0 {
+            return unlit(g_all, check.sse_all[j]);
         }
-        let g_all = [g_all[0][j], g_all[1][j], g_all[2][j]];
-        let g = [g[0][j], g[1][j], g[2][j]];
-        let kept = sums.count[j] as usize;
-        let clean = lit[j] > 4.0
+        let g = [e.g[0][j], e.g[1][j], e.g[2][j]];
+        let kept = e.kept[j] as usize;
+        let clean = e.lit[j] > 4.0
             && check.changed[j] == 0.0
             && check.bad[j] == 0.0
             && kept >= 3
@@ -276,7 +304,13 @@ fn background_chunk(model: &Model, rows: &[&[f32]], c0: usize, g_all: &[V; 3]) -
             sse_all[j] += ra * ra;
         }
     }
-    std::array::from_fn(|j| unlit(g_all, sse_all[j], j))
+    decide_unlit(*g_all, sse_all)
+}
+
+/// [`decide`] for a chunk of background lanes.
+#[inline(never)]
+fn decide_unlit(g_all: [V; 3], sse_all: V) -> [Settled; W] {
+    std::array::from_fn(|j| unlit([g_all[0][j], g_all[1][j], g_all[2][j]], sse_all[j]))
 }
 
 /// Lane `j`'s observation `v` of light `l` less least squares over all observations'
@@ -287,11 +321,10 @@ fn residual_all(g_all: &[V; 3], l: [f32; 3], v: f32, black: f32, j: usize) -> f3
     v - (pa.max(0.0) + black).min(1.0)
 }
 
-/// Lane `j` with fewer than 3 lit observations: least squares over all of them, flagged.
-#[inline(always)]
-fn unlit(g_all: &[V; 3], sse_all: f32, j: usize) -> Settled {
+/// A lane with fewer than 3 lit observations: least squares over all of them, flagged.
+fn unlit(g_all: [f32; 3], sse_all: f32) -> Settled {
     Settled::Fit(Fit {
-        g: [g_all[0][j], g_all[1][j], g_all[2][j]],
+        g: g_all,
         inliers: 0,
         reliable: false,
         sse_all,
