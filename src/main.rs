@@ -53,7 +53,7 @@ enum Command {
     Evaluate {
         dir: PathBuf,
         /// Integration method for the depth column.
-        #[arg(long, value_parser = kebab::<Integration>, default_value = "weighted-poisson")]
+        #[arg(long, value_parser = kebab::<Integration>, default_value = "robust-poisson")]
         integration: Integration,
     },
     /// Time the core (decode, full job, each stage), its peak memory and, with --http /
@@ -91,7 +91,7 @@ struct ReconstructArgs {
     /// --mask none.
     #[arg(long)]
     mask_file: Option<PathBuf>,
-    /// weighted-poisson (default) | poisson | robust-poisson | frankot-chellappa | path
+    /// robust-poisson (default) | weighted-poisson | poisson | frankot-chellappa | path
     #[arg(long, value_parser = kebab::<Integration>)]
     integration: Option<Integration>,
     /// Light for shaded.png, as x,y,z (default 1,2,3).

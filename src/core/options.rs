@@ -48,11 +48,12 @@ pub enum Integration {
     /// Poisson with each pixel's equations weighted by the solver's confidence: pixels
     /// with few usable observations (fallback normals) follow their neighbours instead of
     /// their own gradients, so they make no spikes.
-    #[default]
     WeightedPoisson,
     /// `weighted-poisson`, then re-weighted a few times so that edges whose gradient
     /// disagrees with the surface by far more than is typical (depth steps, the wrong
-    /// normals left) are let go: discontinuity-preserving.
+    /// normals left) are let go: discontinuity-preserving. The default: the most accurate
+    /// with the default solver (docs/benchmarks.md).
+    #[default]
     RobustPoisson,
 }
 
