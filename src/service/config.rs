@@ -43,6 +43,12 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_STORE")]
     pub store: Option<String>,
 
+    /// Keep job records in PostgreSQL, `postgres://user[:password]@host[:port]/database`
+    /// [default: SQLite in the data directory]. Migrations are applied at start; one
+    /// instance per database for now (a second one is refused at start).
+    #[arg(long, env = "PHOTOSTEREO_DATABASE_URL")]
+    pub database_url: Option<String>,
+
     /// Reconstructions that run at once [default: the number of CPU cores].
     #[arg(long, env = "PHOTOSTEREO_WORKERS", value_parser = clap::value_parser!(u32).range(1..=1024))]
     pub workers: Option<u32>,
@@ -191,6 +197,8 @@ pub struct Config {
     pub data_dir: PathBuf,
     /// `s3://bucket[/prefix]`; none: the data directory.
     pub store: Option<String>,
+    /// PostgreSQL for the job records (`postgres://…`); None: SQLite in `data_dir`.
+    pub database_url: Option<String>,
     pub workers: usize,
     pub queue_length: usize,
     pub max_body_bytes: u64,
@@ -243,6 +251,7 @@ impl Config {
         Self {
             data_dir: data_dir.into(),
             store: None,
+            database_url: None,
             workers,
             queue_length: 64,
             max_body_bytes: 2 << 30,
@@ -292,6 +301,7 @@ impl From<&ServeArgs> for Config {
     fn from(a: &ServeArgs) -> Self {
         let mut c = Config::new(a.data_dir.clone());
         c.store = a.store.clone();
+        c.database_url = a.database_url.clone();
         c.workers = a
             .workers
             .map(|w| w as usize)

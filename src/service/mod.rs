@@ -5,7 +5,8 @@
 //!   out), documented with `#[utoipa::path]`.
 //! - [`events`]: a job's server-sent event stream.
 //! - [`jobs`]: the bounded queue and worker pool that run reconstructions.
-//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite).
+//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite); [`pg`]: the same in
+//!   PostgreSQL.
 //! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory,
 //!   or [`s3`]: an S3-compatible object store).
 //! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
@@ -25,6 +26,7 @@ mod idempotency;
 pub mod jobs;
 mod metrics;
 mod openapi;
+pub mod pg;
 mod prefetch;
 mod quota;
 pub mod repo;
@@ -133,8 +135,15 @@ impl AppState {
         let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
         let webhook_secrets = webhooks::parse_secrets(&config.webhook_secrets)?;
         let data_lock = lock_data_dir(&config.data_dir)?;
-        let db = config.data_dir.join("jobs.sqlite");
-        let repo = SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?;
+        let repo: Arc<dyn JobRepo> = match &config.database_url {
+            None => {
+                let db = config.data_dir.join("jobs.sqlite");
+                Arc::new(
+                    SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?,
+                )
+            }
+            Some(url) => Arc::new(pg::PgRepo::connect(url).context("opening the job database")?),
+        };
         let store: Arc<dyn BlobStore> = match &config.store {
             None => Arc::new(
                 LocalStore::open(&config.data_dir)
@@ -156,7 +165,7 @@ impl AppState {
             jobs: JobQueue::new(config.queue_length),
             prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
             config,
-            repo: Arc::new(repo),
+            repo,
             store,
             metrics: Metrics::default(),
             keys: std::sync::RwLock::new(Arc::new(keys)),

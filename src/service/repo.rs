@@ -207,6 +207,12 @@ pub enum Finish {
 #[error("job repository: {0}")]
 pub struct RepoError(String);
 
+impl RepoError {
+    pub(super) fn new(message: String) -> Self {
+        Self(message)
+    }
+}
+
 impl From<rusqlite::Error> for RepoError {
     fn from(e: rusqlite::Error) -> Self {
         Self(e.to_string())
@@ -421,27 +427,28 @@ fn read_record(row: &Row<'_>) -> rusqlite::Result<RawRecord> {
     })
 }
 
-struct RawRecord {
-    id: String,
-    status: String,
-    stage: Option<String>,
-    progress: f64,
-    created_at: i64,
-    started_at: Option<i64>,
-    finished_at: Option<i64>,
-    heartbeat_at: Option<i64>,
-    attempts: i64,
-    image_count: i64,
-    options: String,
-    error: Option<String>,
-    result: Option<String>,
-    artifacts: Option<String>,
-    tenant: String,
-    callback: Option<String>,
+/// A job row as stored (JSON as text), in either database.
+pub(super) struct RawRecord {
+    pub(super) id: String,
+    pub(super) status: String,
+    pub(super) stage: Option<String>,
+    pub(super) progress: f64,
+    pub(super) created_at: i64,
+    pub(super) started_at: Option<i64>,
+    pub(super) finished_at: Option<i64>,
+    pub(super) heartbeat_at: Option<i64>,
+    pub(super) attempts: i64,
+    pub(super) image_count: i64,
+    pub(super) options: String,
+    pub(super) error: Option<String>,
+    pub(super) result: Option<String>,
+    pub(super) artifacts: Option<String>,
+    pub(super) tenant: String,
+    pub(super) callback: Option<String>,
 }
 
 impl RawRecord {
-    fn decode(self) -> RepoResult<JobRecord> {
+    pub(super) fn decode(self) -> RepoResult<JobRecord> {
         let id = Uuid::parse_str(&self.id)
             .map_err(|e| RepoError(format!("stored job id {:?}: {e}", self.id)))?;
         let status = JobStatus::parse(&self.status)
@@ -502,7 +509,7 @@ fn read_remembered(
 const CALIBRATION_COLUMNS: &str = "id, tenant, created_at, detail, light_table, artifacts";
 
 /// A calibration row: id, tenant, created_at, detail, light_table, artifacts.
-type RawCalibration = (String, String, i64, String, String, String);
+pub(super) type RawCalibration = (String, String, i64, String, String, String);
 
 fn read_calibration(row: &Row<'_>) -> rusqlite::Result<RawCalibration> {
     Ok((
@@ -515,7 +522,7 @@ fn read_calibration(row: &Row<'_>) -> rusqlite::Result<RawCalibration> {
     ))
 }
 
-fn decode_calibration(
+pub(super) fn decode_calibration(
     (id, tenant, created_at, detail, table, artifacts): RawCalibration,
 ) -> RepoResult<CalibrationRecord> {
     Ok(CalibrationRecord {
