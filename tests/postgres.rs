@@ -262,3 +262,58 @@ async fn service_on_postgres_runs_jobs_and_keeps_them_across_restarts() {
     assert_eq!(normal.bytes().await.unwrap(), bytes);
     server.stop().await;
 }
+
+/// PostgreSQL stopped while a job runs and started again: submissions during the outage
+/// get 503 with Retry-After, the running job's outcome is recorded once the database
+/// answers, and the service takes new jobs again without a restart.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_outage_answers_503_and_loses_nothing() {
+    let Some(pg) = Postgres::start("postgres_outage_answers_503_and_loses_nothing") else {
+        return;
+    };
+    let url = pg.database("outage");
+    let data = tempfile::tempdir().unwrap();
+    let mut c = config(data.path());
+    c.database_url = Some(url);
+    c.stage_delay = std::time::Duration::from_millis(400);
+    let server = TestServer::start(c).await;
+    let bump = repo_root().join("res/bump");
+    let running = server.submit(folder_form(&bump)).await;
+    let running = running["id"].as_str().unwrap().to_string();
+    server
+        .wait_for(&running, std::time::Duration::from_secs(30), |j| {
+            j["status"] == "running"
+        })
+        .await;
+
+    tokio::task::block_in_place(|| pg.stop());
+    let r = server
+        .client
+        .post(server.url("/v1/jobs"))
+        .multipart(folder_form(&bump))
+        .send()
+        .await
+        .unwrap();
+    let retry = r
+        .headers()
+        .get("retry-after")
+        .map(|v| v.to_str().unwrap().to_string());
+    expect_problem(r, 503, &["job database"]).await;
+    assert!(retry.is_some(), "503 without Retry-After");
+    let r = server
+        .client
+        .get(server.url(&format!("/v1/jobs/{running}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 503, "status reads wait for the database too");
+    // Let the running job reach its end while the database is still down.
+    tokio::time::sleep(std::time::Duration::from_secs(3)).await;
+    tokio::task::block_in_place(|| pg.start_again());
+
+    let done = server.wait_succeeded(&running).await;
+    assert_eq!(done["status"], "succeeded");
+    let next = server.submit(folder_form(&bump)).await;
+    server.wait_succeeded(next["id"].as_str().unwrap()).await;
+    server.stop().await;
+}

@@ -353,9 +353,19 @@ impl From<RunError> for ApiError {
 
 impl From<super::repo::RepoError> for ApiError {
     fn from(e: super::repo::RepoError) -> Self {
+        if e.is_unavailable() {
+            tracing::warn!(error = %e, "the job database does not answer");
+            return Self::unavailable(
+                DATABASE_RETRY_SECONDS,
+                "the job database does not answer for now; nothing accepted is lost, try again",
+            );
+        }
         Self::internal(e)
     }
 }
+
+/// Retry-After while the job database does not answer.
+const DATABASE_RETRY_SECONDS: u64 = 5;
 
 impl From<tokio::task::JoinError> for ApiError {
     fn from(e: tokio::task::JoinError) -> Self {

@@ -36,7 +36,7 @@ use super::Inner;
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest, is_unavailable};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
-use super::repo::{ArtifactInfo, Finish, JobStatus};
+use super::repo::{ArtifactInfo, Finish, JobStatus, RepoResult};
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};
 
 /// The pipeline's stages in order; progress is the index of the stage reached over
@@ -81,18 +81,18 @@ impl QueueState {
         self.len += 1;
     }
 
-    /// The next tenant's oldest job; that tenant goes to the back of the turns.
-    fn pop(&mut self) -> Option<Uuid> {
+    /// The next tenant's oldest job, and the tenant, who goes to the back of the turns.
+    fn pop(&mut self) -> Option<(Uuid, String)> {
         let tenant = self.turns.pop_front()?;
         let line = self.lines.get_mut(&tenant)?;
         let id = line.pop_front();
         if line.is_empty() {
             self.lines.remove(&tenant);
         } else {
-            self.turns.push_back(tenant);
+            self.turns.push_back(tenant.clone());
         }
         self.len -= usize::from(id.is_some());
-        id
+        Some((id?, tenant))
     }
 
     fn remove(&mut self, id: Uuid) -> bool {
@@ -196,16 +196,16 @@ impl JobQueue {
         lock(&self.state).remove(id)
     }
 
-    /// Wait for the next job; None once the queue is closed.
-    fn pop(&self) -> Option<Uuid> {
+    /// Wait for the next job (and its tenant); None once the queue is closed.
+    fn pop(&self) -> Option<(Uuid, String)> {
         let mut s = lock(&self.state);
         loop {
             if s.closed {
                 return None;
             }
-            if let Some(id) = s.pop() {
+            if let Some(next) = s.pop() {
                 self.busy.fetch_add(1, Ordering::SeqCst);
-                return Some(id);
+                return Some(next);
             }
             s = self.ready.wait(s).unwrap_or_else(|p| p.into_inner());
         }
@@ -305,15 +305,39 @@ impl Drop for RunningGuard<'_> {
 
 /// A worker thread: run jobs until the queue closes.
 pub(crate) fn worker_loop(inner: Arc<Inner>) {
-    while let Some(id) = inner.jobs.pop() {
-        process(&inner, id);
+    while let Some((id, tenant)) = inner.jobs.pop() {
+        process(&inner, id, &tenant);
         inner.jobs.busy.fetch_sub(1, Ordering::SeqCst);
         super::util::release_free_heap();
     }
 }
 
-/// How long a job waits before it is queued again when the store does not answer.
+/// How long a job waits before it is queued again when the store or the job database
+/// does not answer.
 const STORE_RETRY: Duration = Duration::from_secs(2);
+
+/// Sleep for `wait`, or less if the service starts to stop.
+fn wait_unless_closing(inner: &Inner, wait: Duration) {
+    let until = Instant::now() + wait;
+    while Instant::now() < until && !inner.jobs.is_closed() {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Run a repo write, again and again while the database does not answer, so that a job's
+/// outcome is recorded once it does; at shutdown the last error stands (the job is then
+/// still "running" in the database and runs again at the next start).
+fn persist<T>(inner: &Inner, write: impl Fn() -> RepoResult<T>) -> RepoResult<T> {
+    loop {
+        match write() {
+            Err(e) if e.is_unavailable() && !inner.jobs.is_closed() => {
+                tracing::warn!(error = %e, "the job database does not answer; recording again");
+                wait_unless_closing(inner, STORE_RETRY);
+            }
+            other => return other,
+        }
+    }
+}
 
 /// Why a job stopped without a result.
 enum Stop {
@@ -339,7 +363,7 @@ impl From<ApiError> for Stop {
     }
 }
 
-fn process(inner: &Inner, id: Uuid) {
+fn process(inner: &Inner, id: Uuid, tenant: &str) {
     // Registered before the repo says running, so a DELETE that sees "running" finds it.
     let ctl = inner.jobs.register(id);
     match inner.repo.start(id, now_ms()) {
@@ -348,6 +372,14 @@ fn process(inner: &Inner, id: Uuid) {
             inner.prefetch.discard(id);
             inner.jobs.unregister(id);
             return; // cancelled or deleted while queued
+        }
+        Err(e) if e.is_unavailable() => {
+            // The job stays queued in the database; try it again once it answers.
+            tracing::warn!(job = %id, error = %e, "the job database does not answer; the job waits");
+            inner.jobs.unregister(id);
+            wait_unless_closing(inner, STORE_RETRY);
+            inner.jobs.push(id, tenant);
+            return;
         }
         Err(e) => {
             tracing::error!(job = %id, error = %e, "cannot start job");
@@ -411,13 +443,14 @@ fn settle(
     let instance = format!("/v1/jobs/{id}");
     let now = now_ms();
     let recorded = match outcome {
-        Ok((result, artifacts)) => inner
-            .repo
-            .finish(id, &Finish::Succeeded { result, artifacts }, now)
-            .map(|ok| ok.then_some(JobStatus::Succeeded)),
+        Ok((result, artifacts)) => {
+            let done = Finish::Succeeded { result, artifacts };
+            persist(inner, || inner.repo.finish(id, &done, now))
+                .map(|ok| ok.then_some(JobStatus::Succeeded))
+        }
         Err(Stop::Stopped) if ctl.interrupt.load(Ordering::SeqCst) => {
             tracing::info!("job interrupted by shutdown; it runs again at the next start");
-            inner.repo.requeue(id).map(|_| None)
+            persist(inner, || inner.repo.requeue(id)).map(|_| None)
         }
         Err(Stop::Stopped) if timed_out && !ctl.cancel.load(Ordering::SeqCst) => {
             let e = ApiError::job_timeout(format!(
@@ -425,9 +458,8 @@ fn settle(
                 format_duration(inner.config.job_timeout)
             ))
             .with_instance(&instance);
-            inner
-                .repo
-                .finish(id, &Finish::Failed(e.problem()), now)
+            let failed = Finish::Failed(e.problem());
+            persist(inner, || inner.repo.finish(id, &failed, now))
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
         Err(Stop::Stopped) => Ok(Some(JobStatus::Cancelled)), // the DELETE recorded it
@@ -440,7 +472,7 @@ fn settle(
             {
                 std::thread::sleep(Duration::from_millis(20));
             }
-            inner.repo.requeue(id).and_then(|requeued| {
+            persist(inner, || inner.repo.requeue(id)).and_then(|requeued| {
                 if requeued
                     && !ctl.interrupt.load(Ordering::SeqCst)
                     && let Some(rec) = inner.repo.get(id)?
@@ -456,10 +488,8 @@ fn settle(
                 detail = e.detail(),
                 "job failed"
             );
-            let problem = e.with_instance(&instance).problem();
-            inner
-                .repo
-                .finish(id, &Finish::Failed(problem), now)
+            let failed = Finish::Failed(e.with_instance(&instance).problem());
+            persist(inner, || inner.repo.finish(id, &failed, now))
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
     };
@@ -748,7 +778,18 @@ mod tests {
         while q.depth() > 0 {
             order.push(q.pop().unwrap());
         }
-        assert_eq!(order, [a[0], b[0], a[2], b[1], a[3], a[4]]);
+        let t = |id: Uuid, tenant: &str| (id, tenant.to_string());
+        assert_eq!(
+            order,
+            [
+                t(a[0], "a"),
+                t(b[0], "b"),
+                t(a[2], "a"),
+                t(b[1], "b"),
+                t(a[3], "a"),
+                t(a[4], "a")
+            ]
+        );
         let small = JobQueue::new(1);
         small.try_push(a[0], "a").unwrap();
         assert_eq!(small.try_push(b[0], "b"), Err(PushError::Full));

@@ -79,16 +79,27 @@ const COLUMNS: &str = "id, status, stage, progress, created_at, started_at, fini
 const CALIBRATION_COLUMNS: &str = "id, tenant, created_at, detail, light_table, artifacts";
 
 fn db_error(e: tokio_postgres::Error) -> RepoError {
-    // The server's own message (e.g. "relation … does not exist") is in the source.
     match e.as_db_error() {
+        // Connection exceptions (08…) and a server shutting down or starting (57P0…) pass.
+        Some(db) if is_transient(db.code().code()) => {
+            RepoError::unavailable(format!("PostgreSQL: {}", db.message()))
+        }
         Some(db) => RepoError::new(format!("PostgreSQL: {}", db.message())),
-        None => RepoError::new(format!("PostgreSQL: {e}")),
+        // No answer from the server at all: a closed connection, a refused one.
+        None => RepoError::unavailable(format!("PostgreSQL does not answer: {e}")),
     }
+}
+
+fn is_transient(sqlstate: &str) -> bool {
+    sqlstate.starts_with("08") || sqlstate.starts_with("57P0")
 }
 
 fn pool_error(e: deadpool_postgres::PoolError) -> RepoError {
     match e {
         deadpool_postgres::PoolError::Backend(e) => db_error(e),
+        deadpool_postgres::PoolError::Timeout(_) => {
+            RepoError::unavailable(format!("PostgreSQL does not answer: {e}"))
+        }
         e => RepoError::new(format!("PostgreSQL connection pool: {e}")),
     }
 }

@@ -202,26 +202,45 @@ pub enum Finish {
     Failed(Problem),
 }
 
-/// A storage failure (the server's fault).
+/// A storage failure: the server's fault, or a database that does not answer for now
+/// ([`is_unavailable`](Self::is_unavailable)), which callers wait out.
 #[derive(Debug, thiserror::Error)]
-#[error("job repository: {0}")]
-pub struct RepoError(String);
+#[error("job repository: {message}")]
+pub struct RepoError {
+    message: String,
+    unavailable: bool,
+}
 
 impl RepoError {
     pub(super) fn new(message: String) -> Self {
-        Self(message)
+        Self {
+            message,
+            unavailable: false,
+        }
+    }
+
+    /// The database cannot be reached (down, restarting, out of connections).
+    pub(super) fn unavailable(message: String) -> Self {
+        Self {
+            message,
+            unavailable: true,
+        }
+    }
+
+    pub fn is_unavailable(&self) -> bool {
+        self.unavailable
     }
 }
 
 impl From<rusqlite::Error> for RepoError {
     fn from(e: rusqlite::Error) -> Self {
-        Self(e.to_string())
+        Self::new(e.to_string())
     }
 }
 
 impl From<serde_json::Error> for RepoError {
     fn from(e: serde_json::Error) -> Self {
-        Self(format!("stored JSON: {e}"))
+        Self::new(format!("stored JSON: {e}"))
     }
 }
 
@@ -392,7 +411,7 @@ impl SqliteRepo {
 fn migrate(conn: &mut Connection) -> RepoResult<()> {
     let version: i64 = conn.pragma_query_value(None, "user_version", |r| r.get(0))?;
     if version as usize > MIGRATIONS.len() {
-        return Err(RepoError(format!(
+        return Err(RepoError::new(format!(
             "database schema version {version} is newer than this program ({}); upgrade photostereo",
             MIGRATIONS.len()
         )));
@@ -450,9 +469,9 @@ pub(super) struct RawRecord {
 impl RawRecord {
     pub(super) fn decode(self) -> RepoResult<JobRecord> {
         let id = Uuid::parse_str(&self.id)
-            .map_err(|e| RepoError(format!("stored job id {:?}: {e}", self.id)))?;
+            .map_err(|e| RepoError::new(format!("stored job id {:?}: {e}", self.id)))?;
         let status = JobStatus::parse(&self.status)
-            .ok_or_else(|| RepoError(format!("stored status {:?} of {id}", self.status)))?;
+            .ok_or_else(|| RepoError::new(format!("stored status {:?} of {id}", self.status)))?;
         Ok(JobRecord {
             id,
             tenant: self.tenant,
@@ -527,7 +546,7 @@ pub(super) fn decode_calibration(
 ) -> RepoResult<CalibrationRecord> {
     Ok(CalibrationRecord {
         id: Uuid::parse_str(&id)
-            .map_err(|e| RepoError(format!("stored calibration id {id:?}: {e}")))?,
+            .map_err(|e| RepoError::new(format!("stored calibration id {id:?}: {e}")))?,
         tenant,
         created_at,
         detail: serde_json::from_str(&detail)?,
