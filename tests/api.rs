@@ -918,7 +918,7 @@ async fn delete_cancels_running_and_queued_jobs_then_removes_them() {
 
     // The worker lets go of the running job at its next stage; nothing runs afterwards.
     let start = std::time::Instant::now();
-    while s.state.jobs().busy() > 0 {
+    while s.state.workers().busy() > 0 {
         assert!(
             start.elapsed() < Duration::from_secs(10),
             "the worker did not stop"

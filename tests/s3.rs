@@ -13,14 +13,11 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use common::*;
-use futures_util::TryStreamExt;
-use object_store::ObjectStore;
-use object_store::aws::AmazonS3Builder;
 use photostereo::core::synth::ChromeSet;
 use photostereo::service::Config;
 use reqwest::multipart::Form;
 use serde_json::Value;
-use weed::Weed;
+use weed::{Weed, keys};
 
 /// A server whose store is `prefix` in the weed bucket.
 async fn s3_server(
@@ -35,31 +32,6 @@ async fn s3_server(
     let _env = weed::ENV.lock().await;
     weed.set_env();
     TestServer::start(c).await
-}
-
-/// A client of the bucket of our own, to see what is stored.
-fn bucket(weed: &Weed) -> Arc<dyn ObjectStore> {
-    Arc::new(
-        AmazonS3Builder::new()
-            .with_endpoint(weed.endpoint())
-            .with_bucket_name(weed::BUCKET)
-            .with_access_key_id(weed::ACCESS_KEY)
-            .with_secret_access_key(weed::SECRET_KEY)
-            .with_region("us-east-1")
-            .with_allow_http(true)
-            .build()
-            .unwrap(),
-    )
-}
-
-/// Every key under `prefix`.
-async fn keys(store: &Arc<dyn ObjectStore>, prefix: &str) -> BTreeSet<String> {
-    store
-        .list(Some(&object_store::path::Path::from(prefix)))
-        .map_ok(|m| m.location.to_string())
-        .try_collect()
-        .await
-        .unwrap()
 }
 
 async fn get(s: &TestServer, path: &str, headers: &[(&str, &str)]) -> reqwest::Response {
@@ -91,7 +63,7 @@ async fn jobs_and_calibrations_in_s3_answer_as_on_the_data_directory() {
     else {
         return;
     };
-    let bucket = bucket(&weed);
+    let bucket = weed.bucket();
     let (dir_data, s3_data) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let local = TestServer::start(config(dir_data.path())).await;
     // Stages last a while, so that the job's inputs can be seen in the bucket as it runs.
@@ -464,7 +436,7 @@ async fn a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole() {
     })
     .await
     .unwrap();
-    let bucket = bucket(&weed);
+    let bucket = weed.bucket();
     let key = object_store::path::Path::from(format!("parts/jobs/{id}/input/000.img"));
     let meta = object_store::ObjectStoreExt::head(&*bucket, &key)
         .await

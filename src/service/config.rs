@@ -43,11 +43,20 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_STORE")]
     pub store: Option<String>,
 
-    /// Keep job records in PostgreSQL, `postgres://user[:password]@host[:port]/database`
-    /// [default: SQLite in the data directory]. Migrations are applied at start; one
-    /// instance per database for now (a second one is refused at start).
-    #[arg(long, env = "PHOTOSTEREO_DATABASE_URL")]
+    /// Keep job records and the job queue in PostgreSQL,
+    /// `postgres://user[:password]@host[:port]/database` [default: SQLite in the data
+    /// directory]. Any number of instances may share the database (and the --store, which
+    /// it requires), each with a data directory of its own: any instance answers for any
+    /// job, and a job whose instance dies is taken over once its lease runs out.
+    /// Migrations are applied at start.
+    #[arg(long, env = "PHOTOSTEREO_DATABASE_URL", requires = "store")]
     pub database_url: Option<String>,
+
+    /// How long a running job's claim lasts without a heartbeat (heartbeats come three
+    /// times a lease). When an instance dies, its jobs run again elsewhere after this;
+    /// a job whose lease runs out on its third attempt fails.
+    #[arg(long, env = "PHOTOSTEREO_JOB_LEASE", default_value = "30s", value_parser = parse_lease)]
+    pub job_lease: Duration,
 
     /// Reconstructions that run at once [default: the number of CPU cores].
     #[arg(long, env = "PHOTOSTEREO_WORKERS", value_parser = clap::value_parser!(u32).range(1..=1024))]
@@ -185,6 +194,11 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_DECODE_AHEAD", value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub decode_ahead: Option<u32>,
 
+    /// Test hook: a pause at the start of every stage, so that tests of the real binary
+    /// (a kill in the middle of a job) find jobs running.
+    #[arg(long, env = "PHOTOSTEREO_TEST_STAGE_DELAY", hide = true, default_value = "0", value_parser = parse_duration)]
+    pub stage_delay: Duration,
+
     /// Log format (the level is set with RUST_LOG, default `info`).
     #[arg(long, env = "PHOTOSTEREO_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
@@ -209,6 +223,8 @@ pub struct Config {
     pub max_unpacked_bytes: u64,
     pub retention: Duration,
     pub job_timeout: Duration,
+    /// A running job's lease (heartbeats come three times a lease).
+    pub job_lease: Duration,
     pub max_uploads: usize,
     pub upload_timeout: Duration,
     pub min_free_disk: u64,
@@ -262,6 +278,7 @@ impl Config {
             max_unpacked_bytes: 2 << 30,
             retention: Duration::from_secs(7 * 86_400),
             job_timeout: Duration::from_secs(30 * 60),
+            job_lease: Duration::from_secs(30),
             max_uploads: 64,
             upload_timeout: Duration::from_secs(10 * 60),
             min_free_disk: 1 << 30,
@@ -291,6 +308,15 @@ impl Config {
     }
 }
 
+/// A lease of at least a second: heartbeats come three times a lease.
+fn parse_lease(s: &str) -> Result<Duration, String> {
+    let d = parse_duration(s)?;
+    if d < Duration::from_secs(1) {
+        return Err(format!("{s}: a lease is at least 1s"));
+    }
+    Ok(d)
+}
+
 fn default_workers() -> usize {
     std::thread::available_parallelism()
         .map(|n| n.get())
@@ -315,6 +341,7 @@ impl From<&ServeArgs> for Config {
         c.max_unpacked_bytes = a.max_unpacked_bytes;
         c.retention = a.retention;
         c.job_timeout = a.job_timeout;
+        c.job_lease = a.job_lease;
         c.max_uploads = a.max_uploads as usize;
         c.upload_timeout = a.upload_timeout;
         c.min_free_disk = a.min_free_disk;
@@ -338,6 +365,7 @@ impl From<&ServeArgs> for Config {
         c.webhook_retry_for = a.webhook_retry_for;
         c.shutdown_grace = a.shutdown_grace;
         c.decode_ahead = a.decode_ahead.map(|n| n as usize).unwrap_or(c.workers);
+        c.stage_delay = a.stage_delay;
         c.sweep_interval =
             (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
         c
@@ -367,6 +395,7 @@ mod tests {
         assert_eq!(c.max_input_bytes, d.max_input_bytes);
         assert_eq!(c.retention, d.retention);
         assert_eq!(c.job_timeout, d.job_timeout);
+        assert_eq!(c.job_lease, d.job_lease);
         assert_eq!(c.upload_timeout, d.upload_timeout);
         assert_eq!(c.max_uploads, d.max_uploads);
         assert_eq!(c.min_free_disk, d.min_free_disk);
@@ -414,5 +443,13 @@ mod tests {
         assert_eq!(old.serve.max_job_pixels, Some(700), "still accepted");
         assert_eq!(Config::from(&old.serve).max_input_bytes, 1 << 20);
         assert!(Cli::try_parse_from(["x", "--retention", "soon"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--job-lease", "500ms"]).is_err());
+        let db = ["x", "--database-url", "postgres://u@127.0.0.1/p"];
+        assert!(
+            Cli::try_parse_from(db).is_err(),
+            "a shared database needs a shared store"
+        );
+        let both = Cli::try_parse_from([&db[..], &["--store", "s3://b"]].concat()).unwrap();
+        assert!(Config::from(&both.serve).database_url.is_some());
     }
 }

@@ -1,18 +1,22 @@
-//! The job queue and the worker pool.
+//! The worker pool.
 //!
-//! Accepted jobs wait in a bounded in-memory queue (its length is `--queue-length`; the
-//! repo is the durable copy), one line per tenant: workers serve the tenants with waiting
-//! jobs in turn (round-robin), so one tenant's backlog does not hold up another's next
-//! job. `--workers` plain threads take jobs from it, so never more
-//! than that many run at once; each fetches its stored inputs into local scratch, opens
-//! them with `stream::open_with` (each image decoded once into a scratch file beside
-//! them, read back band by band) and runs `pipeline::run` into a staged output directory
-//! that the store commits when the job succeeds, under a key of this attempt's own. A
-//! store that does not answer makes the job wait and run again, never fail. Progress goes to the
-//! repo at every stage; the progress callback is also where cancellation, the time limit
-//! and shutdown stop a job.
+//! The queue is the repo's: `--workers` plain threads each claim the next queued job
+//! (tenants take turns, see [`JobRepo::claim`](super::repo::JobRepo::claim)), so never
+//! more than that many run here at once. A claim is a lease: the background heartbeat
+//! extends the leases of the jobs held here, and learns there of jobs cancelled on
+//! another instance or lost (reaped after their lease ran out). Idle workers wait for the
+//! bell (a submission here, a requeue, another instance's announcement) or a short poll.
+//!
+//! Each job's inputs are fetched into local scratch, opened with `stream::open_with`
+//! (each image decoded once into a scratch file beside them, read back band by band) and
+//! run by `pipeline::run` into a staged output directory that the store commits when the
+//! job succeeds, under a key of this attempt's own. Every write about the job carries the
+//! lease's token, so a worker that lost its lease records nothing. A store that does not
+//! answer makes the job wait and run again, never fail. Progress goes to the repo at every
+//! stage; the progress callback is also where cancellation, the time limit, shutdown and a
+//! lost lease stop a job.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -36,7 +40,7 @@ use super::Inner;
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest, is_unavailable};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
-use super::repo::{ArtifactInfo, Finish, JobStatus, RepoResult};
+use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};
 
 /// The pipeline's stages in order; progress is the index of the stage reached over
@@ -57,80 +61,33 @@ pub struct RunControl {
     cancel: AtomicBool,
     /// The service is stopping: stop and run the job again at the next start.
     interrupt: AtomicBool,
+    /// The lease is no longer held (it ran out and the job went to another worker):
+    /// stop, and record nothing.
+    lost: AtomicBool,
 }
 
-struct QueueState {
-    /// Waiting jobs by tenant, each line oldest first.
-    lines: HashMap<String, VecDeque<Uuid>>,
-    /// The tenants with waiting jobs, in the order they are served next.
-    turns: VecDeque<String>,
-    /// Waiting jobs, all lines together.
-    len: usize,
+/// A job this instance's worker holds.
+struct Held {
+    lease: Lease,
+    ctl: Arc<RunControl>,
+}
+
+struct Bell {
+    /// Bumped at every ring, so that a worker can tell whether it was rung since it last
+    /// looked at the queue.
+    rung: u64,
     closed: bool,
 }
 
-impl QueueState {
-    fn push(&mut self, id: Uuid, tenant: &str) {
-        match self.lines.get_mut(tenant) {
-            Some(line) => line.push_back(id),
-            None => {
-                self.lines.insert(tenant.to_string(), VecDeque::from([id]));
-                self.turns.push_back(tenant.to_string());
-            }
-        }
-        self.len += 1;
-    }
-
-    /// The next tenant's oldest job, and the tenant, who goes to the back of the turns.
-    fn pop(&mut self) -> Option<(Uuid, String)> {
-        let tenant = self.turns.pop_front()?;
-        let line = self.lines.get_mut(&tenant)?;
-        let id = line.pop_front();
-        if line.is_empty() {
-            self.lines.remove(&tenant);
-        } else {
-            self.turns.push_back(tenant.clone());
-        }
-        self.len -= usize::from(id.is_some());
-        Some((id?, tenant))
-    }
-
-    fn remove(&mut self, id: Uuid) -> bool {
-        let Some(tenant) = self
-            .lines
-            .iter()
-            .find(|(_, line)| line.contains(&id))
-            .map(|(t, _)| t.clone())
-        else {
-            return false;
-        };
-        let line = self.lines.get_mut(&tenant).expect("found above");
-        line.retain(|j| *j != id);
-        if line.is_empty() {
-            self.lines.remove(&tenant);
-            self.turns.retain(|t| *t != tenant);
-        }
-        self.len -= 1;
-        true
-    }
-}
-
-/// Why a job could not be queued.
-#[derive(Debug, PartialEq, Eq)]
-pub enum PushError {
-    Full,
-    Closed,
-}
-
-/// The bounded queue, the running set and the pool's counters.
-pub struct JobQueue {
-    state: Mutex<QueueState>,
-    ready: Condvar,
-    limit: usize,
-    running: Mutex<HashMap<Uuid, Arc<RunControl>>>,
+/// The worker pool: the bell idle workers wait on, the jobs they hold, and its counters.
+/// The queue itself is the repo's: workers claim from it.
+pub struct Workers {
+    bell: Mutex<Bell>,
+    ringing: Condvar,
+    running: Mutex<HashMap<Uuid, Held>>,
     running_now: AtomicUsize,
     running_max: AtomicUsize,
-    /// Workers holding a job (from taking it off the queue until done with it).
+    /// Workers claiming or holding a job (from asking the repo until done with it).
     busy: AtomicUsize,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
 }
@@ -139,17 +96,14 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-impl JobQueue {
-    pub fn new(limit: usize) -> Self {
+impl Default for Workers {
+    fn default() -> Self {
         Self {
-            state: Mutex::new(QueueState {
-                lines: HashMap::new(),
-                turns: VecDeque::new(),
-                len: 0,
+            bell: Mutex::new(Bell {
+                rung: 0,
                 closed: false,
             }),
-            ready: Condvar::new(),
-            limit,
+            ringing: Condvar::new(),
             running: Mutex::new(HashMap::new()),
             running_now: AtomicUsize::new(0),
             running_max: AtomicUsize::new(0),
@@ -157,68 +111,35 @@ impl JobQueue {
             threads: Mutex::new(Vec::new()),
         }
     }
+}
 
-    pub fn capacity(&self) -> usize {
-        self.limit
+impl Workers {
+    /// A job may be waiting: wake the idle workers.
+    pub fn ring(&self) {
+        lock(&self.bell).rung += 1;
+        self.ringing.notify_all();
     }
 
-    pub fn depth(&self) -> usize {
-        lock(&self.state).len
+    fn rung(&self) -> u64 {
+        lock(&self.bell).rung
     }
 
-    pub fn is_full(&self) -> bool {
-        self.depth() >= self.limit
+    /// Wait until rung after `seen` (at once if it already was), closed, or `timeout`.
+    fn wait_for_ring(&self, seen: u64, timeout: Duration) {
+        let bell = lock(&self.bell);
+        let _ = self
+            .ringing
+            .wait_timeout_while(bell, timeout, |b| b.rung == seen && !b.closed);
     }
 
-    /// Queue a newly accepted job in its tenant's line, unless the queue is full or closed.
-    pub fn try_push(&self, id: Uuid, tenant: &str) -> Result<(), PushError> {
-        let mut s = lock(&self.state);
-        if s.closed {
-            return Err(PushError::Closed);
-        }
-        if s.len >= self.limit {
-            return Err(PushError::Full);
-        }
-        s.push(id, tenant);
-        drop(s);
-        self.ready.notify_one();
-        Ok(())
-    }
-
-    /// Queue a job regardless of the limit (jobs recovered at startup: a 202 is a promise).
-    pub fn push(&self, id: Uuid, tenant: &str) {
-        lock(&self.state).push(id, tenant);
-        self.ready.notify_one();
-    }
-
-    /// Take a cancelled job out of the queue.
-    pub fn remove(&self, id: Uuid) -> bool {
-        lock(&self.state).remove(id)
-    }
-
-    /// Wait for the next job (and its tenant); None once the queue is closed.
-    fn pop(&self) -> Option<(Uuid, String)> {
-        let mut s = lock(&self.state);
-        loop {
-            if s.closed {
-                return None;
-            }
-            if let Some(next) = s.pop() {
-                self.busy.fetch_add(1, Ordering::SeqCst);
-                return Some(next);
-            }
-            s = self.ready.wait(s).unwrap_or_else(|p| p.into_inner());
-        }
-    }
-
-    /// Stop handing out jobs (those still queued stay queued in the repo).
+    /// Claim no more jobs (those queued stay queued in the repo).
     pub fn close(&self) {
-        lock(&self.state).closed = true;
-        self.ready.notify_all();
+        lock(&self.bell).closed = true;
+        self.ringing.notify_all();
     }
 
     pub fn is_closed(&self) -> bool {
-        lock(&self.state).closed
+        lock(&self.bell).closed
     }
 
     pub fn running(&self) -> usize {
@@ -230,41 +151,56 @@ impl JobQueue {
         self.running_max.load(Ordering::SeqCst)
     }
 
-    /// Workers busy with a job (including one just taken off the queue).
+    /// Workers busy with a job (including one being claimed).
     pub fn busy(&self) -> usize {
         self.busy.load(Ordering::SeqCst)
     }
 
-    pub fn running_ids(&self) -> Vec<Uuid> {
-        lock(&self.running).keys().copied().collect()
+    /// The leases of the jobs held here.
+    pub fn leases(&self) -> Vec<Lease> {
+        lock(&self.running).values().map(|h| h.lease).collect()
     }
 
-    /// Ask a running job to stop (within one step of work). False when no worker has it.
+    /// Ask a running job to stop (within one step of work). False when no worker here
+    /// has it (the instance that does hears of it at its next heartbeat).
     pub fn cancel_running(&self, id: Uuid) -> bool {
+        self.signal(id, |ctl| &ctl.cancel)
+    }
+
+    /// The job's lease is gone: its worker stops and records nothing.
+    pub fn lose(&self, id: Uuid) -> bool {
+        self.signal(id, |ctl| &ctl.lost)
+    }
+
+    fn signal(&self, id: Uuid, flag: impl Fn(&RunControl) -> &AtomicBool) -> bool {
         match lock(&self.running).get(&id) {
-            Some(ctl) => {
-                ctl.cancel.store(true, Ordering::SeqCst);
+            Some(held) => {
+                flag(&held.ctl).store(true, Ordering::SeqCst);
                 true
             }
             None => false,
         }
     }
 
-    /// Whether a worker still holds the job (it may be finishing a cancelled one).
+    /// Whether a worker here still holds the job (it may be finishing a cancelled one).
     pub fn is_held(&self, id: Uuid) -> bool {
         lock(&self.running).contains_key(&id)
     }
 
     /// Ask every running job to stop and go back to the queue.
     pub fn interrupt_all(&self) {
-        for ctl in lock(&self.running).values() {
-            ctl.interrupt.store(true, Ordering::SeqCst);
+        for held in lock(&self.running).values() {
+            held.ctl.interrupt.store(true, Ordering::SeqCst);
         }
     }
 
-    fn register(&self, id: Uuid) -> Arc<RunControl> {
+    fn register(&self, lease: Lease) -> Arc<RunControl> {
         let ctl = Arc::new(RunControl::default());
-        lock(&self.running).insert(id, ctl.clone());
+        let held = Held {
+            lease,
+            ctl: ctl.clone(),
+        };
+        lock(&self.running).insert(lease.id, held);
         ctl
     }
 
@@ -295,7 +231,7 @@ impl JobQueue {
     }
 }
 
-struct RunningGuard<'a>(&'a JobQueue);
+struct RunningGuard<'a>(&'a Workers);
 
 impl Drop for RunningGuard<'_> {
     fn drop(&mut self) {
@@ -303,12 +239,35 @@ impl Drop for RunningGuard<'_> {
     }
 }
 
-/// A worker thread: run jobs until the queue closes.
+/// How long an idle worker waits before it looks at the queue again unrung: the fallback
+/// should an announcement from another instance be missed.
+const POLL: Duration = Duration::from_secs(2);
+
+/// A worker thread: claim and run jobs until the pool closes.
 pub(crate) fn worker_loop(inner: Arc<Inner>) {
-    while let Some((id, tenant)) = inner.jobs.pop() {
-        process(&inner, id, &tenant);
-        inner.jobs.busy.fetch_sub(1, Ordering::SeqCst);
-        super::util::release_free_heap();
+    let pool = &inner.workers;
+    while !pool.is_closed() {
+        let seen = pool.rung();
+        pool.busy.fetch_add(1, Ordering::SeqCst);
+        match inner
+            .repo
+            .claim(&inner.owner, inner.config.job_lease, now_ms())
+        {
+            Ok(Some(claim)) => {
+                process(&inner, claim.lease);
+                pool.busy.fetch_sub(1, Ordering::SeqCst);
+                super::util::release_free_heap();
+            }
+            Ok(None) => {
+                pool.busy.fetch_sub(1, Ordering::SeqCst);
+                pool.wait_for_ring(seen, POLL);
+            }
+            Err(e) => {
+                pool.busy.fetch_sub(1, Ordering::SeqCst);
+                tracing::warn!(error = %e, "cannot claim a job; trying again");
+                wait_unless_closing(&inner, STORE_RETRY);
+            }
+        }
     }
 }
 
@@ -319,7 +278,7 @@ const STORE_RETRY: Duration = Duration::from_secs(2);
 /// Sleep for `wait`, or less if the service starts to stop.
 fn wait_unless_closing(inner: &Inner, wait: Duration) {
     let until = Instant::now() + wait;
-    while Instant::now() < until && !inner.jobs.is_closed() {
+    while Instant::now() < until && !inner.workers.is_closed() {
         std::thread::sleep(Duration::from_millis(20));
     }
 }
@@ -330,7 +289,7 @@ fn wait_unless_closing(inner: &Inner, wait: Duration) {
 fn persist<T>(inner: &Inner, write: impl Fn() -> RepoResult<T>) -> RepoResult<T> {
     loop {
         match write() {
-            Err(e) if e.is_unavailable() && !inner.jobs.is_closed() => {
+            Err(e) if e.is_unavailable() && !inner.workers.is_closed() => {
                 tracing::warn!(error = %e, "the job database does not answer; recording again");
                 wait_unless_closing(inner, STORE_RETRY);
             }
@@ -363,32 +322,15 @@ impl From<ApiError> for Stop {
     }
 }
 
-fn process(inner: &Inner, id: Uuid, tenant: &str) {
-    // Registered before the repo says running, so a DELETE that sees "running" finds it.
-    let ctl = inner.jobs.register(id);
-    match inner.repo.start(id, now_ms()) {
-        Ok(true) => {}
-        Ok(false) => {
-            inner.prefetch.discard(id);
-            inner.jobs.unregister(id);
-            return; // cancelled or deleted while queued
-        }
-        Err(e) if e.is_unavailable() => {
-            // The job stays queued in the database; try it again once it answers.
-            tracing::warn!(job = %id, error = %e, "the job database does not answer; the job waits");
-            inner.jobs.unregister(id);
-            wait_unless_closing(inner, STORE_RETRY);
-            inner.jobs.push(id, tenant);
-            return;
-        }
-        Err(e) => {
-            tracing::error!(job = %id, error = %e, "cannot start job");
-            inner.prefetch.discard(id);
-            inner.jobs.unregister(id);
-            return;
-        }
+fn process(inner: &Inner, lease: Lease) {
+    let id = lease.id;
+    // Registered before anything else, so that a DELETE or a heartbeat finds it.
+    let ctl = inner.workers.register(lease);
+    if inner.workers.is_closed() {
+        // Claimed as the service began to stop: back to the queue at once.
+        ctl.interrupt.store(true, Ordering::SeqCst);
     }
-    let running = inner.jobs.begin_running();
+    let running = inner.workers.begin_running();
     let started = Instant::now();
     let span = tracing::info_span!("job", job = %id);
     let _enter = span.enter();
@@ -398,7 +340,7 @@ fn process(inner: &Inner, id: Uuid, tenant: &str) {
     let attempt = Uuid::new_v4().simple().to_string();
     let mut clock = StageClock {
         inner,
-        id,
+        lease,
         ctl: &ctl,
         deadline: started + inner.config.job_timeout,
         current: None,
@@ -418,7 +360,7 @@ fn process(inner: &Inner, id: Uuid, tenant: &str) {
     let timed_out = clock.timed_out.load(Ordering::SeqCst);
     settle(
         inner,
-        id,
+        lease,
         &attempt,
         &ctl,
         outcome,
@@ -426,31 +368,36 @@ fn process(inner: &Inner, id: Uuid, tenant: &str) {
         started.elapsed(),
     );
     drop(running);
-    inner.jobs.unregister(id);
+    inner.workers.unregister(id);
 }
 
 /// Record how the job ended and tidy its files.
 fn settle(
     inner: &Inner,
-    id: Uuid,
+    lease: Lease,
     attempt: &str,
     ctl: &RunControl,
     outcome: Result<(serde_json::Value, Vec<ArtifactInfo>), Stop>,
     timed_out: bool,
     elapsed: Duration,
 ) {
+    let id = lease.id;
     inner.prefetch.discard(id); // if the job stopped before taking it
     let instance = format!("/v1/jobs/{id}");
     let now = now_ms();
     let recorded = match outcome {
+        Err(_) if ctl.lost.load(Ordering::SeqCst) => {
+            tracing::warn!("the job's lease ran out; another worker runs it");
+            Ok(None)
+        }
         Ok((result, artifacts)) => {
             let done = Finish::Succeeded { result, artifacts };
-            persist(inner, || inner.repo.finish(id, &done, now))
+            persist(inner, || inner.repo.finish(lease, &done, now))
                 .map(|ok| ok.then_some(JobStatus::Succeeded))
         }
         Err(Stop::Stopped) if ctl.interrupt.load(Ordering::SeqCst) => {
-            tracing::info!("job interrupted by shutdown; it runs again at the next start");
-            persist(inner, || inner.repo.requeue(id)).map(|_| None)
+            tracing::info!("job interrupted by shutdown; it runs again");
+            persist(inner, || inner.repo.requeue(lease)).map(|_| None)
         }
         Err(Stop::Stopped) if timed_out && !ctl.cancel.load(Ordering::SeqCst) => {
             let e = ApiError::job_timeout(format!(
@@ -459,7 +406,7 @@ fn settle(
             ))
             .with_instance(&instance);
             let failed = Finish::Failed(e.problem());
-            persist(inner, || inner.repo.finish(id, &failed, now))
+            persist(inner, || inner.repo.finish(lease, &failed, now))
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
         Err(Stop::Stopped) => Ok(Some(JobStatus::Cancelled)), // the DELETE recorded it
@@ -469,17 +416,15 @@ fn settle(
             while Instant::now() < until
                 && !ctl.cancel.load(Ordering::SeqCst)
                 && !ctl.interrupt.load(Ordering::SeqCst)
+                && !ctl.lost.load(Ordering::SeqCst)
             {
                 std::thread::sleep(Duration::from_millis(20));
             }
-            persist(inner, || inner.repo.requeue(id)).and_then(|requeued| {
-                if requeued
-                    && !ctl.interrupt.load(Ordering::SeqCst)
-                    && let Some(rec) = inner.repo.get(id)?
-                {
-                    inner.jobs.push(id, &rec.tenant);
+            persist(inner, || inner.repo.requeue(lease)).map(|requeued| {
+                if requeued {
+                    inner.workers.ring();
                 }
-                Ok(None)
+                None
             })
         }
         Err(Stop::Error(e)) => {
@@ -489,10 +434,12 @@ fn settle(
                 "job failed"
             );
             let failed = Finish::Failed(e.with_instance(&instance).problem());
-            persist(inner, || inner.repo.finish(id, &failed, now))
+            persist(inner, || inner.repo.finish(lease, &failed, now))
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
     };
+    // Only this attempt's own success keeps its outputs.
+    let ours = matches!(recorded, Ok(Some(JobStatus::Succeeded)));
     match recorded {
         Ok(Some(status)) => {
             tracing::info!(
@@ -509,7 +456,9 @@ fn settle(
     // Whatever the repo now says decides which files stay.
     let tidy = match inner.repo.get(id) {
         Ok(None) => inner.store.remove_job(id),
-        Ok(Some(rec)) if rec.status == JobStatus::Succeeded => inner.store.remove_inputs(id),
+        Ok(Some(rec)) if rec.status == JobStatus::Succeeded && ours => {
+            inner.store.remove_inputs(id)
+        }
         Ok(Some(rec)) if rec.status.is_terminal() => inner
             .store
             .remove_inputs(id)
@@ -528,7 +477,7 @@ fn settle(
 /// Times stages, records progress, and decides whether to go on.
 struct StageClock<'a> {
     inner: &'a Inner,
-    id: Uuid,
+    lease: Lease,
     ctl: &'a RunControl,
     deadline: Instant,
     current: Option<(Stage, Instant)>,
@@ -542,7 +491,9 @@ impl StageClock<'_> {
             self.timed_out.store(true, Ordering::SeqCst);
             return true;
         }
-        self.ctl.cancel.load(Ordering::SeqCst) || self.ctl.interrupt.load(Ordering::SeqCst)
+        [&self.ctl.cancel, &self.ctl.interrupt, &self.ctl.lost]
+            .iter()
+            .any(|flag| flag.load(Ordering::SeqCst))
     }
 
     fn close(&mut self) {
@@ -566,10 +517,11 @@ impl Progress for StageClock<'_> {
         }
         let index = STAGES.iter().position(|s| *s == stage).unwrap_or(0);
         let progress = index as f64 / STAGES.len() as f64;
+        // A refusal (the lease is gone) is left to the next heartbeat to tell apart.
         if let Err(e) = self
             .inner
             .repo
-            .progress(self.id, stage.as_str(), progress, now_ms())
+            .progress(self.lease, stage.as_str(), progress, now_ms())
         {
             tracing::warn!(error = %e, "cannot record progress");
         }
@@ -754,44 +706,4 @@ fn summarize(report: &Report) -> serde_json::Value {
         }
     }
     serde_json::Value::Object(out)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn tenants_take_turns_and_each_line_keeps_its_order() {
-        let q = JobQueue::new(100);
-        let a: Vec<Uuid> = (0..5).map(|_| Uuid::new_v4()).collect();
-        let b: Vec<Uuid> = (0..2).map(|_| Uuid::new_v4()).collect();
-        for id in &a {
-            q.try_push(*id, "a").unwrap();
-        }
-        for id in &b {
-            q.try_push(*id, "b").unwrap();
-        }
-        assert!(q.remove(a[1]));
-        assert!(!q.remove(a[1]));
-        assert_eq!(q.depth(), 6);
-        let mut order = Vec::new();
-        while q.depth() > 0 {
-            order.push(q.pop().unwrap());
-        }
-        let t = |id: Uuid, tenant: &str| (id, tenant.to_string());
-        assert_eq!(
-            order,
-            [
-                t(a[0], "a"),
-                t(b[0], "b"),
-                t(a[2], "a"),
-                t(b[1], "b"),
-                t(a[3], "a"),
-                t(a[4], "a")
-            ]
-        );
-        let small = JobQueue::new(1);
-        small.try_push(a[0], "a").unwrap();
-        assert_eq!(small.try_push(b[0], "b"), Err(PushError::Full));
-    }
 }

@@ -4,7 +4,7 @@
 //! - [`routes`]: the handlers (typed extractors in, `Result<impl IntoResponse, ApiError>`
 //!   out), documented with `#[utoipa::path]`.
 //! - [`events`]: a job's server-sent event stream.
-//! - [`jobs`]: the bounded queue and worker pool that run reconstructions.
+//! - [`jobs`]: the worker pool that claims and runs reconstructions.
 //! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite); [`pg`]: the same in
 //!   PostgreSQL.
 //! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory,
@@ -68,15 +68,16 @@ pub use upload::{parse_options, unpack_archive};
 pub use util::release_free_heap;
 
 use blobs::{BlobStore, LocalStore};
-use jobs::JobQueue;
+use jobs::Workers;
 use metrics::{Metrics, Snapshot};
 use prefetch::{Prefetch, Prefetcher};
 use repo::{JobRepo, JobStatus, RepoResult, SqliteRepo};
 use tenants::{Caller, Keyring};
 use util::now_ms;
 
-/// How often running jobs' heartbeats are written.
-const HEARTBEAT_EVERY: Duration = Duration::from_secs(10);
+/// A job whose lease runs out on this attempt fails instead of running again: it may be
+/// what kills its workers.
+const MAX_ATTEMPTS: u32 = 3;
 
 /// Everything the handlers and workers share. Cheap to clone.
 #[derive(Clone)]
@@ -88,7 +89,9 @@ pub(crate) struct Inner {
     config: Config,
     repo: Arc<dyn JobRepo>,
     store: Arc<dyn BlobStore>,
-    jobs: JobQueue,
+    workers: Workers,
+    /// This instance's name on the leases it holds.
+    owner: String,
     /// Uploads' images decoded ahead of their jobs.
     prefetch: Prefetcher,
     metrics: Metrics,
@@ -132,6 +135,15 @@ impl AppState {
                 config.data_dir.display()
             )
         })?;
+        if config.database_url.is_some() && config.store.is_none() {
+            anyhow::bail!(
+                "--database-url needs --store: instances that share the job database must share its files"
+            );
+        }
+        anyhow::ensure!(
+            config.job_lease >= Duration::from_secs(1),
+            "--job-lease must be at least 1s"
+        );
         let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
         let webhook_secrets = webhooks::parse_secrets(&config.webhook_secrets)?;
         let data_lock = lock_data_dir(&config.data_dir)?;
@@ -144,6 +156,8 @@ impl AppState {
             }
             Some(url) => Arc::new(pg::PgRepo::connect(url).context("opening the job database")?),
         };
+        // Several instances may share the job database (and then the store).
+        let shared = config.database_url.is_some();
         let store: Arc<dyn BlobStore> = match &config.store {
             None => Arc::new(
                 LocalStore::open(&config.data_dir)
@@ -162,8 +176,13 @@ impl AppState {
         let config_workers = config.workers.max(1);
         let submissions = quota::SubmissionRate::new(config.tenant_submissions_per_minute);
         let inner = Arc::new(Inner {
-            jobs: JobQueue::new(config.queue_length),
-            prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
+            workers: Workers::default(),
+            owner: format!("{}-{}", std::process::id(), Uuid::new_v4().simple()),
+            // Any instance may claim a job: decoding it where it was uploaded may be wasted.
+            prefetch: Prefetcher::new(
+                if shared { 0 } else { config.decode_ahead },
+                config.limits(),
+            ),
             config,
             repo,
             store,
@@ -194,8 +213,10 @@ impl AppState {
                 .name(format!("photostereo-worker-{i}"))
                 .spawn(move || jobs::worker_loop(worker))
                 .context("starting a worker thread")?;
-            inner.jobs.add_thread(handle);
+            inner.workers.add_thread(handle);
         }
+        let bell = inner.clone();
+        inner.repo.subscribe(Arc::new(move || bell.workers.ring()));
         Ok(Self { inner })
     }
 
@@ -204,7 +225,8 @@ impl AppState {
         let mut stop = self.inner.stop.subscribe();
         tokio::spawn(async move {
             let mut sweep = tokio::time::interval(inner.config.sweep_interval);
-            let mut beat = tokio::time::interval(HEARTBEAT_EVERY);
+            // Three beats to a lease: one late beat does not lose it.
+            let mut beat = tokio::time::interval(inner.config.job_lease / 3);
             loop {
                 tokio::select! {
                     _ = sweep.tick() => {
@@ -214,12 +236,8 @@ impl AppState {
                     _ = beat.tick() => {
                         let i = inner.clone();
                         let _ = tokio::task::spawn_blocking(move || {
-                            let ids = i.jobs.running_ids();
-                            if !ids.is_empty()
-                                && let Err(e) = i.repo.heartbeat(&ids, now_ms())
-                            {
-                                tracing::warn!(error = %e, "heartbeat");
-                            }
+                            heartbeat(&i);
+                            reap(&i);
                         })
                         .await;
                     }
@@ -233,8 +251,8 @@ impl AppState {
         &self.inner.config
     }
 
-    pub fn jobs(&self) -> &JobQueue {
-        &self.inner.jobs
+    pub fn workers(&self) -> &Workers {
+        &self.inner.workers
     }
 
     pub fn store(&self) -> &dyn BlobStore {
@@ -243,7 +261,7 @@ impl AppState {
 
     /// The most jobs that were ever running at once (never more than the pool size).
     pub fn max_running(&self) -> usize {
-        self.inner.jobs.running_max()
+        self.inner.workers.running_max()
     }
 
     /// Run a repo call off the async runtime.
@@ -285,7 +303,7 @@ impl AppState {
         if self.inner.shutting_down.swap(true, Ordering::SeqCst) {
             return;
         }
-        self.inner.jobs.close();
+        self.inner.workers.close();
         let _ = self.inner.stop.send(true);
     }
 
@@ -294,7 +312,7 @@ impl AppState {
     /// and run again at the next start.
     pub async fn shutdown(&self) {
         self.begin_shutdown();
-        let jobs = &self.inner.jobs;
+        let jobs = &self.inner.workers;
         let deadline = Instant::now() + self.inner.config.shutdown_grace;
         while jobs.busy() > 0 && Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(20)).await;
@@ -302,7 +320,7 @@ impl AppState {
         if jobs.busy() > 0 {
             tracing::warn!(
                 jobs = jobs.busy(),
-                "interrupting running jobs; they run again at the next start"
+                "interrupting running jobs; they run again"
             );
             jobs.interrupt_all();
             let until = Instant::now() + Duration::from_secs(10);
@@ -514,12 +532,16 @@ impl AppState {
         let by_tenant = self.repo(|r| r.counts_by_tenant()).await?;
         let store = self.inner.store.clone();
         let free = tokio::task::spawn_blocking(move || store.free_bytes().ok()).await?;
-        let jobs = &self.inner.jobs;
+        let jobs = &self.inner.workers;
+        let queued = counts
+            .iter()
+            .find(|(s, _)| *s == JobStatus::Queued)
+            .map_or(0, |(_, n)| *n as usize);
         Ok(self.inner.metrics.render(&Snapshot {
             jobs_by_status: counts,
             jobs_by_tenant: by_tenant,
-            queue_depth: jobs.depth(),
-            queue_capacity: jobs.capacity(),
+            queue_depth: queued,
+            queue_capacity: self.inner.config.queue_length,
             running: jobs.running(),
             running_max: jobs.running_max(),
             workers: self.inner.config.workers,
@@ -622,26 +644,88 @@ fn recover(inner: &Inner) -> anyhow::Result<usize> {
             tracing::warn!(calibration = %id, error = %e, "cannot tidy calibration files");
         }
     }
-    let mut queued = 0;
-    for rec in inner.repo.unfinished()? {
-        if rec.status == JobStatus::Running {
-            inner.repo.requeue(rec.id)?;
+    let queued = if inner.config.database_url.is_some() {
+        // Other instances may hold running jobs: expired leases are the reaper's.
+        0
+    } else {
+        // A single node: no one else holds a job, so every running one was cut off.
+        inner.repo.release_running()?;
+        let mut queued = 0;
+        for rec in inner.repo.unfinished()? {
+            // A store that does not answer now may later: the job stays queued and waits.
+            if let Ok(false) = inner.store.has_inputs(rec.id) {
+                let problem = ApiError::job_failed(
+                    "the job's input files are gone (the data directory changed while the service was stopped)",
+                )
+                .with_instance(format!("/v1/jobs/{}", rec.id))
+                .problem();
+                inner.repo.fail_queued(rec.id, &problem, now_ms())?;
+                continue;
+            }
+            queued += 1;
         }
-        // A store that does not answer now may later: the job is queued and waits.
-        if let Ok(false) = inner.store.has_inputs(rec.id) {
-            let problem = ApiError::job_failed(
-                "the job's input files are gone (the data directory changed while the service was stopped)",
-            )
-            .with_instance(format!("/v1/jobs/{}", rec.id))
-            .problem();
-            inner.repo.fail_queued(rec.id, &problem, now_ms())?;
-            continue;
-        }
-        inner.jobs.push(rec.id, &rec.tenant);
-        queued += 1;
-    }
+        queued
+    };
     sweep_expired(inner);
     Ok(queued)
+}
+
+/// Extend the leases of the jobs running here; stop those no longer held (cancelled on
+/// another instance, or reaped).
+fn heartbeat(inner: &Inner) {
+    let leases = inner.workers.leases();
+    if leases.is_empty() {
+        return;
+    }
+    let lost = match inner
+        .repo
+        .heartbeat(&leases, inner.config.job_lease, now_ms())
+    {
+        Ok(lost) => lost,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot extend the running jobs' leases");
+            return;
+        }
+    };
+    for lease in lost {
+        let cancelled = matches!(
+            inner.repo.get(lease.id),
+            Ok(Some(rec)) if rec.status == JobStatus::Cancelled
+        );
+        if cancelled {
+            inner.workers.cancel_running(lease.id);
+        } else {
+            inner.workers.lose(lease.id);
+        }
+    }
+}
+
+/// Put jobs whose lease ran out (their worker died, here or on another instance) back in
+/// the queue, or fail them after their last attempt.
+fn reap(inner: &Inner) {
+    let failure = |id: Uuid| {
+        ApiError::job_failed(format!(
+            "the job's worker stopped answering on each of its {MAX_ATTEMPTS} attempts; it is not run again"
+        ))
+        .with_instance(format!("/v1/jobs/{id}"))
+        .problem()
+    };
+    match inner.repo.reap(MAX_ATTEMPTS, &failure, now_ms()) {
+        Ok(reaped) => {
+            if !reaped.requeued.is_empty() {
+                tracing::warn!(jobs = ?reaped.requeued, "leases ran out; the jobs run again");
+                inner.workers.ring();
+            }
+            for id in reaped.failed {
+                tracing::warn!(job = %id, "lease ran out on the last attempt; the job failed");
+                if let Err(e) = inner.store.remove_inputs(id) {
+                    tracing::warn!(job = %id, error = %e, "cannot remove the job's inputs");
+                }
+                webhooks::job_ended(inner, id);
+            }
+        }
+        Err(e) => tracing::warn!(error = %e, "cannot reap expired leases"),
+    }
 }
 
 /// What a store listing found; nothing (and a warning) when the store does not answer,

@@ -5,12 +5,13 @@
 //! The repo keeps its connections (a `deadpool-postgres` pool) on a small runtime of its
 //! own, so its blocking methods work from any thread, the async runtime's included.
 //! Migrations run at start in one transaction under an advisory lock, so instances that
-//! start together do not race. Jobs are still claimed the single-node way (`unfinished`
-//! at start, `start(id)`), so one instance holds the database: a session advisory lock,
-//! taken at start and kept, refuses a second one with a clear error.
+//! start together do not race. Any number of instances share the database: workers claim
+//! jobs with `FOR UPDATE SKIP LOCKED`, leases run out in the database's clock (`now()`),
+//! and a new or requeued job is announced with `NOTIFY` to every instance's listener.
 
 use std::future::Future;
-use std::sync::mpsc;
+use std::sync::{Arc, mpsc};
+use std::time::Duration;
 
 use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod};
 use tokio_postgres::{NoTls, Row};
@@ -18,8 +19,8 @@ use uuid::Uuid;
 
 use super::error::Problem;
 use super::repo::{
-    CalibrationRecord, Callback, Finish, JobRecord, JobRepo, JobStatus, RawCalibration, RawRecord,
-    Remembered, RepoError, RepoResult, decode_calibration,
+    Admission, CalibrationRecord, Callback, Claim, Finish, JobRecord, JobRepo, JobStatus, Lease,
+    RawCalibration, RawRecord, Reaped, Remembered, RepoError, RepoResult, decode_calibration,
 };
 
 /// Schema versions, applied in order; `photostereo_schema.version` is the number applied.
@@ -68,11 +69,25 @@ const MIGRATIONS: &[&str] = &[
     );
     CREATE INDEX calibrations_by_created ON calibrations (created_at DESC, id DESC);
     CREATE INDEX calibrations_by_tenant ON calibrations (tenant, created_at DESC, id DESC);",
+    // 2: leases (the claiming worker, its fencing token, when the lease runs out in the
+    // database's clock) and the tenants' turns.
+    "ALTER TABLE jobs ADD COLUMN owner TEXT;
+    ALTER TABLE jobs ADD COLUMN token BIGINT NOT NULL DEFAULT 0;
+    ALTER TABLE jobs ADD COLUMN lease_until TIMESTAMPTZ;
+    CREATE INDEX jobs_by_lease ON jobs (lease_until) WHERE status = 'running';
+    CREATE TABLE turns (tenant TEXT PRIMARY KEY NOT NULL, served BIGINT NOT NULL);
+    CREATE SEQUENCE turn_seq;",
 ];
 
 /// Advisory lock keys (any two fixed numbers; 0x7073 is "ps").
 const MIGRATION_LOCK: i64 = 0x7073_0001;
-const INSTANCE_LOCK: i64 = 0x7073_0002;
+/// Held by a submission while it counts and inserts, so the queue and tenant limits hold
+/// across instances.
+const ADMISSION_LOCK: i64 = 0x7073_0002;
+
+/// The channel new and requeued jobs are announced on.
+const CHANNEL: &str = "photostereo_jobs";
+const NOTIFY: &str = "SELECT pg_notify('photostereo_jobs', '')";
 
 const COLUMNS: &str = "id, status, stage, progress, created_at, started_at, finished_at, \
      heartbeat_at, attempts, image_count, options, error, result, artifacts, tenant, callback";
@@ -110,8 +125,8 @@ pub struct PgRepo {
     /// runtime may not block inside another one).
     runtime: Option<tokio::runtime::Runtime>,
     pool: Pool,
-    /// The connection that holds [`INSTANCE_LOCK`] while this repo lives.
-    _instance: tokio_postgres::Client,
+    /// For the listener's connection of its own.
+    config: tokio_postgres::Config,
 }
 
 impl Drop for PgRepo {
@@ -123,8 +138,8 @@ impl Drop for PgRepo {
 }
 
 impl PgRepo {
-    /// Connect to `url` (`postgres://user:password@host:port/database`), apply the
-    /// migrations this program knows and take the database for this instance.
+    /// Connect to `url` (`postgres://user:password@host:port/database`) and apply the
+    /// migrations this program knows.
     pub fn connect(url: &str) -> RepoResult<Self> {
         let config: tokio_postgres::Config = url
             .parse()
@@ -145,35 +160,14 @@ impl PgRepo {
         let pool = Pool::builder(manager)
             .max_size(8)
             .runtime(deadpool_postgres::Runtime::Tokio1)
-            .wait_timeout(Some(std::time::Duration::from_secs(10)))
-            .create_timeout(Some(std::time::Duration::from_secs(10)))
+            .wait_timeout(Some(Duration::from_secs(10)))
+            .create_timeout(Some(Duration::from_secs(10)))
             .build()
             .map_err(|e| RepoError::new(format!("PostgreSQL connection pool: {e}")))?;
-        let instance = block(&runtime, async move {
-            let (client, connection) = config.connect(NoTls).await.map_err(db_error)?;
-            tokio::spawn(async move {
-                if let Err(e) = connection.await {
-                    tracing::error!(error = %e, "the database connection that holds this instance's lock ended");
-                }
-            });
-            let held: bool = client
-                .query_one("SELECT pg_try_advisory_lock($1)", &[&INSTANCE_LOCK])
-                .await
-                .map_err(db_error)?
-                .get(0);
-            if !held {
-                return Err(RepoError::new(
-                    "another photostereo instance uses this database; one instance per \
-                     database for now"
-                        .into(),
-                ));
-            }
-            Ok(client)
-        })?;
         let repo = Self {
             runtime: Some(runtime),
             pool,
-            _instance: instance,
+            config,
         };
         repo.run(|mut c| async move {
             let tx = c.transaction().await.map_err(db_error)?;
@@ -243,6 +237,44 @@ fn block<T: Send + 'static>(
         .map_err(|_| RepoError::new("the database task ended without an answer".into()))?
 }
 
+/// Call `wake` on every announcement of a new or requeued job, and once each time the
+/// listener (re)connects, since jobs may have come while it was not listening. Runs for
+/// the repo's life, reconnecting after a lost connection.
+async fn listen(config: tokio_postgres::Config, wake: Arc<dyn Fn() + Send + Sync>) {
+    use futures_util::StreamExt;
+    loop {
+        match config.connect(NoTls).await {
+            Ok((client, mut connection)) => {
+                let on_message = wake.clone();
+                let driver = tokio::spawn(async move {
+                    let mut messages =
+                        futures_util::stream::poll_fn(move |cx| connection.poll_message(cx));
+                    while let Some(Ok(message)) = messages.next().await {
+                        if matches!(message, tokio_postgres::AsyncMessage::Notification(_)) {
+                            on_message();
+                        }
+                    }
+                });
+                match client.batch_execute(&format!("LISTEN {CHANNEL}")).await {
+                    Ok(()) => {
+                        wake();
+                        let _ = driver.await;
+                        tracing::warn!(
+                            "the job listener's database connection ended; reconnecting"
+                        );
+                    }
+                    Err(e) => {
+                        driver.abort();
+                        tracing::warn!(error = %e, "cannot listen for new jobs");
+                    }
+                }
+            }
+            Err(e) => tracing::debug!(error = %e, "the job listener cannot connect yet"),
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+}
+
 fn read_record(row: &Row) -> RawRecord {
     RawRecord {
         id: row.get(0),
@@ -299,7 +331,12 @@ const REMEMBERED: &str = "SELECT body_hash, status, body, location, created_at F
      WHERE tenant = $1 AND scope = $2 AND key = $3 AND created_at >= $4";
 
 impl JobRepo for PgRepo {
-    fn insert(&self, job: &JobRecord, max_active: usize) -> RepoResult<bool> {
+    fn insert(
+        &self,
+        job: &JobRecord,
+        max_active: usize,
+        max_queued: usize,
+    ) -> RepoResult<Admission> {
         let options = serde_json::to_string(&job.options)?;
         let error = job.error.as_ref().map(serde_json::to_string).transpose()?;
         let result = job.result.as_ref().map(serde_json::to_string).transpose()?;
@@ -311,46 +348,67 @@ impl JobRepo for PgRepo {
             .transpose()?;
         let job = job.clone();
         self.run(move |mut c| async move {
-            // The count and the insert are one step per tenant: concurrent submissions of
-            // one tenant wait for each other's transaction.
+            // The counts and the insert are one step: concurrent submissions, on any
+            // instance, wait for each other's transaction.
             let tx = c.transaction().await.map_err(db_error)?;
-            tx.execute(
-                "SELECT pg_advisory_xact_lock(hashtextextended($1, 0))",
-                &[&job.tenant],
-            )
-            .await
-            .map_err(db_error)?;
-            let n = tx
-                .execute(
-                    &format!(
-                        "INSERT INTO jobs ({COLUMNS}) SELECT $1, $2, $3, $4, $5, $6, $7, $8, \
-                         $9, $10, $11, $12, $13, $14, $15, $17 WHERE (SELECT COUNT(*) FROM jobs \
-                         WHERE tenant = $15 AND status IN ('queued', 'running')) < $16"
-                    ),
-                    &[
-                        &job.id.to_string(),
-                        &job.status.as_str(),
-                        &job.stage,
-                        &job.progress,
-                        &job.created_at,
-                        &job.started_at,
-                        &job.finished_at,
-                        &job.heartbeat_at,
-                        &i64::from(job.attempts),
-                        &i64::from(job.image_count),
-                        &options,
-                        &error,
-                        &result,
-                        &artifacts,
-                        &job.tenant,
-                        &(max_active as i64),
-                        &callback,
-                    ],
+            tx.execute("SELECT pg_advisory_xact_lock($1)", &[&ADMISSION_LOCK])
+                .await
+                .map_err(db_error)?;
+            let counts = tx
+                .query_one(
+                    "SELECT COUNT(*) FILTER (WHERE tenant = $1 AND status IN ('queued', 'running')), \
+                     COUNT(*) FILTER (WHERE status = 'queued') FROM jobs",
+                    &[&job.tenant],
                 )
                 .await
                 .map_err(db_error)?;
+            let (active, queued): (i64, i64) = (counts.get(0), counts.get(1));
+            if active >= max_active as i64 {
+                return Ok(Admission::TenantFull);
+            }
+            if queued >= max_queued as i64 {
+                return Ok(Admission::QueueFull);
+            }
+            tx.execute(
+                &format!(
+                    "INSERT INTO jobs ({COLUMNS}) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, \
+                     $10, $11, $12, $13, $14, $15, $16)"
+                ),
+                &[
+                    &job.id.to_string(),
+                    &job.status.as_str(),
+                    &job.stage,
+                    &job.progress,
+                    &job.created_at,
+                    &job.started_at,
+                    &job.finished_at,
+                    &job.heartbeat_at,
+                    &i64::from(job.attempts),
+                    &i64::from(job.image_count),
+                    &options,
+                    &error,
+                    &result,
+                    &artifacts,
+                    &job.tenant,
+                    &callback,
+                ],
+            )
+            .await
+            .map_err(db_error)?;
+            tx.execute(NOTIFY, &[]).await.map_err(db_error)?;
             tx.commit().await.map_err(db_error)?;
-            Ok(n == 1)
+            Ok(Admission::Accepted)
+        })
+    }
+
+    fn queued(&self) -> RepoResult<u64> {
+        self.run(|c| async move {
+            let n: i64 = c
+                .query_one("SELECT COUNT(*) FROM jobs WHERE status = 'queued'", &[])
+                .await
+                .map_err(db_error)?
+                .get(0);
+            Ok(n as u64)
         })
     }
 
@@ -441,14 +499,72 @@ impl JobRepo for PgRepo {
         })
     }
 
-    fn start(&self, id: Uuid, now: i64) -> RepoResult<bool> {
+    fn release_running(&self) -> RepoResult<usize> {
+        self.run(|c| async move {
+            let n = c
+                .execute(
+                    "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0, \
+                     owner = NULL, lease_until = NULL WHERE status = 'running'",
+                    &[],
+                )
+                .await
+                .map_err(db_error)?;
+            Ok(n as usize)
+        })
+    }
+
+    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Claim>> {
+        let owner = owner.to_string();
+        let secs = lease.as_secs_f64();
+        self.run(move |mut c| async move {
+            let tx = c.transaction().await.map_err(db_error)?;
+            // Locked rows are another instance's claim in progress: skipped, not waited for.
+            let row = tx
+                .query_opt(
+                    "WITH next AS ( \
+                       SELECT j.id FROM jobs j LEFT JOIN turns t ON t.tenant = j.tenant \
+                       WHERE j.status = 'queued' \
+                       ORDER BY COALESCE(t.served, 0), j.created_at, j.id \
+                       LIMIT 1 FOR UPDATE OF j SKIP LOCKED) \
+                     UPDATE jobs SET status = 'running', stage = NULL, progress = 0, \
+                       started_at = $1, heartbeat_at = $1, attempts = attempts + 1, \
+                       token = token + 1, owner = $2, \
+                       lease_until = now() + make_interval(secs => $3) \
+                     FROM next WHERE jobs.id = next.id \
+                     RETURNING jobs.id, jobs.tenant, jobs.token",
+                    &[&now, &owner, &secs],
+                )
+                .await
+                .map_err(db_error)?;
+            let Some(row) = row else {
+                return Ok(None);
+            };
+            let (id, tenant, token): (String, String, i64) = (row.get(0), row.get(1), row.get(2));
+            tx.execute(
+                "INSERT INTO turns (tenant, served) VALUES ($1, nextval('turn_seq')) \
+                 ON CONFLICT (tenant) DO UPDATE SET served = EXCLUDED.served",
+                &[&tenant],
+            )
+            .await
+            .map_err(db_error)?;
+            tx.commit().await.map_err(db_error)?;
+            let id = Uuid::parse_str(&id)
+                .map_err(|e| RepoError::new(format!("stored job id {id:?}: {e}")))?;
+            Ok(Some(Claim {
+                lease: Lease { id, token },
+                tenant,
+            }))
+        })
+    }
+
+    fn progress(&self, lease: Lease, stage: &str, progress: f64, now: i64) -> RepoResult<bool> {
+        let stage = stage.to_string();
         self.run(move |c| async move {
             let n = c
                 .execute(
-                    "UPDATE jobs SET status = 'running', stage = NULL, progress = 0, \
-                     started_at = $2, heartbeat_at = $2, attempts = attempts + 1 \
-                     WHERE id = $1 AND status = 'queued'",
-                    &[&id.to_string(), &now],
+                    "UPDATE jobs SET stage = $3, progress = $4, heartbeat_at = $5 \
+                     WHERE id = $1 AND token = $2 AND status = 'running'",
+                    &[&lease.id.to_string(), &lease.token, &stage, &progress, &now],
                 )
                 .await
                 .map_err(db_error)?;
@@ -456,53 +572,53 @@ impl JobRepo for PgRepo {
         })
     }
 
-    fn progress(&self, id: Uuid, stage: &str, progress: f64, now: i64) -> RepoResult<()> {
-        let stage = stage.to_string();
+    fn heartbeat(&self, leases: &[Lease], lease: Duration, now: i64) -> RepoResult<Vec<Lease>> {
+        let leases = leases.to_vec();
+        let ids: Vec<String> = leases.iter().map(|l| l.id.to_string()).collect();
+        let tokens: Vec<i64> = leases.iter().map(|l| l.token).collect();
+        let secs = lease.as_secs_f64();
         self.run(move |c| async move {
-            c.execute(
-                "UPDATE jobs SET stage = $2, progress = $3, heartbeat_at = $4 \
-                 WHERE id = $1 AND status = 'running'",
-                &[&id.to_string(), &stage, &progress, &now],
-            )
-            .await
-            .map_err(db_error)?;
-            Ok(())
+            let rows = c
+                .query(
+                    "UPDATE jobs SET heartbeat_at = $3, \
+                     lease_until = now() + make_interval(secs => $4) \
+                     WHERE status = 'running' \
+                     AND (id, token) IN (SELECT * FROM unnest($1::TEXT[], $2::BIGINT[])) \
+                     RETURNING id, token",
+                    &[&ids, &tokens, &now, &secs],
+                )
+                .await
+                .map_err(db_error)?;
+            let held: Vec<(String, i64)> = rows.iter().map(|r| (r.get(0), r.get(1))).collect();
+            Ok(leases
+                .into_iter()
+                .filter(|l| !held.contains(&(l.id.to_string(), l.token)))
+                .collect())
         })
     }
 
-    fn heartbeat(&self, ids: &[Uuid], now: i64) -> RepoResult<()> {
-        let ids: Vec<String> = ids.iter().map(Uuid::to_string).collect();
-        self.run(move |c| async move {
-            c.execute(
-                "UPDATE jobs SET heartbeat_at = $2 WHERE id = ANY($1) AND status = 'running'",
-                &[&ids, &now],
-            )
-            .await
-            .map_err(db_error)?;
-            Ok(())
-        })
-    }
-
-    fn finish(&self, id: Uuid, finish: &Finish, now: i64) -> RepoResult<bool> {
+    fn finish(&self, lease: Lease, finish: &Finish, now: i64) -> RepoResult<bool> {
         let (sql, fields) = match finish {
             Finish::Succeeded { result, artifacts } => (
-                "UPDATE jobs SET status = 'succeeded', progress = 1, finished_at = $2, \
-                 heartbeat_at = $2, result = $3, artifacts = $4, error = NULL \
-                 WHERE id = $1 AND status = 'running'",
+                "UPDATE jobs SET status = 'succeeded', progress = 1, finished_at = $3, \
+                 heartbeat_at = $3, result = $4, artifacts = $5, error = NULL, \
+                 lease_until = NULL WHERE id = $1 AND token = $2 AND status = 'running'",
                 vec![
                     serde_json::to_string(result)?,
                     serde_json::to_string(artifacts)?,
                 ],
             ),
             Finish::Failed(problem) => (
-                "UPDATE jobs SET status = 'failed', finished_at = $2, heartbeat_at = $2, \
-                 error = $3 WHERE id = $1 AND status = 'running'",
+                "UPDATE jobs SET status = 'failed', finished_at = $3, heartbeat_at = $3, \
+                 error = $4, lease_until = NULL \
+                 WHERE id = $1 AND token = $2 AND status = 'running'",
                 vec![serde_json::to_string(problem)?],
             ),
         };
         self.run(move |c| async move {
-            let id = id.to_string();
-            let mut params: Vec<&(dyn tokio_postgres::types::ToSql + Sync)> = vec![&id, &now];
+            let id = lease.id.to_string();
+            let mut params: Vec<&(dyn tokio_postgres::types::ToSql + Sync)> =
+                vec![&id, &lease.token, &now];
             params.extend(
                 fields
                     .iter()
@@ -513,18 +629,105 @@ impl JobRepo for PgRepo {
         })
     }
 
-    fn requeue(&self, id: Uuid) -> RepoResult<bool> {
-        self.run(move |c| async move {
-            let n = c
+    fn requeue(&self, lease: Lease) -> RepoResult<bool> {
+        self.run(move |mut c| async move {
+            let tx = c.transaction().await.map_err(db_error)?;
+            let n = tx
                 .execute(
-                    "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0 \
-                     WHERE id = $1 AND status = 'running'",
-                    &[&id.to_string()],
+                    "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0, \
+                     owner = NULL, lease_until = NULL \
+                     WHERE id = $1 AND token = $2 AND status = 'running'",
+                    &[&lease.id.to_string(), &lease.token],
                 )
                 .await
                 .map_err(db_error)?;
+            tx.execute(NOTIFY, &[]).await.map_err(db_error)?;
+            tx.commit().await.map_err(db_error)?;
             Ok(n == 1)
         })
+    }
+
+    fn reap(
+        &self,
+        max_attempts: u32,
+        failure: &dyn Fn(Uuid) -> Problem,
+        now: i64,
+    ) -> RepoResult<Reaped> {
+        // Which leases have run out is the database's to say (its clock); the failures are
+        // written in a second step, conditional on the token seen here.
+        let expired: Vec<(String, i64, i64)> = self.run(|c| async move {
+            let rows = c
+                .query(
+                    "SELECT id, token, attempts FROM jobs \
+                     WHERE status = 'running' AND lease_until < now()",
+                    &[],
+                )
+                .await
+                .map_err(db_error)?;
+            Ok(rows
+                .iter()
+                .map(|r| (r.get(0), r.get(1), r.get(2)))
+                .collect())
+        })?;
+        if expired.is_empty() {
+            return Ok(Reaped::default());
+        }
+        let mut plan = Vec::new();
+        for (id, token, attempts) in expired {
+            let Ok(uuid) = Uuid::parse_str(&id) else {
+                continue;
+            };
+            let error = (attempts >= i64::from(max_attempts))
+                .then(|| serde_json::to_string(&failure(uuid)))
+                .transpose()?;
+            plan.push((uuid, token, error));
+        }
+        self.run(move |mut c| async move {
+            let tx = c.transaction().await.map_err(db_error)?;
+            let mut reaped = Reaped::default();
+            for (id, token, error) in plan {
+                // Still expired and still that attempt: a heartbeat or a cancel in between wins.
+                let guard = "id = $1 AND token = $2 AND status = 'running' AND lease_until < now()";
+                let n = match &error {
+                    Some(error) => tx
+                        .execute(
+                            &format!(
+                                "UPDATE jobs SET status = 'failed', finished_at = $3, \
+                                 error = $4, lease_until = NULL WHERE {guard}"
+                            ),
+                            &[&id.to_string(), &token, &now, error],
+                        )
+                        .await
+                        .map_err(db_error)?,
+                    None => tx
+                        .execute(
+                            &format!(
+                                "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0, \
+                                 owner = NULL, lease_until = NULL WHERE {guard}"
+                            ),
+                            &[&id.to_string(), &token],
+                        )
+                        .await
+                        .map_err(db_error)?,
+                };
+                match (n, &error) {
+                    (0, _) => {}
+                    (_, Some(_)) => reaped.failed.push(id),
+                    (_, None) => reaped.requeued.push(id),
+                }
+            }
+            if !reaped.requeued.is_empty() {
+                tx.execute(NOTIFY, &[]).await.map_err(db_error)?;
+            }
+            tx.commit().await.map_err(db_error)?;
+            Ok(reaped)
+        })
+    }
+
+    fn subscribe(&self, wake: Arc<dyn Fn() + Send + Sync>) {
+        let config = self.config.clone();
+        let runtime = self.runtime.as_ref().expect("present until drop");
+        runtime.spawn(listen(config, wake));
     }
 
     fn cancel(&self, id: Uuid, now: i64) -> RepoResult<Option<JobStatus>> {
@@ -542,7 +745,8 @@ impl JobRepo for PgRepo {
                 return Ok(None);
             }
             tx.execute(
-                "UPDATE jobs SET status = 'cancelled', finished_at = $2 WHERE id = $1",
+                "UPDATE jobs SET status = 'cancelled', finished_at = $2, lease_until = NULL \
+                 WHERE id = $1",
                 &[&id, &now],
             )
             .await

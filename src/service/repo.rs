@@ -6,7 +6,7 @@ use std::path::Path;
 use std::sync::Mutex;
 use std::time::Duration;
 
-use rusqlite::{Connection, OptionalExtension, Row, params};
+use rusqlite::{Connection, OptionalExtension, Row, TransactionBehavior, params};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 use uuid::Uuid;
@@ -246,12 +246,56 @@ impl From<serde_json::Error> for RepoError {
 
 pub type RepoResult<T> = Result<T, RepoError>;
 
-/// Durable job records. Every state change is conditional on the state it leaves, so a
-/// worker and a `DELETE` racing on one job cannot both win.
+/// A claimed job as its worker holds it. Every write the worker makes about the job
+/// carries the token and is refused once the job has ended or another claim has taken it
+/// (a fencing token: a worker that lost its lease can never overwrite the one that took
+/// over).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Lease {
+    pub id: Uuid,
+    pub token: i64,
+}
+
+/// A job a worker has claimed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Claim {
+    pub lease: Lease,
+    pub tenant: String,
+}
+
+/// Whether a new job was recorded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Admission {
+    Accepted,
+    /// Its tenant already has `max_active` jobs queued or running.
+    TenantFull,
+    /// `max_queued` jobs are waiting, all tenants together.
+    QueueFull,
+}
+
+/// What the reaper did with running jobs whose lease had expired.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct Reaped {
+    /// Back in the queue, to run again.
+    pub requeued: Vec<Uuid>,
+    /// Failed: their lease expired on their last attempt.
+    pub failed: Vec<Uuid>,
+}
+
+/// Durable job records, and the queue: workers claim queued jobs from it. Every state
+/// change is conditional on the state it leaves (and a worker's on its lease's token), so
+/// a worker, a `DELETE` and the reaper racing on one job cannot both win.
 pub trait JobRepo: Send + Sync + 'static {
     /// Record a new job unless its tenant already has `max_active` jobs queued or running
-    /// (false then); the count and the insert are one step.
-    fn insert(&self, job: &JobRecord, max_active: usize) -> RepoResult<bool>;
+    /// or `max_queued` jobs are waiting; the counts and the insert are one step.
+    fn insert(
+        &self,
+        job: &JobRecord,
+        max_active: usize,
+        max_queued: usize,
+    ) -> RepoResult<Admission>;
+    /// Jobs waiting for a worker, all tenants together.
+    fn queued(&self) -> RepoResult<u64>;
     /// Jobs of `tenant` queued or running.
     fn active(&self, tenant: &str) -> RepoResult<u64>;
     /// Artifact bytes the jobs of `tenant` hold.
@@ -265,19 +309,35 @@ pub trait JobRepo: Send + Sync + 'static {
         limit: usize,
         before: Option<(i64, Uuid)>,
     ) -> RepoResult<Vec<JobRecord>>;
-    /// Queued and running jobs, oldest first (for the queue at startup).
+    /// Queued and running jobs, oldest first.
     fn unfinished(&self) -> RepoResult<Vec<JobRecord>>;
-    /// queued → running; counts an attempt. False when the job is no longer queued.
-    fn start(&self, id: Uuid, now: i64) -> RepoResult<bool>;
-    /// Record the stage a running job has reached.
-    fn progress(&self, id: Uuid, stage: &str, progress: f64, now: i64) -> RepoResult<()>;
-    /// Mark running jobs as alive.
-    fn heartbeat(&self, ids: &[Uuid], now: i64) -> RepoResult<()>;
-    /// running → succeeded | failed. False when the job is no longer running (cancelled
-    /// or deleted meanwhile).
-    fn finish(&self, id: Uuid, finish: &Finish, now: i64) -> RepoResult<bool>;
-    /// running → queued (to run again, e.g. after a shutdown interrupted it).
-    fn requeue(&self, id: Uuid) -> RepoResult<bool>;
+    /// Every running job → queued: a single node's start, when no one else can hold one.
+    fn release_running(&self) -> RepoResult<usize>;
+    /// Take the next queued job for `owner` (queued → running, an attempt counted, a new
+    /// token, a lease of `lease` from now). Tenants take turns: the next job is the oldest
+    /// of the tenant served least recently. None when nothing waits.
+    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Claim>>;
+    /// Record the stage a running job has reached. False when the lease is no longer held.
+    fn progress(&self, lease: Lease, stage: &str, progress: f64, now: i64) -> RepoResult<bool>;
+    /// Extend the leases still held by `lease` from now; returns those no longer held
+    /// (the job was cancelled, deleted, or reaped and perhaps claimed again).
+    fn heartbeat(&self, leases: &[Lease], lease: Duration, now: i64) -> RepoResult<Vec<Lease>>;
+    /// running → succeeded | failed. False when the lease is no longer held.
+    fn finish(&self, lease: Lease, finish: &Finish, now: i64) -> RepoResult<bool>;
+    /// running → queued (to run again, e.g. after a shutdown interrupted it). False when
+    /// the lease is no longer held.
+    fn requeue(&self, lease: Lease) -> RepoResult<bool>;
+    /// Running jobs whose lease has expired (their worker died or lost the database):
+    /// → queued, or → failed with `failure(id)` once `max_attempts` attempts have run.
+    fn reap(
+        &self,
+        max_attempts: u32,
+        failure: &dyn Fn(Uuid) -> Problem,
+        now: i64,
+    ) -> RepoResult<Reaped>;
+    /// Have `wake` called whenever a job is queued or requeued by any instance. Without
+    /// it (a single node) the instance rings its own workers.
+    fn subscribe(&self, _wake: std::sync::Arc<dyn Fn() + Send + Sync>) {}
     /// queued | running → cancelled; returns the status it left, None if it was not
     /// cancellable (or does not exist).
     fn cancel(&self, id: Uuid, now: i64) -> RepoResult<Option<JobStatus>>;
@@ -377,6 +437,12 @@ const MIGRATIONS: &[&str] = &[
     );
     CREATE INDEX calibrations_by_created ON calibrations (created_at DESC, id DESC);
     CREATE INDEX calibrations_by_tenant ON calibrations (tenant, created_at DESC, id DESC);",
+    // 6: leases (the claiming worker, its fencing token, when the lease runs out) and the
+    // tenants' turns.
+    "ALTER TABLE jobs ADD COLUMN owner TEXT;
+    ALTER TABLE jobs ADD COLUMN token INTEGER NOT NULL DEFAULT 0;
+    ALTER TABLE jobs ADD COLUMN lease_until INTEGER;
+    CREATE TABLE turns (tenant TEXT PRIMARY KEY NOT NULL, served INTEGER NOT NULL);",
 ];
 
 /// [`JobRepo`] in a SQLite database file.
@@ -570,7 +636,12 @@ fn query_records(
 }
 
 impl JobRepo for SqliteRepo {
-    fn insert(&self, job: &JobRecord, max_active: usize) -> RepoResult<bool> {
+    fn insert(
+        &self,
+        job: &JobRecord,
+        max_active: usize,
+        max_queued: usize,
+    ) -> RepoResult<Admission> {
         let options = serde_json::to_string(&job.options)?;
         let error = job.error.as_ref().map(serde_json::to_string).transpose()?;
         let result = job.result.as_ref().map(serde_json::to_string).transpose()?;
@@ -581,11 +652,23 @@ impl JobRepo for SqliteRepo {
             .map(serde_json::to_string)
             .transpose()?;
         self.with(|c| {
-            c.execute(
+            let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+            let (active, queued): (i64, i64) = tx.query_row(
+                "SELECT COUNT(*) FILTER (WHERE tenant = ?1 AND status IN ('queued', 'running')), \
+                 COUNT(*) FILTER (WHERE status = 'queued') FROM jobs",
+                params![job.tenant],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )?;
+            if active >= max_active as i64 {
+                return Ok(Admission::TenantFull);
+            }
+            if queued >= max_queued as i64 {
+                return Ok(Admission::QueueFull);
+            }
+            tx.execute(
                 &format!(
-                    "INSERT INTO jobs ({COLUMNS}) SELECT ?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, \
-                     ?10, ?11, ?12, ?13, ?14, ?15, ?17 WHERE (SELECT COUNT(*) FROM jobs \
-                     WHERE tenant = ?15 AND status IN ('queued', 'running')) < ?16"
+                    "INSERT INTO jobs ({COLUMNS}) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, \
+                     ?10, ?11, ?12, ?13, ?14, ?15, ?16)"
                 ),
                 params![
                     job.id.to_string(),
@@ -603,12 +686,21 @@ impl JobRepo for SqliteRepo {
                     result,
                     artifacts,
                     job.tenant,
-                    max_active as i64,
                     callback,
                 ],
-            )
-            .map(|n| n == 1)
-            .map_err(RepoError::from)
+            )?;
+            tx.commit()?;
+            Ok(Admission::Accepted)
+        })
+    }
+
+    fn queued(&self) -> RepoResult<u64> {
+        self.with(|c| {
+            Ok(c.query_row(
+                "SELECT COUNT(*) FROM jobs WHERE status = 'queued'",
+                [],
+                |r| r.get::<_, i64>(0),
+            )? as u64)
         })
     }
 
@@ -683,54 +775,98 @@ impl JobRepo for SqliteRepo {
         })
     }
 
-    fn start(&self, id: Uuid, now: i64) -> RepoResult<bool> {
+    fn release_running(&self) -> RepoResult<usize> {
+        self.with(|c| {
+            Ok(c.execute(
+                "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0, owner = NULL, \
+                 lease_until = NULL WHERE status = 'running'",
+                [],
+            )?)
+        })
+    }
+
+    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Claim>> {
+        let until = now.saturating_add(lease.as_millis() as i64);
+        self.with(|c| {
+            let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+            let next: Option<(String, String)> = tx
+                .query_row(
+                    "SELECT j.id, j.tenant FROM jobs j LEFT JOIN turns t ON t.tenant = j.tenant \
+                     WHERE j.status = 'queued' \
+                     ORDER BY COALESCE(t.served, 0), j.created_at, j.id LIMIT 1",
+                    [],
+                    |r| Ok((r.get(0)?, r.get(1)?)),
+                )
+                .optional()?;
+            let Some((id, tenant)) = next else {
+                return Ok(None);
+            };
+            let token: i64 = tx.query_row(
+                "UPDATE jobs SET status = 'running', stage = NULL, progress = 0, \
+                 started_at = ?2, heartbeat_at = ?2, attempts = attempts + 1, \
+                 token = token + 1, owner = ?3, lease_until = ?4 WHERE id = ?1 RETURNING token",
+                params![id, now, owner, until],
+                |r| r.get(0),
+            )?;
+            tx.execute(
+                "INSERT INTO turns (tenant, served) \
+                 VALUES (?1, (SELECT COALESCE(MAX(served), 0) + 1 FROM turns)) \
+                 ON CONFLICT (tenant) DO UPDATE SET served = excluded.served",
+                params![tenant],
+            )?;
+            tx.commit()?;
+            let id = Uuid::parse_str(&id)
+                .map_err(|e| RepoError::new(format!("stored job id {id:?}: {e}")))?;
+            Ok(Some(Claim {
+                lease: Lease { id, token },
+                tenant,
+            }))
+        })
+    }
+
+    fn progress(&self, lease: Lease, stage: &str, progress: f64, now: i64) -> RepoResult<bool> {
         self.with(|c| {
             let n = c.execute(
-                "UPDATE jobs SET status = 'running', stage = NULL, progress = 0, \
-                 started_at = ?2, heartbeat_at = ?2, attempts = attempts + 1 \
-                 WHERE id = ?1 AND status = 'queued'",
-                params![id.to_string(), now],
+                "UPDATE jobs SET stage = ?3, progress = ?4, heartbeat_at = ?5 \
+                 WHERE id = ?1 AND token = ?2 AND status = 'running'",
+                params![lease.id.to_string(), lease.token, stage, progress, now],
             )?;
             Ok(n == 1)
         })
     }
 
-    fn progress(&self, id: Uuid, stage: &str, progress: f64, now: i64) -> RepoResult<()> {
-        self.with(|c| {
-            c.execute(
-                "UPDATE jobs SET stage = ?2, progress = ?3, heartbeat_at = ?4 \
-                 WHERE id = ?1 AND status = 'running'",
-                params![id.to_string(), stage, progress, now],
-            )?;
-            Ok(())
-        })
-    }
-
-    fn heartbeat(&self, ids: &[Uuid], now: i64) -> RepoResult<()> {
+    fn heartbeat(&self, leases: &[Lease], lease: Duration, now: i64) -> RepoResult<Vec<Lease>> {
+        let until = now.saturating_add(lease.as_millis() as i64);
         self.with(|c| {
             let tx = c.transaction()?;
-            for id in ids {
-                tx.execute(
-                    "UPDATE jobs SET heartbeat_at = ?2 WHERE id = ?1 AND status = 'running'",
-                    params![id.to_string(), now],
+            let mut lost = Vec::new();
+            for l in leases {
+                let n = tx.execute(
+                    "UPDATE jobs SET heartbeat_at = ?3, lease_until = ?4 \
+                     WHERE id = ?1 AND token = ?2 AND status = 'running'",
+                    params![l.id.to_string(), l.token, now, until],
                 )?;
+                if n == 0 {
+                    lost.push(*l);
+                }
             }
             tx.commit()?;
-            Ok(())
+            Ok(lost)
         })
     }
 
-    fn finish(&self, id: Uuid, finish: &Finish, now: i64) -> RepoResult<bool> {
+    fn finish(&self, lease: Lease, finish: &Finish, now: i64) -> RepoResult<bool> {
+        let (id, token) = (lease.id.to_string(), lease.token);
         let n = match finish {
             Finish::Succeeded { result, artifacts } => {
                 let result = serde_json::to_string(result)?;
                 let artifacts = serde_json::to_string(artifacts)?;
                 self.with(|c| {
                     Ok(c.execute(
-                        "UPDATE jobs SET status = 'succeeded', progress = 1, finished_at = ?2, \
-                         heartbeat_at = ?2, result = ?3, artifacts = ?4, error = NULL \
-                         WHERE id = ?1 AND status = 'running'",
-                        params![id.to_string(), now, result, artifacts],
+                        "UPDATE jobs SET status = 'succeeded', progress = 1, finished_at = ?3, \
+                         heartbeat_at = ?3, result = ?4, artifacts = ?5, error = NULL, \
+                         lease_until = NULL WHERE id = ?1 AND token = ?2 AND status = 'running'",
+                        params![id, token, now, result, artifacts],
                     )?)
                 })?
             }
@@ -738,9 +874,10 @@ impl JobRepo for SqliteRepo {
                 let error = serde_json::to_string(problem)?;
                 self.with(|c| {
                     Ok(c.execute(
-                        "UPDATE jobs SET status = 'failed', finished_at = ?2, heartbeat_at = ?2, \
-                         error = ?3 WHERE id = ?1 AND status = 'running'",
-                        params![id.to_string(), now, error],
+                        "UPDATE jobs SET status = 'failed', finished_at = ?3, heartbeat_at = ?3, \
+                         error = ?4, lease_until = NULL \
+                         WHERE id = ?1 AND token = ?2 AND status = 'running'",
+                        params![id, token, now, error],
                     )?)
                 })?
             }
@@ -748,14 +885,56 @@ impl JobRepo for SqliteRepo {
         Ok(n == 1)
     }
 
-    fn requeue(&self, id: Uuid) -> RepoResult<bool> {
+    fn requeue(&self, lease: Lease) -> RepoResult<bool> {
         self.with(|c| {
             let n = c.execute(
-                "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0 \
-                 WHERE id = ?1 AND status = 'running'",
-                params![id.to_string()],
+                "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0, owner = NULL, \
+                 lease_until = NULL WHERE id = ?1 AND token = ?2 AND status = 'running'",
+                params![lease.id.to_string(), lease.token],
             )?;
             Ok(n == 1)
+        })
+    }
+
+    fn reap(
+        &self,
+        max_attempts: u32,
+        failure: &dyn Fn(Uuid) -> Problem,
+        now: i64,
+    ) -> RepoResult<Reaped> {
+        self.with(|c| {
+            let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+            let expired: Vec<(String, i64)> = {
+                let mut stmt = tx.prepare_cached(
+                    "SELECT id, attempts FROM jobs WHERE status = 'running' AND lease_until < ?1",
+                )?;
+                stmt.query_map(params![now], |r| Ok((r.get(0)?, r.get(1)?)))?
+                    .collect::<Result<_, _>>()?
+            };
+            let mut reaped = Reaped::default();
+            for (id, attempts) in expired {
+                let Ok(uuid) = Uuid::parse_str(&id) else {
+                    continue;
+                };
+                if attempts >= i64::from(max_attempts) {
+                    let error = serde_json::to_string(&failure(uuid))?;
+                    tx.execute(
+                        "UPDATE jobs SET status = 'failed', finished_at = ?2, error = ?3, \
+                         lease_until = NULL WHERE id = ?1",
+                        params![id, now, error],
+                    )?;
+                    reaped.failed.push(uuid);
+                } else {
+                    tx.execute(
+                        "UPDATE jobs SET status = 'queued', stage = NULL, progress = 0, \
+                         owner = NULL, lease_until = NULL WHERE id = ?1",
+                        params![id],
+                    )?;
+                    reaped.requeued.push(uuid);
+                }
+            }
+            tx.commit()?;
+            Ok(reaped)
         })
     }
 
@@ -776,7 +955,8 @@ impl JobRepo for SqliteRepo {
                 return Ok(None);
             }
             tx.execute(
-                "UPDATE jobs SET status = 'cancelled', finished_at = ?2 WHERE id = ?1",
+                "UPDATE jobs SET status = 'cancelled', finished_at = ?2, lease_until = NULL \
+                 WHERE id = ?1",
                 params![id.to_string(), now],
             )?;
             tx.commit()?;
@@ -1031,30 +1211,111 @@ mod tests {
         (dir, repo)
     }
 
+    fn claim(repo: &SqliteRepo, now: i64) -> Option<Lease> {
+        let c = repo.claim("w", Duration::from_secs(5), now).unwrap()?;
+        Some(c.lease)
+    }
+
+    fn queue(repo: &SqliteRepo, tenant: &str, at: i64) -> Uuid {
+        let id = Uuid::new_v4();
+        let job = JobRecord::new_queued(id, tenant, at, 3, serde_json::json!({}));
+        assert_eq!(repo.insert(&job, 100, 100).unwrap(), Admission::Accepted);
+        id
+    }
+
+    #[test]
+    fn tenants_take_turns_and_each_keeps_its_order() {
+        let (_dir, repo) = repo();
+        let a: Vec<Uuid> = (0..4).map(|i| queue(&repo, "a", i)).collect();
+        let b: Vec<Uuid> = (0..2).map(|i| queue(&repo, "b", 10 + i)).collect();
+        let order: Vec<Uuid> = (0..6).map(|i| claim(&repo, 100 + i).unwrap().id).collect();
+        assert_eq!(order, [a[0], b[0], a[1], b[1], a[2], a[3]]);
+    }
+
+    #[test]
+    fn an_expired_lease_is_reaped_and_its_late_writes_refused() {
+        let (_dir, repo) = repo();
+        let id = queue(&repo, "t", 1);
+        let failure = |id: Uuid| Problem {
+            kind: "urn:test".into(),
+            title: "lost".into(),
+            status: 500,
+            detail: format!("{id} lost"),
+            instance: None,
+        };
+        let first = claim(&repo, 1000).unwrap(); // lease until 6000
+        assert_eq!(repo.reap(2, &failure, 5999).unwrap(), Reaped::default());
+        assert!(
+            repo.heartbeat(&[first], Duration::from_secs(5), 2000)
+                .unwrap()
+                .is_empty()
+        );
+        assert_eq!(
+            repo.reap(2, &failure, 6999).unwrap(),
+            Reaped::default(),
+            "extended"
+        );
+        let reaped = repo.reap(2, &failure, 7001).unwrap();
+        assert_eq!(reaped.requeued, [id]);
+        let second = claim(&repo, 7100).unwrap();
+        assert_eq!(second.id, id);
+        assert!(second.token > first.token);
+        // The first worker wakes up: every write it makes is refused.
+        assert!(!repo.progress(first, "solve", 0.5, 7200).unwrap());
+        assert_eq!(
+            repo.heartbeat(&[first, second], Duration::from_secs(5), 7200)
+                .unwrap(),
+            [first]
+        );
+        let done = Finish::Succeeded {
+            result: serde_json::json!({}),
+            artifacts: vec![],
+        };
+        assert!(!repo.finish(first, &done, 7300).unwrap());
+        assert!(!repo.requeue(first).unwrap());
+        assert_eq!(repo.get(id).unwrap().unwrap().status, JobStatus::Running);
+        // The second attempt's lease expires too: that was the last attempt.
+        let reaped = repo.reap(2, &failure, 20_000).unwrap();
+        assert_eq!(reaped.failed, [id]);
+        let rec = repo.get(id).unwrap().unwrap();
+        assert_eq!((rec.status, rec.attempts), (JobStatus::Failed, 2));
+        assert_eq!(rec.error.unwrap().detail, format!("{id} lost"));
+        assert!(!repo.finish(second, &done, 20_001).unwrap());
+    }
+
     #[test]
     fn lifecycle_and_races() {
         let (_dir, repo) = repo();
         let id = Uuid::new_v4();
-        assert!(
+        assert_eq!(
             repo.insert(
                 &JobRecord::new_queued(id, "t", 1000, 4, serde_json::json!({})),
+                9,
                 9
             )
-            .unwrap()
+            .unwrap(),
+            Admission::Accepted
         );
-        assert!(repo.start(id, 2000).unwrap());
-        assert!(!repo.start(id, 2001).unwrap(), "only a queued job starts");
-        repo.progress(id, "solve", 0.25, 2100).unwrap();
+        let lease = claim(&repo, 2000).unwrap();
+        assert_eq!(lease.id, id);
+        assert!(claim(&repo, 2001).is_none(), "only a queued job is claimed");
+        assert!(repo.progress(lease, "solve", 0.25, 2100).unwrap());
         let rec = repo.get(id).unwrap().unwrap();
         assert_eq!(rec.status, JobStatus::Running);
         assert_eq!(rec.stage.as_deref(), Some("solve"));
         assert_eq!(rec.attempts, 1);
         assert_eq!(repo.cancel(id, 2200).unwrap(), Some(JobStatus::Running));
+        assert_eq!(
+            repo.heartbeat(&[lease], Duration::from_secs(5), 2250)
+                .unwrap(),
+            [lease],
+            "a cancelled job's lease is no longer held"
+        );
         let done = Finish::Succeeded {
             result: serde_json::json!({"width": 3}),
             artifacts: vec![],
         };
-        assert!(!repo.finish(id, &done, 2300).unwrap(), "cancel wins");
+        assert!(!repo.finish(lease, &done, 2300).unwrap(), "cancel wins");
         assert_eq!(repo.cancel(id, 2400).unwrap(), None);
         assert_eq!(repo.get(id).unwrap().unwrap().status, JobStatus::Cancelled);
         assert_eq!(repo.expired(2201, 10).unwrap(), vec![id]);
@@ -1077,6 +1338,7 @@ mod tests {
                     3,
                     serde_json::json!({}),
                 ),
+                100,
                 100,
             )
             .unwrap();
@@ -1124,6 +1386,7 @@ mod tests {
             repo.insert(
                 &JobRecord::new_queued(id, "t", 5, 3, serde_json::json!({"solver": "l2"})),
                 100,
+                100,
             )
             .unwrap();
         }
@@ -1136,18 +1399,33 @@ mod tests {
     #[test]
     fn a_tenant_past_its_active_jobs_is_not_recorded() {
         let (_dir, repo) = repo();
-        let job = |t: &str| JobRecord::new_queued(Uuid::new_v4(), t, 1, 1, serde_json::json!({}));
+        // Created in the order made, so that the first one is claimed first.
+        let clock = std::cell::Cell::new(0);
+        let job = |t: &str| {
+            clock.set(clock.get() + 1);
+            JobRecord::new_queued(Uuid::new_v4(), t, clock.get(), 1, serde_json::json!({}))
+        };
         let (first, second) = (job("a"), job("a"));
-        assert!(repo.insert(&first, 2).unwrap());
-        assert!(repo.insert(&second, 2).unwrap());
-        assert!(!repo.insert(&job("a"), 2).unwrap(), "a has 2 active");
-        assert!(
-            repo.insert(&job("b"), 2).unwrap(),
-            "b is not counted with a"
+        let accepted = |j: &JobRecord| repo.insert(j, 2, 4).unwrap() == Admission::Accepted;
+        assert!(accepted(&first));
+        assert!(accepted(&second));
+        assert_eq!(
+            repo.insert(&job("a"), 2, 4).unwrap(),
+            Admission::TenantFull,
+            "a has 2 active"
         );
+        assert!(accepted(&job("b")), "b is not counted with a");
         assert_eq!(repo.active("a").unwrap(), 2);
+        assert_eq!(repo.queued().unwrap(), 3);
+        assert_eq!(
+            repo.insert(&job("c"), 2, 3).unwrap(),
+            Admission::QueueFull,
+            "3 wait"
+        );
         // A finished job no longer counts, but its artifacts are stored bytes.
-        assert!(repo.start(first.id, 2).unwrap());
+        let first = claim(&repo, 2).unwrap();
+        assert_eq!(repo.queued().unwrap(), 2);
+        assert_eq!(repo.get(first.id).unwrap().unwrap().tenant, "a");
         let artifact = |name: &str, bytes| ArtifactInfo {
             name: name.into(),
             bytes,
@@ -1158,9 +1436,9 @@ mod tests {
             result: serde_json::json!({}),
             artifacts: vec![artifact("albedo.png", 1000), artifact("mesh.glb", 234)],
         };
-        assert!(repo.finish(first.id, &done, 3).unwrap());
+        assert!(repo.finish(first, &done, 3).unwrap());
         assert_eq!(repo.active("a").unwrap(), 1);
-        assert!(repo.insert(&job("a"), 2).unwrap());
+        assert!(accepted(&job("a")));
         assert_eq!(repo.stored_bytes("a").unwrap(), 1234);
         assert_eq!(repo.stored_bytes("b").unwrap(), 0);
         let by_tenant = repo.counts_by_tenant().unwrap();

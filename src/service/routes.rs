@@ -21,8 +21,9 @@ use super::blobs::Served;
 use super::download;
 use super::error::{ApiError, PROBLEM_JSON, Problem};
 use super::idempotency::{self, PartHasher};
-use super::jobs::PushError;
-use super::repo::{CalibrationRecord, Callback, CallbackState, JobRecord, JobStatus, Remembered};
+use super::repo::{
+    Admission, CalibrationRecord, Callback, CallbackState, JobRecord, JobStatus, Remembered,
+};
 use super::tenants::Caller;
 use super::upload;
 use super::util::{format_duration, now_ms, rfc3339, strong_etag};
@@ -471,7 +472,7 @@ async fn accept_job(
         _receiving,
     } = open_submission(state, caller, parts, tap, JOBS_SCOPE).await?;
     if earlier.is_none() {
-        if state.jobs().is_full() {
+        if state.repo(|r| r.queued()).await? >= config.queue_length as u64 {
             state.count_queue_full();
             return Err(queue_full(state));
         }
@@ -539,9 +540,26 @@ async fn accept_job(
     );
     record.callback = callback;
     let stored = record.clone();
-    let max_active = config.tenant_max_jobs;
-    if !state.repo(move |r| r.insert(&stored, max_active)).await? {
-        return Err(state.over_active_jobs(&caller.tenant));
+    let (max_active, max_queued) = (config.tenant_max_jobs, config.queue_length);
+    // Parked before the job is recorded, so that a worker that claims it at once finds it.
+    if let Some(set) = prefetch {
+        state.park_prefetch(id, set);
+    }
+    match state
+        .repo(move |r| r.insert(&stored, max_active, max_queued))
+        .await
+    {
+        Ok(Admission::Accepted) => {}
+        refused => {
+            state.remove_prefetch(id);
+            match refused? {
+                Admission::TenantFull => return Err(state.over_active_jobs(&caller.tenant)),
+                _ => {
+                    state.count_queue_full();
+                    return Err(queue_full(state));
+                }
+            }
+        }
     }
     let view = JobView::from_record(record.clone());
     let answer = Remembered {
@@ -559,26 +577,12 @@ async fn accept_job(
             .await?;
         // A concurrent request with the same key got there first: this job never was.
         if let Some(first) = raced {
+            state.remove_prefetch(id);
             state.repo(move |r| r.delete(id)).await?;
             return idempotency::replay(&first, &answer.body_hash);
         }
     }
-    // Parked before the job is queued, so that its worker finds it.
-    if let Some(set) = prefetch {
-        state.park_prefetch(id, set);
-    }
-    match state.jobs().try_push(id, &caller.tenant) {
-        Ok(()) => {}
-        // Stopping: the job stays queued in the repo and runs at the next start (which
-        // decodes from disk).
-        Err(PushError::Closed) => state.remove_prefetch(id),
-        Err(PushError::Full) => {
-            state.remove_prefetch(id);
-            state.repo(move |r| r.delete(id)).await?;
-            state.count_queue_full();
-            return Err(queue_full(state));
-        }
-    }
+    state.workers().ring();
     staging.keep();
     state.count_submitted();
     tracing::info!(
@@ -601,7 +605,7 @@ fn queue_full(state: &AppState) -> ApiError {
         super::config::RETRY_AFTER_SECS,
         format!(
             "the job queue is full ({} jobs waiting); retry later",
-            state.jobs().capacity()
+            state.config().queue_length
         ),
     )
 }
@@ -765,21 +769,22 @@ pub async fn delete_job(
     let now = now_ms();
     match state.repo(move |r| r.cancel(id, now)).await? {
         Some(JobStatus::Queued) => {
-            state.jobs().remove(id);
             state.remove_files(id).await;
             state.job_ended(id);
             tracing::info!(job = %id, "queued job cancelled");
         }
         Some(_) => {
-            state.jobs().cancel_running(id);
-            tracing::info!(job = %id, "running job cancelled; it stops within one step of work");
+            // Held here, it stops within one step of work; held by another instance, once
+            // that instance's next heartbeat hears of it.
+            state.workers().cancel_running(id);
+            tracing::info!(job = %id, "running job cancelled");
         }
         None => {
             if !state.repo(move |r| r.delete(id)).await? {
                 return Err(ApiError::not_found(format!("there is no job {id}")));
             }
             // A worker still finishing a cancelled run removes the files itself.
-            if !state.jobs().is_held(id) {
+            if !state.workers().is_held(id) {
                 state.remove_files(id).await;
             }
             tracing::info!(job = %id, "job deleted");

@@ -5,10 +5,16 @@
 
 #![allow(dead_code)]
 
+use std::collections::BTreeSet;
 use std::net::TcpListener;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+use futures_util::TryStreamExt;
+use object_store::ObjectStore;
+use object_store::aws::AmazonS3Builder;
 
 pub const ACCESS_KEY: &str = "photostereo-test";
 pub const SECRET_KEY: &str = "photostereo-test-secret";
@@ -183,6 +189,21 @@ impl Weed {
         ]
     }
 
+    /// A client of the bucket of our own, to see what is stored.
+    pub fn bucket(&self) -> Arc<dyn ObjectStore> {
+        Arc::new(
+            AmazonS3Builder::new()
+                .with_endpoint(self.endpoint())
+                .with_bucket_name(BUCKET)
+                .with_access_key_id(ACCESS_KEY)
+                .with_secret_access_key(SECRET_KEY)
+                .with_region("us-east-1")
+                .with_allow_http(true)
+                .build()
+                .unwrap(),
+        )
+    }
+
     /// Set [`Self::env`] in this process (hold [`ENV`] while a service opens).
     pub fn set_env(&self) {
         for (k, v) in self.env() {
@@ -227,6 +248,16 @@ impl Weed {
     pub fn logs(&self) -> String {
         std::fs::read_to_string(self.dir.path().join("weed.log")).unwrap_or_default()
     }
+}
+
+/// Every key under `prefix`.
+pub async fn keys(store: &Arc<dyn ObjectStore>, prefix: &str) -> BTreeSet<String> {
+    store
+        .list(Some(&object_store::path::Path::from(prefix)))
+        .map_ok(|m| m.location.to_string())
+        .try_collect()
+        .await
+        .unwrap()
 }
 
 impl Drop for Weed {
