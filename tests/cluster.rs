@@ -6,7 +6,8 @@
 //!   events, artifacts, shading on request) with the same bytes.
 //! - The real binary: an instance killed (`kill -9`) in the middle of a job loses it to
 //!   another once its lease runs out; an instance paused past its lease wakes to find the
-//!   job taken over, and what it writes late is refused; PostgreSQL stopped and started
+//!   job taken over, and what it writes late is refused; a job cancelled on one instance
+//!   stops on the one running it within a heartbeat; PostgreSQL stopped and started
 //!   under the running cluster loses no accepted job, submissions meanwhile get 503, and
 //!   the instances go on without a restart.
 
@@ -239,6 +240,35 @@ async fn a_dead_or_paused_instance_loses_its_job_and_an_outage_loses_nothing() {
     assert_eq!(
         bytes(&b.client, &b.url(&path)).await,
         bytes(&c.client, &c.url(&path)).await
+    );
+
+    // DELETE on one instance stops the job running on another within a heartbeat (a
+    // third of the lease).
+    signal(&c, libc::SIGSTOP); // so that b claims it
+    let third = submit(&b).await;
+    job(&b, &third, long, |j| j["stage"] == "solve").await;
+    signal(&c, libc::SIGCONT);
+    let asked = Instant::now();
+    let r = c
+        .client
+        .delete(c.url(&format!("/v1/jobs/{third}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200, "cancel a running job");
+    let cancelled_on_b = "photostereo_jobs_finished_seconds_count{status=\"cancelled\"} 1";
+    loop {
+        let metrics = b.client.get(b.url("/metrics")).send().await.unwrap();
+        if metrics.text().await.unwrap().contains(cancelled_on_b) {
+            break;
+        }
+        assert!(asked.elapsed() < long, "b never stopped the cancelled job");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let took = asked.elapsed();
+    assert!(
+        took < Duration::from_millis(1500),
+        "b stopped it after {took:?}"
     );
 
     // PostgreSQL stopped and started under the running cluster.

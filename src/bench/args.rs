@@ -20,6 +20,15 @@ pub struct BenchArgs {
     /// Also submit every set to an in-process server over HTTP and time it.
     #[arg(long)]
     pub http: bool,
+    /// With --http: also run every HTTP job on a second in-process server that keeps its
+    /// jobs in this PostgreSQL database (`postgres://…`) and its files in --store,
+    /// alternating with the SQLite + data directory server, and compare the two.
+    #[arg(long, requires_all = ["http", "store"])]
+    pub database_url: Option<String>,
+    /// The second server's store, `s3://bucket[/prefix]` (S3 settings from AWS_ENDPOINT_URL,
+    /// AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION, AWS_ALLOW_HTTP).
+    #[arg(long, requires = "database_url")]
+    pub store: Option<String>,
     /// Also time status requests while every server worker is busy with a big job.
     #[arg(long)]
     pub load: bool,

@@ -47,13 +47,37 @@ pub(super) struct Server {
     task: tokio::task::JoinHandle<anyhow::Result<()>>,
 }
 
+/// Where a [`Server`] keeps its jobs.
+pub(super) enum Backend {
+    /// SQLite and the data directory (the single-node default).
+    Local,
+    /// PostgreSQL and an object store: `--database-url`, `--store`.
+    Shared { database_url: String, store: String },
+}
+
 impl Server {
-    pub(super) fn start(args: &BenchArgs, sets: &[SizeResult], tmp: &Path) -> anyhow::Result<Self> {
+    pub(super) fn start(
+        args: &BenchArgs,
+        sets: &[SizeResult],
+        tmp: &Path,
+        backend: Backend,
+    ) -> anyhow::Result<Self> {
         let rt = tokio::runtime::Builder::new_multi_thread()
             .enable_all()
             .build()
             .context("starting the tokio runtime")?;
-        let mut config = Config::new(tmp.join("service"));
+        let mut config = match backend {
+            Backend::Local => Config::new(tmp.join("service")),
+            Backend::Shared {
+                database_url,
+                store,
+            } => {
+                let mut c = Config::new(tmp.join("service-shared"));
+                c.database_url = Some(database_url);
+                c.store = Some(store);
+                c
+            }
+        };
         config.workers = std::thread::available_parallelism()
             .map(|n| n.get())
             .unwrap_or(1);
@@ -108,13 +132,22 @@ impl Server {
     }
 }
 
+/// What one HTTP run measured.
+pub(super) struct HttpRun {
+    pub(super) total_ms: f64,
+    pub(super) upload_ms: f64,
+    /// Process VmHWM over the job, when it could be reset before it.
+    pub(super) peak_bytes: Option<f64>,
+}
+
 /// One HTTP run: upload, poll until succeeded, delete the job.
 pub(super) async fn http_run(
-    set: &mut SizeResult,
+    set: &SizeResult,
+    label: &str,
     run: usize,
     runs: usize,
     addr: SocketAddr,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<HttpRun> {
     release_free_heap();
     let reset = reset_peak();
     let (id, upload, total) = submit_and_wait(addr, set).await?;
@@ -122,19 +155,18 @@ pub(super) async fn http_run(
     let mut conn = Conn::connect(addr).await?;
     let r = conn.request("DELETE", &job_path(&id)).await?;
     ensure!(r.status == 204, "deleting job {id}: {}", r.describe());
-    set.http_ms.push(ms(total));
-    set.upload_ms.push(ms(upload));
-    if let (true, Some(p)) = (reset, peak) {
-        set.http_peak_bytes.push(p);
-    }
     eprintln!(
-        "bench: HTTP {}² run {}/{runs}: upload {:.0} ms, succeeded after {:.0} ms",
+        "bench: {label} {}² run {}/{runs}: upload {:.0} ms, succeeded after {:.0} ms",
         set.size,
         run + 1,
         ms(upload),
         ms(total)
     );
-    Ok(())
+    Ok(HttpRun {
+        total_ms: ms(total),
+        upload_ms: ms(upload),
+        peak_bytes: peak.filter(|_| reset),
+    })
 }
 
 /// Submit `set` and poll until it succeeded: (job id, upload time, total time), both

@@ -29,7 +29,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use anyhow::Context;
 
 pub use args::BenchArgs;
-use http::{LoadResult, Server};
+use http::{Backend, LoadResult, Server};
 use sets::SizeResult;
 
 /// Render the sets, measure them, print the tables; the temporary directory goes either way.
@@ -58,12 +58,22 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     let mut sets = sets::render(&args.sizes, args.lights, &tmp.0)?;
 
     let server = if args.http || args.load {
-        Some(Server::start(&args, &sets, &tmp.0)?)
+        Some(Server::start(&args, &sets, &tmp.0, Backend::Local)?)
     } else {
         None
     };
-    let outcome = measure(&args, &mut sets, server.as_ref(), &tmp.0);
-    if let Some(server) = server {
+    let shared = match (&args.database_url, &args.store) {
+        (Some(database_url), Some(store)) => {
+            let backend = Backend::Shared {
+                database_url: database_url.clone(),
+                store: store.clone(),
+            };
+            Some(Server::start(&args, &sets, &tmp.0, backend)?)
+        }
+        _ => None,
+    };
+    let outcome = measure(&args, &mut sets, server.as_ref(), shared.as_ref(), &tmp.0);
+    for server in [server, shared].into_iter().flatten() {
         server.stop();
     }
     let load = outcome?;
@@ -88,13 +98,15 @@ fn load_average() -> String {
         .unwrap_or_else(|_| "?".into())
 }
 
-/// Per set: integration alone; core and HTTP runs alternating (core, HTTP, core, HTTP, …)
-/// so that a change in the machine's background load hits both alike; the l2 and default
-/// jobs, one after the other in each round. Then the load test.
+/// Per set: integration alone; core and HTTP runs alternating (core, HTTP, core, HTTP, …,
+/// and the PostgreSQL + S3 server's HTTP run after each HTTP one) so that a change in the
+/// machine's background load hits all alike; the l2 and default jobs, one after the other
+/// in each round. Then the load test.
 fn measure(
     args: &BenchArgs,
     sets: &mut [SizeResult],
     server: Option<&Server>,
+    shared: Option<&Server>,
     tmp: &Path,
 ) -> anyhow::Result<Option<LoadResult>> {
     for set in sets.iter_mut() {
@@ -107,9 +119,21 @@ fn measure(
         for run in 0..args.runs {
             timing::core_run(set, run, args.runs, tmp)?;
             if let (true, Some(server)) = (args.http, server) {
-                server
-                    .rt
-                    .block_on(http::http_run(set, run, args.runs, server.addr))?;
+                let r =
+                    server
+                        .rt
+                        .block_on(http::http_run(set, "HTTP", run, args.runs, server.addr))?;
+                set.http_ms.push(r.total_ms);
+                set.upload_ms.push(r.upload_ms);
+                set.http_peak_bytes.extend(r.peak_bytes);
+            }
+            if let Some(shared) = shared {
+                let label = "HTTP on PostgreSQL + S3";
+                let r =
+                    shared
+                        .rt
+                        .block_on(http::http_run(set, label, run, args.runs, shared.addr))?;
+                set.shared_http_ms.push(r.total_ms);
             }
         }
         for run in 0..args.runs {

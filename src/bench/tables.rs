@@ -12,6 +12,8 @@ use super::stats::{max_of, median, percentile};
 const TARGET_FULL_OVER_DECODE: f64 = 1.5;
 const TARGET_PEAK_MB: f64 = 480.0;
 const TARGET_HTTP_OVER_CORE: f64 = 1.15;
+/// The same HTTP job on PostgreSQL + S3 over SQLite + the data directory.
+const TARGET_SHARED_OVER_LOCAL: f64 = 1.2;
 const TARGET_LINEARITY: f64 = 0.25;
 const TARGET_STATUS_P99_MS: f64 = 50.0;
 const TARGET_POISSON_OVER_FC: f64 = 3.0;
@@ -42,7 +44,11 @@ pub(super) fn tables(
         sizes.join(","),
         args.lights,
         args.runs,
-        if args.http { " --http" } else { "" },
+        match (args.http, &args.store) {
+            (true, Some(store)) => format!(" --http --database-url postgres://… --store {store}"),
+            (true, None) => " --http".to_string(),
+            _ => String::new(),
+        },
         if args.load {
             format!(
                 " --load --requests {} --connections {}",
@@ -135,6 +141,32 @@ pub(super) fn tables(
             );
         }
         let _ = writeln!(o, "{row}");
+    }
+
+    if args.database_url.is_some() {
+        let _ = writeln!(
+            o,
+            "\n### HTTP: PostgreSQL + S3 against SQLite + data directory (medians)\n\n\
+             Two in-process servers, the same workers; each round runs the job on the \
+             SQLite + data directory server, then on the `--database-url` + `--store` one.\n"
+        );
+        let _ = writeln!(
+            o,
+            "| size × lights | SQLite + data directory ms | PostgreSQL + S3 ms | ratio (≤ {TARGET_SHARED_OVER_LOCAL}) |\n|---|---:|---:|---:|"
+        );
+        for s in sets {
+            let (local, shared) = (median(&s.http_ms), median(&s.shared_http_ms));
+            let _ = writeln!(
+                o,
+                "| {}² × {} | {} | {} | {} |",
+                s.size,
+                s.lights,
+                num(local, 0),
+                num(shared, 0),
+                with_mark(zip2(shared, local, |a, b| a / b), 2, true, |r| r
+                    <= TARGET_SHARED_OVER_LOCAL),
+            );
+        }
     }
 
     // Memory.
@@ -365,6 +397,19 @@ pub(super) fn tables(
             2,
             " ×",
             r.is_some_and(|r| r <= TARGET_HTTP_OVER_CORE),
+        );
+    }
+    for s in sets.iter().filter(|s| !s.shared_http_ms.is_empty()) {
+        let r = zip2(median(&s.shared_http_ms), median(&s.http_ms), |a, b| a / b);
+        line(
+            &format!(
+                "HTTP on PostgreSQL + S3 ≤ {TARGET_SHARED_OVER_LOCAL} × on SQLite + data directory at {}²",
+                s.size
+            ),
+            r,
+            2,
+            " ×",
+            r.is_some_and(|r| r <= TARGET_SHARED_OVER_LOCAL),
         );
     }
     let t_fc = target.and_then(|s| zip2(median(&s.poisson_ms), median(&s.fc_ms), |p, f| p / f));

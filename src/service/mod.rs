@@ -156,8 +156,6 @@ impl AppState {
             }
             Some(url) => Arc::new(pg::PgRepo::connect(url).context("opening the job database")?),
         };
-        // Several instances may share the job database (and then the store).
-        let shared = config.database_url.is_some();
         let store: Arc<dyn BlobStore> = match &config.store {
             None => Arc::new(
                 LocalStore::open(&config.data_dir)
@@ -178,11 +176,7 @@ impl AppState {
         let inner = Arc::new(Inner {
             workers: Workers::default(),
             owner: format!("{}-{}", std::process::id(), Uuid::new_v4().simple()),
-            // Any instance may claim a job: decoding it where it was uploaded may be wasted.
-            prefetch: Prefetcher::new(
-                if shared { 0 } else { config.decode_ahead },
-                config.limits(),
-            ),
+            prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
             config,
             repo,
             store,
@@ -238,6 +232,7 @@ impl AppState {
                         let _ = tokio::task::spawn_blocking(move || {
                             heartbeat(&i);
                             reap(&i);
+                            forget_prefetched(&i);
                         })
                         .await;
                     }
@@ -696,6 +691,21 @@ fn heartbeat(inner: &Inner) {
             inner.workers.cancel_running(lease.id);
         } else {
             inner.workers.lose(lease.id);
+        }
+    }
+}
+
+/// Drop the images decoded ahead for jobs another instance claimed (or that ended): only
+/// the instance that received an upload has them, and any instance may claim its job.
+fn forget_prefetched(inner: &Inner) {
+    for id in inner.prefetch.parked() {
+        if inner.workers.is_held(id) {
+            continue;
+        }
+        match inner.repo.get(id) {
+            Ok(Some(rec)) if rec.status == JobStatus::Queued => {}
+            Ok(_) => inner.prefetch.discard(id),
+            Err(e) => tracing::debug!(job = %id, error = %e, "cannot read the job"),
         }
     }
 }

@@ -72,6 +72,11 @@ impl Prefetcher {
     }
 
     /// Drop a job's set, if any (the job was cancelled, deleted or refused).
+    /// The jobs with a parked set.
+    pub fn parked(&self) -> Vec<Uuid> {
+        lock(&self.parked).keys().copied().collect()
+    }
+
     pub fn discard(&self, id: Uuid) {
         drop(self.take(id));
     }

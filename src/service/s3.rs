@@ -13,7 +13,8 @@
 //! each staged file up, as one PUT when it fits one part and otherwise as a multipart
 //! upload of [`PART_BYTES`] parts with at most [`PARTS_IN_FLIGHT`] in flight, so no file is
 //! ever whole in memory. A job's worker fetches its inputs back into the scratch
-//! directory. An attempt writes under a key of its own and its keys are recorded with the
+//! directory. Files go up and come back [`FILES_IN_FLIGHT`] at a time. An attempt writes
+//! under a key of its own and its keys are recorded with the
 //! job, so nothing is renamed and no half-written artifact can be served.
 //!
 //! The store's API is async; its callers here are blocking threads, which drive each
@@ -46,10 +47,11 @@ use super::util::now_ms;
 
 /// Size of one part of a multipart upload (S3's smallest part but the last is 5 MiB).
 pub const PART_BYTES: usize = 5 << 20;
-/// Parts of one upload sent at once: a commit holds at most this many plus one in memory.
-pub const PARTS_IN_FLIGHT: usize = 4;
-/// Files fetched at once for a job's inputs.
-const FETCHES_IN_FLIGHT: usize = 4;
+/// Parts of one file's upload sent at once: it holds at most this many plus one in memory.
+pub const PARTS_IN_FLIGHT: usize = 2;
+/// Files sent or fetched at once: a commit holds at most this many files'
+/// `PARTS_IN_FLIGHT + 1` parts in memory (60 MiB).
+const FILES_IN_FLIGHT: usize = 4;
 
 /// The store behind `--store s3://…`.
 pub struct S3Store {
@@ -155,18 +157,34 @@ impl S3Store {
                 names.push(name.to_string());
             }
         }
-        names.sort_by_key(|n| (Some(n.as_str()) == last, n.clone()));
-        for name in &names {
-            self.upload_file(&dir.join(name), &to.clone().join(name.as_str()))?;
-        }
-        Ok(())
+        let (last, rest): (Vec<String>, Vec<String>) =
+            names.into_iter().partition(|n| Some(n.as_str()) == last);
+        let files = |names: Vec<String>| {
+            names
+                .into_iter()
+                .map(|n| (dir.join(&n), to.clone().join(n.as_str())))
+                .collect::<Vec<_>>()
+        };
+        self.upload_files(files(rest))?;
+        self.upload_files(files(last))
+    }
+
+    /// Stream local files to their keys, [`FILES_IN_FLIGHT`] at a time.
+    fn upload_files(&self, files: Vec<(PathBuf, Key)>) -> io::Result<()> {
+        self.rt.block_on(async {
+            futures_util::stream::iter(files.iter().map(|(path, key)| self.put_file(path, key)))
+                .buffer_unordered(FILES_IN_FLIGHT)
+                .try_collect::<Vec<()>>()
+                .await
+                .map(|_| ())
+        })
     }
 
     /// Stream one local file to `key`.
-    fn upload_file(&self, path: &Path, key: &Key) -> io::Result<()> {
+    async fn put_file(&self, path: &Path, key: &Key) -> io::Result<()> {
         let mut file = std::fs::File::open(path)?;
         let len = file.metadata()?.len();
-        self.rt.block_on(async {
+        {
             if len <= PART_BYTES as u64 {
                 let mut bytes = Vec::with_capacity(len as usize);
                 file.read_to_end(&mut bytes)?;
@@ -200,7 +218,7 @@ impl S3Store {
                     Err(e)
                 }
             }
-        })
+        }
     }
 
     /// Fetch `key` into the local file `to`.
@@ -326,7 +344,7 @@ impl BlobStore for S3Store {
                 let name = key.filename()?.to_string();
                 Some(self.download(key, dir.join(name)))
             }))
-            .buffer_unordered(FETCHES_IN_FLIGHT)
+            .buffer_unordered(FILES_IN_FLIGHT)
             .try_collect::<Vec<()>>()
             .await
         })?;
@@ -349,11 +367,13 @@ impl BlobStore for S3Store {
         artifacts: &mut [ArtifactInfo],
     ) -> io::Result<()> {
         let staged = self.staged(id, "output.partial");
+        let mut files = Vec::new();
         for info in artifacts.iter_mut() {
             let key = self.job_key(id, &["outputs", attempt, &info.name]);
-            self.upload_file(&staged.join(&info.name), &key)?;
             info.key = Some(key.to_string());
+            files.push((staged.join(&info.name), key));
         }
+        self.upload_files(files)?;
         self.scratch.discard_outputs(id, attempt)
     }
 
