@@ -46,6 +46,11 @@ pub struct BenchArgs {
     /// with this one's (e.g. a build of the previous version).
     #[arg(long)]
     pub against: Option<PathBuf>,
+    /// With --light-sweep: options given to every job, of both binaries (e.g.
+    /// `--integration weighted-poisson`, so that a binary with other defaults does the
+    /// same work), as one space-separated value.
+    #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
+    pub sweep_options: Vec<String>,
     /// Where to create the temporary directory [default: the system's temp dir].
     #[arg(long)]
     pub tmp_dir: Option<PathBuf>,

@@ -46,7 +46,15 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     let load_at_start = load_average();
     if !args.light_sweep.is_empty() {
         let against = args.against.as_deref();
-        let points = sweep::run(&args.sizes, &args.light_sweep, args.runs, against, &tmp.0)?;
+        let options = &args.sweep_options;
+        let points = sweep::run(
+            &args.sizes,
+            &args.light_sweep,
+            args.runs,
+            against,
+            options,
+            &tmp.0,
+        )?;
         let loads = (load_at_start.as_str(), load_average());
         print!(
             "{}",

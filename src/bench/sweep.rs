@@ -37,6 +37,7 @@ pub(super) fn run(
     counts: &[usize],
     runs: usize,
     against: Option<&Path>,
+    options: &[String],
     tmp: &Path,
 ) -> anyhow::Result<Vec<Point>> {
     let this = std::env::current_exe().context("finding this binary")?;
@@ -68,7 +69,7 @@ pub(super) fn run(
                     }
                 }
                 for (exe, is_against) in order {
-                    let (took, peak) = alone(exe, &dir, &out)?;
+                    let (took, peak) = alone(exe, &dir, &out, options)?;
                     eprintln!(
                         "bench: sweep {size}² × {lights} run {}/{runs}{}: {took:.0} ms, peak RSS {}",
                         run + 1,
@@ -91,10 +92,15 @@ pub(super) fn run(
     Ok(points)
 }
 
-/// Wall time (ms) and peak resident size (bytes) of `exe reconstruct dir`.
+/// Wall time (ms) and peak resident size (bytes) of `exe reconstruct dir options…`.
 /// The child's `ru_maxrss` starts at the parent's peak, so that is reset first and a
 /// child peak no higher than the parent's is not reported.
-fn alone(exe: &Path, dir: &Path, out: &Path) -> anyhow::Result<(f64, Option<f64>)> {
+fn alone(
+    exe: &Path,
+    dir: &Path,
+    out: &Path,
+    options: &[String],
+) -> anyhow::Result<(f64, Option<f64>)> {
     photostereo::service::release_free_heap();
     let reset = reset_peak();
     let start = Instant::now();
@@ -103,6 +109,7 @@ fn alone(exe: &Path, dir: &Path, out: &Path) -> anyhow::Result<(f64, Option<f64>
         .arg(dir)
         .arg("--out")
         .arg(out)
+        .args(options)
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())

@@ -532,17 +532,22 @@ pub(super) fn sweep_table(
     );
     let _ = writeln!(
         o,
-        "- command: `photostereo bench --sizes {} --light-sweep {} --runs {}{}`",
+        "- command: `photostereo bench --sizes {} --light-sweep {} --runs {}{}{}`",
         list(&args.sizes),
         list(&args.light_sweep),
         args.runs,
         args.against
             .as_ref()
-            .map_or(String::new(), |p| format!(" --against {}", p.display()))
+            .map_or(String::new(), |p| format!(" --against {}", p.display())),
+        if args.sweep_options.is_empty() {
+            String::new()
+        } else {
+            format!(" --sweep-options '{}'", args.sweep_options.join(" "))
+        }
     );
     let _ = writeln!(
         o,
-        "- each run: the default job as `photostereo reconstruct` in a process of its own on \
+        "- each run: the default job (with --sweep-options) as `photostereo reconstruct` in a process of its own on \
          `synth::Scene::sphere(size)` under `light_rings(n, 10, 60)` (16-bit gray PNG); wall \
          time of the process and its peak RSS (`wait4`); medians of {} run(s); MB = 10⁶ bytes\n",
         args.runs
