@@ -149,19 +149,9 @@ async fn three_instances_share_one_queue_and_answer_for_every_job() {
     }
 }
 
-/// Submit to a binary server; the id of its 202.
+/// Submit res/bump to a binary server; the id of its 202.
 async fn submit(s: &BinServer) -> String {
-    let r = s
-        .client
-        .post(s.url("/v1/jobs"))
-        .multipart(folder_form(&repo_root().join("res/bump")))
-        .send()
-        .await
-        .unwrap();
-    let status = r.status();
-    let body: Value = r.json().await.unwrap();
-    assert_eq!(status, 202, "{body}");
-    body["id"].as_str().unwrap().to_string()
+    s.submit(folder_form(&repo_root().join("res/bump"))).await
 }
 
 fn signal(s: &BinServer, sig: libc::c_int) {

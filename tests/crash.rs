@@ -36,21 +36,6 @@ fn form(i: usize) -> Form {
     }
 }
 
-/// Submit; the id of a 202 (anything else fails the test).
-async fn submit(s: &BinServer, form: Form) -> String {
-    let r = s
-        .client
-        .post(s.url("/v1/jobs"))
-        .multipart(form)
-        .send()
-        .await
-        .expect("submit");
-    let status = r.status();
-    let body: Value = r.json().await.unwrap();
-    assert_eq!(status, 202, "submit: {body}");
-    body["id"].as_str().unwrap().to_string()
-}
-
 /// Every job the server lists, following the cursor.
 async fn list_all(client: &reqwest::Client, base: &str) -> Result<Vec<Value>, String> {
     let mut out = Vec::new();
@@ -245,7 +230,7 @@ async fn sigkill_at_any_point_loses_no_accepted_job_and_serves_no_torn_artifact(
     let mut s = BinServer::start(data, FLAGS);
     watcher.follow(&s);
     for _ in 0..4 {
-        accepted.push(submit(&s, form(next_form)).await);
+        accepted.push(s.submit(form(next_form)).await);
         next_form += 1;
     }
     s.kill();
@@ -276,7 +261,7 @@ async fn sigkill_at_any_point_loses_no_accepted_job_and_serves_no_torn_artifact(
     let mut s = BinServer::start(data, FLAGS);
     watcher.follow(&s);
     for _ in 0..2 {
-        accepted.push(submit(&s, form(next_form)).await);
+        accepted.push(s.submit(form(next_form)).await);
         next_form += 1;
     }
     let png = std::fs::read(repo_root().join("res/bump-noisy/im1.png")).unwrap();
@@ -325,7 +310,7 @@ async fn sigkill_at_any_point_loses_no_accepted_job_and_serves_no_torn_artifact(
     let mut s = BinServer::start(data, FLAGS);
     watcher.follow(&s);
     for _ in 0..2 {
-        accepted.push(submit(&s, form(next_form)).await);
+        accepted.push(s.submit(form(next_form)).await);
         next_form += 1;
     }
     assert!(
@@ -346,7 +331,7 @@ async fn sigkill_at_any_point_loses_no_accepted_job_and_serves_no_torn_artifact(
     for delay_ms in [40u64, 230, 470, 820] {
         let mut s = BinServer::start(data, FLAGS);
         watcher.follow(&s);
-        accepted.push(submit(&s, form(next_form)).await);
+        accepted.push(s.submit(form(next_form)).await);
         next_form += 1;
         tokio::time::sleep(Duration::from_millis(delay_ms)).await;
         s.kill();

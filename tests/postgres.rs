@@ -29,7 +29,7 @@ use weed::Weed;
 const LEASE: Duration = Duration::from_secs(30);
 
 fn claim(repo: &PgRepo, now: i64) -> Option<Lease> {
-    Some(repo.claim("test", LEASE, now).unwrap()?.lease)
+    repo.claim("test", LEASE, now).unwrap()
 }
 
 fn accepted(repo: &PgRepo, job: &JobRecord, max_active: usize) -> bool {
@@ -254,8 +254,8 @@ fn postgres_claims_are_exclusive_and_leases_fence_late_writers() {
                 let repo = repos[w % 4].clone();
                 s.spawn(move || {
                     let mut mine = Vec::new();
-                    while let Some(c) = repo.claim(&format!("w{w}"), LEASE, 100).unwrap() {
-                        mine.push(c.lease.id);
+                    while let Some(l) = repo.claim(&format!("w{w}"), LEASE, 100).unwrap() {
+                        mine.push(l.id);
                     }
                     mine
                 })
@@ -283,15 +283,11 @@ fn postgres_claims_are_exclusive_and_leases_fence_late_writers() {
     let lost = job("a", 50);
     assert!(accepted(&repos[0], &lost, 100));
     let short = Duration::from_secs(1);
-    let first = repos[0].claim("dies", short, 200).unwrap().unwrap().lease;
+    let first = repos[0].claim("dies", short, 200).unwrap().unwrap();
     assert!(repos[1].reap(3, &failure, 200).unwrap().requeued.is_empty());
     std::thread::sleep(Duration::from_millis(1500));
     assert_eq!(repos[1].reap(3, &failure, 300).unwrap().requeued, [lost.id]);
-    let second = repos[2]
-        .claim("takes over", LEASE, 400)
-        .unwrap()
-        .unwrap()
-        .lease;
+    let second = repos[2].claim("takes over", LEASE, 400).unwrap().unwrap();
     assert_eq!(second.id, lost.id);
     assert!(second.token > first.token);
     // The first worker wakes up late: refused, whatever it writes.

@@ -248,22 +248,19 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
     let pool = &inner.workers;
     while !pool.is_closed() {
         let seen = pool.rung();
+        // Busy from the claim on, so that a shutdown waits for a job claimed meanwhile.
         pool.busy.fetch_add(1, Ordering::SeqCst);
-        match inner
+        let claimed = inner
             .repo
-            .claim(&inner.owner, inner.config.job_lease, now_ms())
-        {
-            Ok(Some(claim)) => {
-                process(&inner, claim.lease);
-                pool.busy.fetch_sub(1, Ordering::SeqCst);
-                super::util::release_free_heap();
-            }
-            Ok(None) => {
-                pool.busy.fetch_sub(1, Ordering::SeqCst);
-                pool.wait_for_ring(seen, POLL);
-            }
+            .claim(&inner.owner, inner.config.job_lease, now_ms());
+        if let Ok(Some(lease)) = claimed {
+            process(&inner, lease);
+        }
+        pool.busy.fetch_sub(1, Ordering::SeqCst);
+        match claimed {
+            Ok(Some(_)) => super::util::release_free_heap(),
+            Ok(None) => pool.wait_for_ring(seen, POLL),
             Err(e) => {
-                pool.busy.fetch_sub(1, Ordering::SeqCst);
                 tracing::warn!(error = %e, "cannot claim a job; trying again");
                 wait_unless_closing(&inner, STORE_RETRY);
             }

@@ -19,7 +19,7 @@ use uuid::Uuid;
 
 use super::error::Problem;
 use super::repo::{
-    Admission, CalibrationRecord, Callback, Claim, Finish, JobRecord, JobRepo, JobStatus, Lease,
+    Admission, CalibrationRecord, Callback, Finish, JobRecord, JobRepo, JobStatus, Lease,
     RawCalibration, RawRecord, Reaped, Remembered, RepoError, RepoResult, decode_calibration,
 };
 
@@ -513,7 +513,7 @@ impl JobRepo for PgRepo {
         })
     }
 
-    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Claim>> {
+    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Lease>> {
         let owner = owner.to_string();
         let secs = lease.as_secs_f64();
         self.run(move |mut c| async move {
@@ -550,10 +550,7 @@ impl JobRepo for PgRepo {
             tx.commit().await.map_err(db_error)?;
             let id = Uuid::parse_str(&id)
                 .map_err(|e| RepoError::new(format!("stored job id {id:?}: {e}")))?;
-            Ok(Some(Claim {
-                lease: Lease { id, token },
-                tenant,
-            }))
+            Ok(Some(Lease { id, token }))
         })
     }
 

@@ -256,13 +256,6 @@ pub struct Lease {
     pub token: i64,
 }
 
-/// A job a worker has claimed.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Claim {
-    pub lease: Lease,
-    pub tenant: String,
-}
-
 /// Whether a new job was recorded.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Admission {
@@ -316,7 +309,7 @@ pub trait JobRepo: Send + Sync + 'static {
     /// Take the next queued job for `owner` (queued → running, an attempt counted, a new
     /// token, a lease of `lease` from now). Tenants take turns: the next job is the oldest
     /// of the tenant served least recently. None when nothing waits.
-    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Claim>>;
+    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Lease>>;
     /// Record the stage a running job has reached. False when the lease is no longer held.
     fn progress(&self, lease: Lease, stage: &str, progress: f64, now: i64) -> RepoResult<bool>;
     /// Extend the leases still held by `lease` from now; returns those no longer held
@@ -785,7 +778,7 @@ impl JobRepo for SqliteRepo {
         })
     }
 
-    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Claim>> {
+    fn claim(&self, owner: &str, lease: Duration, now: i64) -> RepoResult<Option<Lease>> {
         let until = now.saturating_add(lease.as_millis() as i64);
         self.with(|c| {
             let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
@@ -817,10 +810,7 @@ impl JobRepo for SqliteRepo {
             tx.commit()?;
             let id = Uuid::parse_str(&id)
                 .map_err(|e| RepoError::new(format!("stored job id {id:?}: {e}")))?;
-            Ok(Some(Claim {
-                lease: Lease { id, token },
-                tenant,
-            }))
+            Ok(Some(Lease { id, token }))
         })
     }
 
@@ -1212,8 +1202,7 @@ mod tests {
     }
 
     fn claim(repo: &SqliteRepo, now: i64) -> Option<Lease> {
-        let c = repo.claim("w", Duration::from_secs(5), now).unwrap()?;
-        Some(c.lease)
+        repo.claim("w", Duration::from_secs(5), now).unwrap()
     }
 
     fn queue(repo: &SqliteRepo, tenant: &str, at: i64) -> Uuid {

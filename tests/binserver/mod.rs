@@ -88,6 +88,21 @@ impl BinServer {
         }
     }
 
+    /// Submit `form`; the id of its 202 (anything else fails the test).
+    pub async fn submit(&self, form: reqwest::multipart::Form) -> String {
+        let r = self
+            .client
+            .post(self.url("/v1/jobs"))
+            .multipart(form)
+            .send()
+            .await
+            .expect("submit");
+        let status = r.status();
+        let body: serde_json::Value = r.json().await.unwrap();
+        assert_eq!(status, 202, "submit: {body}");
+        body["id"].as_str().unwrap().to_string()
+    }
+
     pub fn url(&self, path: &str) -> String {
         format!("{}{path}", self.base)
     }
