@@ -55,7 +55,6 @@ fn reconstruction(
         mask,
         heights,
         curl: Array2::zeros((height, width)),
-        residual: Array2::zeros((height, width)),
         confidence,
         unreliable: Array2::from_elem((height, width), false),
         report: Report::default(),

@@ -252,7 +252,8 @@ pub struct Maps<'a> {
     pub albedo_rgb: Option<&'a Array3<f32>>,
     pub normals: &'a Array3<f32>,
     pub mask: &'a Array2<bool>,
-    pub curl: &'a Array2<f32>,
+    /// None while the integration runs.
+    pub curl: Option<&'a Array2<f32>>,
     pub confidence: &'a Array2<f32>,
     pub unreliable: &'a Array2<bool>,
     pub heights: Option<Heights<'a>>,
@@ -272,7 +273,7 @@ impl<'a> Maps<'a> {
             albedo_rgb: rec.albedo_rgb.as_ref(),
             normals: &rec.normals,
             mask: &rec.mask,
-            curl: &rec.curl,
+            curl: Some(&rec.curl),
             confidence: &rec.confidence,
             unreliable: &rec.unreliable,
             heights: Some(Heights {
@@ -286,12 +287,18 @@ impl<'a> Maps<'a> {
     fn heights(&self) -> &Heights<'a> {
         (self.heights.as_ref()).expect("height pictures are encoded after the integration")
     }
+
+    fn curl(&self) -> &'a Array2<f32> {
+        self.curl
+            .expect("the curl picture is encoded after the integration")
+    }
 }
 
-/// Whether picture `name` is drawn from the heights (the others can be written while the
-/// integration runs).
-pub fn needs_heights(name: &str) -> bool {
-    matches!(name, "height.png" | "height.exr")
+/// Whether picture `name` is drawn after the integration: from the heights, or from the
+/// curl, which is formed once the integration's buffers are freed. The others are written
+/// while the integration runs.
+pub fn after_integration(name: &str) -> bool {
+    matches!(name, "height.png" | "height.exr" | "curl.png")
 }
 
 /// Whether artifact `name` applies to these maps (`albedo_rgb.png` needs colour).
@@ -361,7 +368,7 @@ pub fn encode_to(
             exr_to(out, &exr_image((rows, cols), z))?
         }
         "needle.png" => png_to(out, &render::needle_map(maps.albedo, maps.normals, mask))?,
-        "curl.png" => png_to(out, &render::diverging(maps.curl, mask))?,
+        "curl.png" => png_to(out, &render::diverging(maps.curl(), mask))?,
         "shaded.png" => {
             let shaded = render::shade(maps.albedo, maps.normals, shading_light);
             png16_to(out, mask, [shaded.view()], value)?
@@ -544,7 +551,7 @@ mod tests {
             albedo_rgb: None,
             normals: &normals,
             mask: &mask,
-            curl: &zero,
+            curl: None,
             confidence: &zero,
             unreliable: &no,
             heights: None,

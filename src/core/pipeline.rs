@@ -3,10 +3,11 @@
 //! steps (`prepare`, `Slopes`, `Prepared::finish`), `run` overlapping them.
 
 use std::io::Write;
+use std::ops::Range;
 use std::path::Path;
 use std::time::Instant;
 
-use ndarray::{Array2, Array3, Zip};
+use ndarray::{Array2, Array3, Zip, s};
 use rayon::prelude::*;
 
 use super::InputError;
@@ -38,7 +39,8 @@ pub fn reconstruct(
         (slopes, heights)
     });
     not_halted(polled)?;
-    Ok(surface.finish(slopes.curl, heights, opts, timings))
+    let curl = slopes.curl(&surface);
+    Ok(surface.finish(curl, heights, opts, timings))
 }
 
 /// Everything recovered before integration: solved, masked and clipped to the mask.
@@ -52,10 +54,11 @@ struct Prepared {
     albedo_rgb: Option<Array3<f32>>,
     normals: Array3<f32>,
     mask: Array2<bool>,
-    residual: Array2<f32>,
     confidence: Array2<f32>,
-    inliers: Array2<u16>,
     unreliable: Array2<bool>,
+    /// The solve's per-pixel figures the report needs only summed: their maps are gone
+    /// before the integration, the job's peak (at 4096², 100 MB less).
+    solve_sums: SolveSums,
     estimate: Option<robust::CaptureEstimate>,
     mask_file: Option<String>,
     notes: Vec<String>,
@@ -83,7 +86,7 @@ fn prepare(
     let Surface {
         mut albedo,
         mut normals,
-        mut residual,
+        residual,
         mut confidence,
         inliers,
         mut unreliable,
@@ -113,15 +116,16 @@ fn prepare(
             },
             |a, b| a + b,
         );
-    Zip::from(&mut residual)
-        .and(&mut confidence)
+    Zip::from(&mut confidence)
         .and(&mut unreliable)
         .and(&mask)
-        .par_for_each(|r, c, u, &m| {
+        .par_for_each(|c, u, &m| {
             if !m {
-                (*r, *c, *u) = (0.0, 0.0, false);
+                (*c, *u) = (0.0, false);
             }
         });
+    let solve_sums = SolveSums::of(&mask, &residual, &inliers);
+    drop((residual, inliers));
     if let Some(rgb) = &mut albedo_rgb {
         Zip::from(rgb.rows_mut())
             .and(&mask)
@@ -141,28 +145,31 @@ fn prepare(
         albedo_rgb,
         normals,
         mask,
-        residual,
         confidence,
-        inliers,
         unreliable,
+        solve_sums,
         estimate,
         mask_file: set.mask_file.clone(),
         notes: set.notes.clone(),
     })
 }
 
-/// The surface gradients integration starts from, and their curl.
+/// The surface gradients integration starts from.
 struct Slopes {
     p: Array2<f32>,
     q: Array2<f32>,
-    curl: Array2<f32>,
 }
 
 impl Slopes {
     fn of(surface: &Prepared) -> Self {
         let (p, q) = integrate::gradients(&surface.normals, &surface.mask);
-        let curl = integrate::curl(&p, &q, &surface.mask);
-        Self { p, q, curl }
+        Self { p, q }
+    }
+
+    /// Their curl, formed once the integration is done: during it, this map would add to
+    /// the job's peak.
+    fn curl(self, surface: &Prepared) -> Array2<f32> {
+        integrate::curl(&self.p, &self.q, &surface.mask)
     }
 
     fn integrate(&self, surface: &Prepared, opts: &Options, halt: Halt) -> Array2<f32> {
@@ -173,14 +180,14 @@ impl Slopes {
 }
 
 impl Prepared {
-    /// The pictures' arrays before the heights exist.
-    fn maps<'a>(&'a self, curl: &'a Array2<f32>) -> outputs::Maps<'a> {
+    /// The pictures' arrays before the heights (and the curl) exist.
+    fn maps(&self) -> outputs::Maps<'_> {
         outputs::Maps {
             albedo: &self.albedo,
             albedo_rgb: self.albedo_rgb.as_ref(),
             normals: &self.normals,
             mask: &self.mask,
-            curl,
+            curl: None,
             confidence: &self.confidence,
             unreliable: &self.unreliable,
             heights: None,
@@ -209,7 +216,7 @@ impl Prepared {
             black_level: self.estimate.map(|e| e.black_level),
             noise_sigma: self.estimate.map(|e| e.noise_sigma),
             confidence_mean: per_object(sums.confidence),
-            inliers_mean: per_object(sums.inliers),
+            inliers_mean: per_object(self.solve_sums.inliers),
             unreliable_pixels: sums.unreliable,
             width: self.width,
             height: self.height,
@@ -230,7 +237,7 @@ impl Prepared {
             height_min,
             height_max,
             integrability_rms: per_object(sums.curl2).sqrt(),
-            reprojection_rms: per_object(sums.residual2).sqrt(),
+            reprojection_rms: per_object(self.solve_sums.residual2).sqrt(),
             clamped_albedo_pixels: self.clamped,
             background_pixels: self.mask.len() - object,
             object_pixels: object,
@@ -248,7 +255,6 @@ impl Prepared {
             mask: self.mask,
             heights,
             curl,
-            residual: self.residual,
             confidence: self.confidence,
             unreliable: self.unreliable,
             report,
@@ -256,16 +262,13 @@ impl Prepared {
     }
 }
 
-/// The report's sums over the mask, in one pass over fixed row bands added in order (so
-/// the figures do not depend on how the bands were scheduled).
+/// The report's sums over the mask of the maps the integration leaves.
 #[derive(Clone, Copy)]
 struct MaskSums {
     object: usize,
     unreliable: usize,
     confidence: f64,
-    inliers: f64,
     curl2: f64,
-    residual2: f64,
     low: f32,
     high: f32,
 }
@@ -275,59 +278,92 @@ impl MaskSums {
         object: 0,
         unreliable: 0,
         confidence: 0.0,
-        inliers: 0.0,
         curl2: 0.0,
-        residual2: 0.0,
         low: f32::INFINITY,
         high: f32::NEG_INFINITY,
     };
-    const BAND: usize = 64;
 
     fn of(s: &Prepared, curl: &Array2<f32>, heights: &Array2<f32>) -> Self {
-        let rows = s.mask.nrows();
-        let bands: Vec<Self> = (0..rows.div_ceil(Self::BAND))
-            .into_par_iter()
-            .map(|b| {
-                let r = ndarray::s![b * Self::BAND..((b + 1) * Self::BAND).min(rows), ..];
-                let mut sums = Self::NONE;
-                Zip::from(s.mask.slice(r))
-                    .and(heights.slice(r))
-                    .and(s.unreliable.slice(r))
-                    .and(s.confidence.slice(r))
-                    .and(s.inliers.slice(r))
-                    .for_each(|&m, &z, &u, &c, &k| {
-                        if m {
-                            sums.object += 1;
-                            sums.unreliable += usize::from(u);
-                            sums.confidence += c as f64;
-                            sums.inliers += k as f64;
-                            sums.low = sums.low.min(z);
-                            sums.high = sums.high.max(z);
-                        }
-                    });
-                Zip::from(s.mask.slice(r))
-                    .and(curl.slice(r))
-                    .and(s.residual.slice(r))
-                    .for_each(|&m, &c, &e| {
-                        if m {
-                            sums.curl2 += (c as f64).powi(2);
-                            sums.residual2 += (e as f64).powi(2);
-                        }
-                    });
-                sums
-            })
-            .collect();
-        bands.into_iter().fold(Self::NONE, |a, b| Self {
+        let band = |r: Range<usize>| {
+            let mut sums = Self::NONE;
+            Zip::from(s.mask.slice(s![r.clone(), ..]))
+                .and(heights.slice(s![r.clone(), ..]))
+                .and(s.unreliable.slice(s![r.clone(), ..]))
+                .and(s.confidence.slice(s![r.clone(), ..]))
+                .and(curl.slice(s![r, ..]))
+                .for_each(|&m, &z, &u, &c, &k| {
+                    if m {
+                        sums.object += 1;
+                        sums.unreliable += usize::from(u);
+                        sums.confidence += c as f64;
+                        sums.curl2 += (k as f64).powi(2);
+                        sums.low = sums.low.min(z);
+                        sums.high = sums.high.max(z);
+                    }
+                });
+            sums
+        };
+        by_bands(s.mask.nrows(), band, Self::NONE, |a, b| Self {
             object: a.object + b.object,
             unreliable: a.unreliable + b.unreliable,
             confidence: a.confidence + b.confidence,
-            inliers: a.inliers + b.inliers,
             curl2: a.curl2 + b.curl2,
-            residual2: a.residual2 + b.residual2,
             low: a.low.min(b.low),
             high: a.high.max(b.high),
         })
     }
+}
+
+/// The report's sums over the mask of the solve's maps that are not kept.
+#[derive(Clone, Copy)]
+struct SolveSums {
+    /// Of the inlier counts.
+    inliers: f64,
+    /// Of the squared per-pixel reprojection residuals.
+    residual2: f64,
+}
+
+impl SolveSums {
+    const NONE: Self = Self {
+        inliers: 0.0,
+        residual2: 0.0,
+    };
+
+    fn of(mask: &Array2<bool>, residual: &Array2<f32>, inliers: &Array2<u16>) -> Self {
+        let band = |r: Range<usize>| {
+            let mut sums = Self::NONE;
+            Zip::from(mask.slice(s![r.clone(), ..]))
+                .and(residual.slice(s![r.clone(), ..]))
+                .and(inliers.slice(s![r, ..]))
+                .for_each(|&m, &e, &k| {
+                    if m {
+                        sums.inliers += k as f64;
+                        sums.residual2 += (e as f64).powi(2);
+                    }
+                });
+            sums
+        };
+        by_bands(mask.nrows(), band, Self::NONE, |a, b| Self {
+            inliers: a.inliers + b.inliers,
+            residual2: a.residual2 + b.residual2,
+        })
+    }
+}
+
+/// `band` of each fixed band of rows, in parallel, then added in order, so that the sums
+/// do not depend on how the bands were scheduled.
+fn by_bands<S: Send>(
+    rows: usize,
+    band: impl Fn(Range<usize>) -> S + Sync,
+    none: S,
+    add: impl Fn(S, S) -> S,
+) -> S {
+    const BAND: usize = 64;
+    let bands: Vec<S> = (0..rows.div_ceil(BAND))
+        .into_par_iter()
+        .map(|b| band(b * BAND..((b + 1) * BAND).min(rows)))
+        .collect();
+    bands.into_iter().fold(none, add)
 }
 
 /// Reconstruct and write every requested artifact into `dir` (each written under a
@@ -350,7 +386,7 @@ pub fn run(
         .map(|(n, _)| *n)
         .filter(|n| n.ends_with(".png") || n.ends_with(".exr"))
         .filter(|n| *n != "preview.png" && wanted(n))
-        .partition(|n| outputs::needs_heights(n));
+        .partition(|n| outputs::after_integration(n));
 
     let mut timings = Timings::default();
     let surface = prepare(&mut stack, opts, progress, &mut timings)?;
@@ -374,7 +410,7 @@ pub fn run(
             (heights, Timing::new(Stage::Integrate, start))
         },
         || {
-            let maps = surface.maps(&slopes.curl);
+            let maps = surface.maps();
             let light = opts.shading_light;
             let written = outputs::write_pictures(&maps, &early, light, dir, &commits, &halt);
             (written, Timing::new(Stage::Outputs, start))
@@ -383,7 +419,8 @@ pub fn run(
     timings.0.extend([heights.1, pictures.1]);
     let mut written = pictures.0?;
     not_halted(polled)?;
-    let mut rec = surface.finish(slopes.curl, heights.0, opts, timings);
+    let curl = slopes.curl(&surface);
+    let mut rec = surface.finish(curl, heights.0, opts, timings);
 
     step(progress, Stage::Mesh)?;
     let polled: &dyn Progress = progress;

@@ -27,8 +27,6 @@ pub struct Reconstruction {
     pub heights: Array2<f32>,
     /// Integrability residual dp/dy − dq/dx, 0 off the mask.
     pub curl: Array2<f32>,
-    /// Per-pixel RMS of (observed − re-rendered) intensity, 0 off the mask.
-    pub residual: Array2<f32>,
     /// Per-pixel reliability in [0, 1], 0 off the mask.
     pub confidence: Array2<f32>,
     /// Mask pixels with fewer than 3 usable observations (their normals are a fallback).
