@@ -35,7 +35,7 @@ fn many_images_reconstruct_without_holding_the_stack() {
         &synth::Capture::default(),
     )
     .unwrap();
-    photostereo::service::release_free_heap();
+    photostereo::core::heap::release_free_heap();
     std::fs::write("/proc/self/clear_refs", "5").expect("resetting the peak");
     let base = peak();
     let opened = stream::open_dir(&set, DirMask::Folder, &Limits::default(), dir.path()).unwrap();

@@ -28,7 +28,7 @@ fn freed_heap_is_returned_to_the_kernel() {
             .filter_map(|(i, b)| (i % 2 == 0).then_some(b))
             .collect();
         let holed = resident();
-        photostereo::service::release_free_heap();
+        photostereo::core::heap::release_free_heap();
         let released = resident();
         let mb = |b: u64| b as f64 / MB as f64;
         eprintln!(

@@ -6,8 +6,9 @@ use std::path::Path;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, anyhow, bail, ensure};
+use photostereo::core::heap::release_free_heap;
 use photostereo::core::intake::LIGHTS_FILE;
-use photostereo::service::{AppState, Config, release_free_heap, serve_with};
+use photostereo::service::{AppState, Config, serve_with};
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;

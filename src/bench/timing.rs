@@ -5,10 +5,10 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, bail, ensure};
+use photostereo::core::heap::release_free_heap;
 use photostereo::core::intake::{self, Limits};
 use photostereo::core::options::{Integration, Solver};
 use photostereo::core::{Options, integrate, outputs, pipeline, stream, synth};
-use photostereo::service::release_free_heap;
 
 use super::memory::{MB, reset_peak, status_bytes, wait_with_peak};
 use super::sets::{STAGES, SizeResult};

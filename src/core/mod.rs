@@ -12,6 +12,7 @@ pub mod bands;
 pub mod calibrate;
 pub mod commit;
 pub mod error;
+pub mod heap;
 mod histogram;
 pub mod intake;
 pub mod integrate;

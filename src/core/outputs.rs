@@ -191,7 +191,46 @@ fn png16_to<const C: usize>(
     planes: [ArrayView2<f32>; C],
     unit: impl Fn(usize, f32) -> f32,
 ) -> std::io::Result<()> {
-    let (rows, cols) = mask.dim();
+    png16_rows_to::<C>(out, mask.dim(), |r, mut samples| {
+        for (k, plane) in planes.iter().enumerate() {
+            Zip::from(samples.column_mut(k))
+                .and(plane.row(r))
+                .and(mask.row(r))
+                .for_each(|s, &v, &m| {
+                    *s = if m { unit16(unit(k, v)) } else { 0 }.to_be_bytes();
+                });
+        }
+    })
+}
+
+/// `shaded.png`: the albedo re-lit by `light`, shaded a row at a time as it is encoded
+/// (a whole shaded frame would add a map to the job's peak, beside the integration).
+fn shaded_to(
+    out: &mut dyn Write,
+    albedo: &Array2<f32>,
+    normals: &Array3<f32>,
+    mask: &Array2<bool>,
+    light: [f64; 3],
+) -> std::io::Result<()> {
+    let shading = render::Shading::new(light);
+    png16_rows_to::<1>(out, mask.dim(), |r, mut samples| {
+        Zip::from(samples.column_mut(0))
+            .and(albedo.row(r))
+            .and(normals.index_axis(Axis(0), r).lanes(Axis(1)))
+            .and(mask.row(r))
+            .for_each(|s, &a, n, &m| {
+                *s = if m { unit16(shading.at(a, n)) } else { 0 }.to_be_bytes();
+            });
+    })
+}
+
+/// A 16-bit PNG of `C` channels, a row at a time: `fill(r, samples)` writes row `r`'s
+/// big-endian samples, one row of `C` per pixel.
+fn png16_rows_to<const C: usize>(
+    out: &mut dyn Write,
+    (rows, cols): (usize, usize),
+    mut fill: impl FnMut(usize, ArrayViewMut2<[u8; 2]>),
+) -> std::io::Result<()> {
     let mut encoder = png::Encoder::new(out, cols as u32, rows as u32);
     encoder.set_color(match C {
         1 => png::ColorType::Grayscale,
@@ -205,15 +244,10 @@ fn png16_to<const C: usize>(
     let mut stream = writer.stream_writer_with_size(1 << 18)?;
     let mut row = vec![[0u8; 2]; cols * C];
     for r in 0..rows {
-        let mut samples = ArrayViewMut2::from_shape((cols, C), &mut row).expect("C per pixel");
-        for (k, plane) in planes.iter().enumerate() {
-            Zip::from(samples.column_mut(k))
-                .and(plane.row(r))
-                .and(mask.row(r))
-                .for_each(|s, &v, &m| {
-                    *s = if m { unit16(unit(k, v)) } else { 0 }.to_be_bytes();
-                });
-        }
+        fill(
+            r,
+            ArrayViewMut2::from_shape((cols, C), &mut row).expect("C per pixel"),
+        );
         stream.write_all(row.as_flattened())?;
     }
     stream.finish()?;
@@ -369,10 +403,7 @@ pub fn encode_to(
         }
         "needle.png" => png_to(out, &render::needle_map(maps.albedo, maps.normals, mask))?,
         "curl.png" => png_to(out, &render::diverging(maps.curl(), mask))?,
-        "shaded.png" => {
-            let shaded = render::shade(maps.albedo, maps.normals, shading_light);
-            png16_to(out, mask, [shaded.view()], value)?
-        }
+        "shaded.png" => shaded_to(out, maps.albedo, maps.normals, mask, shading_light)?,
         _ => return Ok(false),
     }
     Ok(true)
@@ -441,9 +472,8 @@ pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, Input
     });
     // Every pixel is drawn: off the mask the albedo, and so the shading, is zero.
     let everywhere = Array2::from_elem(a.dim(), true);
-    let shaded = render::shade(&a, &n, light);
     let mut out = Vec::new();
-    png16_to(&mut out, &everywhere, [shaded.view()], |_, v| v)
+    shaded_to(&mut out, &a, &n, &everywhere, light)
         .expect("encoding a PNG into memory cannot fail");
     Ok(out)
 }

@@ -21,7 +21,7 @@ use super::outputs::{self, Maps};
 use super::progress::{Halt, Progress, Stage};
 use super::reconstruction::{LightSummary, Reconstruction, Report, Timing};
 use super::solve::{self, Surface};
-use super::{integrate, mask, robust};
+use super::{heap, integrate, mask, robust};
 
 /// Reconstruct albedo, normals, mask and heights from a decoded image set.
 pub fn reconstruct(
@@ -404,6 +404,9 @@ pub fn run(
     let halt = || polled.halted();
     let start = Instant::now();
     let slopes = Slopes::of(&surface);
+    // The integration is the job's peak: what the solve left in the allocator's arenas
+    // would add to it.
+    heap::release_free_heap();
     let (heights, pictures) = rayon::join(
         || {
             let heights = slopes.integrate(&surface, opts, &halt);

@@ -2,15 +2,23 @@
 //! and a diverging colour map. Pure functions over arrays; encoding lives in `outputs`.
 
 use image::{Rgb, RgbImage};
-use ndarray::{Array2, Array3, ArrayViewMut3, Axis, Zip};
+use ndarray::{Array2, Array3, ArrayView1, ArrayViewMut3, Axis, Zip};
 
-/// albedo · max(0, n·l̂): the surface re-lit by a distant light (any length, not zero).
-pub fn shade(albedo: &Array2<f32>, normals: &Array3<f32>, light: [f64; 3]) -> Array2<f32> {
-    let len = light.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let l = light.map(|v| (v / len) as f32);
-    Zip::from(albedo)
-        .and(normals.lanes(Axis(2)))
-        .par_map_collect(|&a, n| a * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).max(0.0))
+/// A distant light (any length, not zero), normalised once for [`Shading::at`].
+pub struct Shading([f32; 3]);
+
+impl Shading {
+    pub fn new(light: [f64; 3]) -> Self {
+        let len = light.iter().map(|v| v * v).sum::<f64>().sqrt();
+        Self(light.map(|v| (v / len) as f32))
+    }
+
+    /// albedo · max(0, n·l̂): a pixel re-lit by this light.
+    #[inline]
+    pub fn at(&self, albedo: f32, n: ArrayView1<f32>) -> f32 {
+        let l = &self.0;
+        albedo * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).max(0.0)
+    }
 }
 
 /// The seed's quiver plot as a picture: the albedo in gray, with a needle every few
@@ -108,13 +116,13 @@ mod tests {
 
     #[test]
     fn shading_follows_lambert_and_clamps_shadows() {
-        let albedo = Array2::from_elem((1, 2), 0.5f32);
-        let mut n = Array3::zeros((1, 2, 3));
-        n[[0, 0, 2]] = 1.0;
-        n[[0, 1, 0]] = -1.0;
-        let s = shade(&albedo, &n, [1.0, 0.0, 1.0]);
-        assert!((s[[0, 0]] - 0.5 / 2f32.sqrt()).abs() < 1e-6);
-        assert_eq!(s[[0, 1]], 0.0);
+        let shading = Shading::new([1.0, 0.0, 1.0]);
+        let (up, away) = (
+            ndarray::arr1(&[0.0, 0.0, 1.0]),
+            ndarray::arr1(&[-1.0, 0.0, 0.0]),
+        );
+        assert!((shading.at(0.5, up.view()) - 0.5 / 2f32.sqrt()).abs() < 1e-6);
+        assert_eq!(shading.at(0.5, away.view()), 0.0);
     }
 
     #[test]

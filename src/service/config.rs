@@ -76,7 +76,7 @@ pub struct ServeArgs {
     pub max_images: usize,
 
     /// Most pixels in one image, width × height (413 past it): a job's output maps are
-    /// sized by it, about 75 bytes per pixel at the job's peak, whatever the image count.
+    /// sized by it, about 60 bytes per pixel at the job's peak, whatever the image count.
     #[arg(long, env = "PHOTOSTEREO_MAX_PIXELS", default_value_t = 33_554_432)]
     pub max_pixels: u64,
 

@@ -258,7 +258,7 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
         }
         pool.busy.fetch_sub(1, Ordering::SeqCst);
         match claimed {
-            Ok(Some(_)) => super::util::release_free_heap(),
+            Ok(Some(_)) => crate::core::heap::release_free_heap(),
             Ok(None) => pool.wait_for_ring(seen, POLL),
             Err(e) => {
                 tracing::warn!(error = %e, "cannot claim a job; trying again");

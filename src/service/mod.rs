@@ -65,7 +65,6 @@ pub use config::{Config, LogFormat, ServeArgs};
 pub use error::{ApiError, Problem};
 pub use health::{HealthcheckArgs, healthcheck};
 pub use upload::{parse_options, unpack_archive};
-pub use util::release_free_heap;
 
 use blobs::{BlobStore, LocalStore};
 use jobs::Workers;

@@ -1,25 +1,9 @@
 //! Small helpers with no HTTP in them: clocks, RFC 3339, human durations and sizes, a
-//! content hash for ETags, directory fsync, giving freed memory back.
+//! content hash for ETags, directory fsync.
 
 use std::io::{self, Read};
 use std::path::Path;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
-
-/// Hand the allocator's free memory back to the kernel. A job allocates and frees hundreds
-/// of MB on many threads, and glibc keeps what each thread's arena freed: an idle server
-/// held ~390 MB after a few 2048² jobs. The job workers call this as each job ends (and the
-/// bench before each measured job); a no-op where the allocator is not glibc's.
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-pub fn release_free_heap() {
-    // SAFETY: malloc_trim only returns free allocator memory to the system; no live
-    // allocation moves or changes.
-    unsafe {
-        libc::malloc_trim(0);
-    }
-}
-
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-pub fn release_free_heap() {}
 
 /// Milliseconds since the Unix epoch.
 pub fn now_ms() -> i64 {
