@@ -1,6 +1,8 @@
 //! `--light-sweep`: the default job at a fixed size over a range of light counts, each run
 //! as `photostereo reconstruct` in a process of its own, so that each peak resident size
-//! is that job's alone (read from `wait4`), and the time per pixel-image.
+//! is that job's alone (read from `wait4`), and the time per pixel-image: of the whole
+//! job, and of its work per image (the job less its stages per pixel, whose cost does not
+//! depend on the image count).
 
 use std::path::Path;
 use std::time::Instant;
@@ -16,6 +18,9 @@ pub(super) struct Point {
     pub(super) size: usize,
     pub(super) lights: usize,
     pub(super) ms: Vec<f64>,
+    /// Of each run: the stages whose work is per pixel (mask, integration with the
+    /// pictures beside it, mesh), from its result.json.
+    pub(super) per_pixel_ms: Vec<f64>,
     pub(super) peak_bytes: Vec<f64>,
     /// The same job by the `--against` binary, run alternately with this one's.
     pub(super) against_ms: Vec<f64>,
@@ -26,6 +31,15 @@ impl Point {
     /// Nanoseconds per pixel and image of a run of `ms`.
     pub(super) fn ns_per_pixel_image(&self, ms: f64) -> f64 {
         ms * 1e6 / (self.size * self.size * self.lights) as f64
+    }
+
+    /// Each run's work per image: its time less its stages per pixel, ms.
+    pub(super) fn per_image_ms(&self) -> Vec<f64> {
+        self.ms
+            .iter()
+            .zip(&self.per_pixel_ms)
+            .map(|(all, fixed)| all - fixed)
+            .collect()
     }
 }
 
@@ -54,6 +68,7 @@ pub(super) fn run(
                 size,
                 lights,
                 ms: Vec::new(),
+                per_pixel_ms: Vec::new(),
                 peak_bytes: Vec::new(),
                 against_ms: Vec::new(),
                 against_peak_bytes: Vec::new(),
@@ -69,7 +84,11 @@ pub(super) fn run(
                     }
                 }
                 for (exe, is_against) in order {
-                    let (took, peak) = alone(exe, &dir, &out, options)?;
+                    let Run {
+                        took,
+                        per_pixel,
+                        peak,
+                    } = alone(exe, &dir, &out, options)?;
                     eprintln!(
                         "bench: sweep {size}² × {lights} run {}/{runs}{}: {took:.0} ms, peak RSS {}",
                         run + 1,
@@ -81,6 +100,7 @@ pub(super) fn run(
                         point.against_peak_bytes.extend(peak);
                     } else {
                         point.ms.push(took);
+                        point.per_pixel_ms.push(per_pixel);
                         point.peak_bytes.extend(peak);
                     }
                 }
@@ -92,16 +112,21 @@ pub(super) fn run(
     Ok(points)
 }
 
-/// Wall time (ms) and peak resident size (bytes) of `exe reconstruct dir options…`.
-/// The child's `ru_maxrss` starts at the parent's peak, so that is reset first and a
-/// child peak no higher than the parent's is not reported.
-fn alone(
-    exe: &Path,
-    dir: &Path,
-    out: &Path,
-    options: &[String],
-) -> anyhow::Result<(f64, Option<f64>)> {
-    photostereo::service::release_free_heap();
+/// What one `reconstruct` process took.
+struct Run {
+    /// Wall time, ms.
+    took: f64,
+    /// Its stages per pixel, ms ([`per_pixel_ms`]).
+    per_pixel: f64,
+    /// Peak resident size, bytes.
+    peak: Option<f64>,
+}
+
+/// One run of `exe reconstruct dir options…`. The child's `ru_maxrss` starts at the
+/// parent's peak, so that is reset first and a child peak no higher than the parent's is
+/// not reported.
+fn alone(exe: &Path, dir: &Path, out: &Path, options: &[String]) -> anyhow::Result<Run> {
+    photostereo::core::heap::release_free_heap();
     let reset = reset_peak();
     let start = Instant::now();
     let child = std::process::Command::new(exe)
@@ -123,13 +148,40 @@ fn alone(
             dir.display()
         );
     }
+    let report = std::fs::read(out.join("result.json")).context("reading result.json")?;
+    let per_pixel = per_pixel_ms(&report)?;
     std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
     let parent = status_bytes("VmHWM").filter(|_| reset);
-    Ok((
+    Ok(Run {
         took,
-        match (peak, parent) {
+        per_pixel,
+        peak: match (peak, parent) {
             (Some(child), Some(parent)) if child > parent => Some(child),
             _ => None,
         },
-    ))
+    })
+}
+
+/// The wall time of a job's stages per pixel, from its result.json's `timings_ms`: mask,
+/// then integration and the pictures written beside it (both timed from one start, so the
+/// longer of the two), then mesh. The rest of the job (start, decode, solve) is its work
+/// per image.
+fn per_pixel_ms(report: &[u8]) -> anyhow::Result<f64> {
+    #[derive(serde::Deserialize)]
+    struct Report {
+        timings_ms: Vec<Timing>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Timing {
+        stage: String,
+        ms: f64,
+    }
+    let report: Report = serde_json::from_slice(report).context("parsing result.json")?;
+    let of = |stage: &str| {
+        (report.timings_ms.iter())
+            .filter(|t| t.stage == stage)
+            .map(|t| t.ms)
+            .sum::<f64>()
+    };
+    Ok(of("mask") + of("integrate").max(of("outputs")) + of("mesh"))
 }
