@@ -301,13 +301,13 @@ fn irls(
     halt: Halt,
 ) -> (Vec<f32>, usize) {
     let comps = Components::new(mask, h, w);
+    // The first round solves with the base weights. Later rounds form them a row at a
+    // time: held beside those rounds' own weights, they would add two maps to the peak.
     let (bx, by) = multigrid::edge_weights(mask, weights, h, w, MIN_EDGE_WEIGHT);
-    // The first round solves with the base weights, lent to its operator.
-    let st = WeightStencil::new(h, w, bx, by);
-    let mut z = solve_masked(&st, p, q, &comps, None, halt);
-    let (bx, by) = st.into_weights();
+    let mut z = solve_masked(&WeightStencil::new(h, w, bx, by), p, q, &comps, None, halt);
     let edges = Edges {
-        base: [&bx, &by],
+        mask,
+        weights,
         p,
         q,
         w,
@@ -357,20 +357,23 @@ fn cauchy_weight(base: f32, r: f32, tau: f32) -> f32 {
     if base > 0.0 { wt } else { 0.0 }
 }
 
-/// The edge equations `z_j − z_i = g_ij` of [`irls`]: base weights of the east (`[0]`,
-/// step 1) and south (`[1]`, step `w`) edges of each pixel, and the gradients their slopes
-/// come from ([`poisson::EdgeSlopes`], formed a row at a time in each pass).
+/// The edge equations `z_j − z_i = g_ij` of [`irls`]: the mask and pixel weights their
+/// base weights come from ([`multigrid::edge_weights`]), and the gradients their slopes
+/// come from ([`poisson::EdgeSlopes`]), both formed a row at a time in each pass.
 struct Edges<'a> {
-    base: [&'a [f32]; 2],
+    mask: &'a [bool],
+    weights: Option<&'a [f32]>,
     p: &'a [f32],
     q: &'a [f32],
     w: usize,
 }
 
-/// One row of [`Edges`] at some heights: its slopes, and `res[0]` / `res[1]` the residuals
-/// `z_j − z_i − g_ij` of the east / south edges (meaningless where there is no edge: every
+/// One row of [`Edges`] at some heights: the base weights of its east (`base[0]`, step 1)
+/// and south (`base[1]`, step `w`) edges, its slopes, and `res[0]` / `res[1]` the
+/// residuals `z_j − z_i − g_ij` of those edges (meaningless where there is no edge: every
 /// reader looks at the base weight first).
 struct EdgeRow {
+    base: [Vec<f32>; 2],
     slopes: poisson::EdgeSlopes,
     res: [Vec<f32>; 2],
 }
@@ -378,6 +381,7 @@ struct EdgeRow {
 impl EdgeRow {
     fn new(w: usize) -> Self {
         Self {
+            base: [vec![0.0; w], vec![0.0; w]],
             slopes: poisson::EdgeSlopes::new(w),
             res: [vec![0.0; w], vec![0.0; w]],
         }
@@ -389,15 +393,14 @@ impl Edges<'_> {
         self.p.len() / self.w.max(1)
     }
 
-    /// Row `r`'s base weights (east, south).
-    fn base_row(&self, r: usize) -> [&[f32]; 2] {
-        self.base.map(|b| &b[r * self.w..(r + 1) * self.w])
-    }
-
-    /// Row `r`'s slopes and residuals at heights `z` into `e`.
+    /// Row `r`'s base weights, slopes and residuals at heights `z` into `e`.
     fn load(&self, e: &mut EdgeRow, z: &[f32], r: usize) {
         let (w, i) = (self.w, r * self.w);
-        let [bx, by] = self.base_row(r);
+        let [bx, by] = &mut e.base;
+        bx.fill(0.0);
+        by.fill(0.0);
+        let (h, floor) = (self.rows(), MIN_EDGE_WEIGHT);
+        multigrid::edge_weight_row(self.mask, self.weights, h, floor, r, bx, by);
         e.slopes.load(self.p, self.q, bx, by, r);
         let (gx, gy) = (&e.slopes.east[..w], &e.slopes.south[..w]);
         let [east, south] = &mut e.res;
@@ -430,7 +433,7 @@ impl Edges<'_> {
                     let r = k * stride;
                     self.load(e, z, r);
                     let kept = |(b, v): (&f32, &f32)| (*b > 0.0).then_some(v.abs());
-                    let [bx, by] = self.base_row(r);
+                    let [bx, by] = &e.base;
                     let east = bx.iter().zip(&e.res[0]).filter_map(kept);
                     east.chain(by.iter().zip(&e.res[1]).filter_map(kept))
                         .collect()
@@ -455,7 +458,7 @@ impl Edges<'_> {
                 || EdgeRow::new(w),
                 |e, (r, (wx, wy))| {
                     self.load(e, z, r);
-                    let [bx, by] = self.base_row(r);
+                    let [bx, by] = &e.base;
                     for (out, base, res) in [(wx, bx, &e.res[0]), (wy, by, &e.res[1])] {
                         for c in 0..w {
                             out[c] = cauchy_weight(base[c], res[c], tau);
@@ -477,8 +480,8 @@ impl Edges<'_> {
         let h = self.rows();
         // Per row, (weight × residual, weight × slope) of its east edges and of its south
         // ones; 0 where there is no edge.
-        let terms = |e: &EdgeRow, r: usize, east: &mut [Vec<f32>; 2], south: &mut [Vec<f32>; 2]| {
-            let [bx, by] = self.base_row(r);
+        let terms = |e: &EdgeRow, east: &mut [Vec<f32>; 2], south: &mut [Vec<f32>; 2]| {
+            let [bx, by] = &e.base;
             let g = [&e.slopes.east, &e.slopes.south];
             for (k, base, out) in [(0, bx, east), (1, by, south)] {
                 let (res, g) = (&e.res[k][..w], &g[k][..w]);
@@ -506,14 +509,14 @@ impl Edges<'_> {
                     match r0.checked_sub(1) {
                         Some(above) => {
                             self.load(e, z, above);
-                            terms(e, above, east, north);
+                            terms(e, east, north);
                         }
                         None => north.iter_mut().for_each(|v| v.fill(0.0)),
                     }
                     let mut acc = [[0f64; LANES]; 2];
                     for r in r0..r1 {
                         self.load(e, z, r);
-                        terms(e, r, east, south);
+                        terms(e, east, south);
                         // A z − b at each pixel: edges leaving it minus edges entering it.
                         for (k, acc) in acc.iter_mut().enumerate() {
                             let (ea, so, no) = (&east[k][..w], &south[k][..w], &north[k][..w]);

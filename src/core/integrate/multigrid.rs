@@ -213,11 +213,6 @@ impl WeightStencil {
         Self::new(h, w, wx, wy)
     }
 
-    /// The edge weights `(wx, wy)` back, for a caller that lent them.
-    pub(super) fn into_weights(self) -> (Vec<f32>, Vec<f32>) {
-        (self.wx, self.wy)
-    }
-
     fn row<'a>(&self, v: &'a [f32], r: usize) -> &'a [f32] {
         &v[r * self.w..(r + 1) * self.w]
     }
@@ -234,6 +229,31 @@ pub(super) fn edge_weights(
     w: usize,
     floor: f32,
 ) -> (Vec<f32>, Vec<f32>) {
+    let mut wx = vec![0f32; h * w];
+    let mut wy = vec![0f32; h * w];
+    if w == 0 {
+        return (wx, wy);
+    }
+    wx.par_chunks_mut(w)
+        .zip(wy.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(r, (wx, wy))| edge_weight_row(mask, weight, h, floor, r, wx, wy));
+    (wx, wy)
+}
+
+/// Row `r` of [`edge_weights`] into `wx` and `wy` (each a row long, and zero: only the
+/// edges that exist are written, so the pages of a fresh buffer's rows off the mask are
+/// never touched), for a caller that also forms them a row at a time.
+pub(super) fn edge_weight_row(
+    mask: &[bool],
+    weight: Option<&[f32]>,
+    h: usize,
+    floor: f32,
+    r: usize,
+    wx: &mut [f32],
+    wy: &mut [f32],
+) {
+    let w = wx.len();
     let wt = |i: usize| {
         weight.map_or(1.0, |v| {
             if v[i].is_finite() {
@@ -243,29 +263,18 @@ pub(super) fn edge_weights(
             }
         })
     };
-    let mut wx = vec![0f32; h * w];
-    let mut wy = vec![0f32; h * w];
-    if w == 0 {
-        return (wx, wy);
+    for c in 0..w {
+        let i = r * w + c;
+        if !mask[i] {
+            continue;
+        }
+        if c + 1 < w && mask[i + 1] {
+            wx[c] = (0.5 * (wt(i) + wt(i + 1))).max(floor);
+        }
+        if r + 1 < h && mask[i + w] {
+            wy[c] = (0.5 * (wt(i) + wt(i + w))).max(floor);
+        }
     }
-    wx.par_chunks_mut(w)
-        .zip(wy.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(r, (wx, wy))| {
-            for c in 0..w {
-                let i = r * w + c;
-                if !mask[i] {
-                    continue;
-                }
-                if c + 1 < w && mask[i + 1] {
-                    wx[c] = (0.5 * (wt(i) + wt(i + 1))).max(floor);
-                }
-                if r + 1 < h && mask[i + w] {
-                    wy[c] = (0.5 * (wt(i) + wt(i + w))).max(floor);
-                }
-            }
-        });
-    (wx, wy)
 }
 
 impl Stencil for WeightStencil {

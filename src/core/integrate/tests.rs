@@ -904,7 +904,8 @@ fn edge_slopes_weights_and_the_re_weighted_residual_match_the_formed_system() {
     let comps = Components::new(&m, n, n);
     let z = poisson_heights(&ps, &qs, &m, n, n, None, NEVER);
     let edges = Edges {
-        base: [&bx, &by],
+        mask: &m,
+        weights: None,
         p: &ps,
         q: &qs,
         w: n,
@@ -962,7 +963,8 @@ fn tau_sample_takes_every_edge_of_every_stride_th_row() {
     let (bx, by) = multigrid::edge_weights(&m, None, n, n, MIN_EDGE_WEIGHT);
     let z = poisson_heights(&ps, &qs, &m, n, n, None, NEVER);
     let edges = Edges {
-        base: [&bx, &by],
+        mask: &m,
+        weights: None,
         p: &ps,
         q: &qs,
         w: n,
