@@ -8,6 +8,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use photostereo::core::progress::Stage;
 use photostereo::core::synth;
 
 use super::memory::{reset_peak, status_bytes, wait_with_peak};
@@ -177,11 +178,11 @@ fn per_pixel_ms(report: &[u8]) -> anyhow::Result<f64> {
         ms: f64,
     }
     let report: Report = serde_json::from_slice(report).context("parsing result.json")?;
-    let of = |stage: &str| {
+    let of = |stage: Stage| {
         (report.timings_ms.iter())
-            .filter(|t| t.stage == stage)
+            .filter(|t| t.stage == stage.as_str())
             .map(|t| t.ms)
             .sum::<f64>()
     };
-    Ok(of("mask") + of("integrate").max(of("outputs")) + of("mesh"))
+    Ok(of(Stage::Mask) + of(Stage::Integrate).max(of(Stage::Outputs)) + of(Stage::Mesh))
 }
