@@ -451,7 +451,14 @@ async fn a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole() {
     let s = store.clone();
     tokio::task::spawn_blocking(move || {
         assert!(s.has_inputs(id).unwrap());
-        let dir = s.fetch_inputs(id).unwrap();
+        // A worker that has the image already (its upload's scan) fetches the rest only.
+        let dir = s.fetch_inputs(id, &|name| name == "000.img").unwrap();
+        assert!(dir.join("manifest.json").is_file());
+        assert!(
+            !dir.join("000.img").exists(),
+            "a file the worker has is not fetched"
+        );
+        let dir = s.fetch_inputs(id, &|_| false).unwrap();
         assert!(
             std::fs::read(dir.join("000.img")).unwrap() == big,
             "fetched back whole"

@@ -127,8 +127,9 @@ pub trait BlobStore: Send + Sync + 'static {
     /// Whether the job's committed inputs are there (its manifest is written last).
     fn has_inputs(&self, id: Uuid) -> io::Result<bool>;
     /// The committed inputs in a local directory, fetched from the store when it keeps
-    /// them elsewhere (for the worker that runs the job).
-    fn fetch_inputs(&self, id: Uuid) -> io::Result<PathBuf>;
+    /// them elsewhere (for the worker that runs the job), except the files `have(name)`
+    /// says the worker needs no copy of (images the upload's first pass already decoded).
+    fn fetch_inputs(&self, id: Uuid, have: &dyn Fn(&str) -> bool) -> io::Result<PathBuf>;
     fn remove_inputs(&self, id: Uuid) -> io::Result<()>;
     /// A fresh, empty local directory for a reconstruction to write into.
     fn stage_outputs(&self, id: Uuid) -> io::Result<PathBuf>;
@@ -238,7 +239,7 @@ impl BlobStore for LocalStore {
         Ok(self.job(id).join("input").join(MANIFEST_FILE).is_file())
     }
 
-    fn fetch_inputs(&self, id: Uuid) -> io::Result<PathBuf> {
+    fn fetch_inputs(&self, id: Uuid, _have: &dyn Fn(&str) -> bool) -> io::Result<PathBuf> {
         Ok(self.job(id).join("input"))
     }
 
@@ -396,7 +397,13 @@ mod tests {
         let staged = store.stage_inputs(id).unwrap();
         std::fs::write(staged.join("000.img"), b"x").unwrap();
         store.commit_inputs(id).unwrap();
-        assert!(store.fetch_inputs(id).unwrap().join("000.img").is_file());
+        assert!(
+            store
+                .fetch_inputs(id, &|_| false)
+                .unwrap()
+                .join("000.img")
+                .is_file()
+        );
         assert!(!staged.exists());
         let out = store.stage_outputs(id).unwrap();
         std::fs::write(out.join("result.json"), b"{}").unwrap();

@@ -33,7 +33,7 @@ use crate::core::outputs::ARTIFACTS;
 use crate::core::pipeline;
 use crate::core::progress::{Progress, Stage};
 use crate::core::reconstruction::Report;
-use crate::core::stream::{self, Streamed};
+use crate::core::stream::{self, Prescanned, Streamed};
 use crate::core::{InputError, Options};
 
 use super::Inner;
@@ -554,9 +554,16 @@ fn execute(
         .ok_or(Stop::Stopped)?;
     let options: Options = serde_json::from_value(record.options)
         .map_err(|e| ApiError::invalid(format!("options: {e}")))?;
+    // The images the upload already decoded on this instance need not be fetched again.
+    // Waits for scans still running (on rayon: this is a worker thread, not a pool one).
+    let scanned = inner
+        .prefetch
+        .take(id)
+        .map(Prefetch::finish)
+        .unwrap_or_default();
     let input = inner
         .store
-        .fetch_inputs(id)
+        .fetch_inputs(id, &|name| scanned.contains_key(name))
         .map_err(|e| store_error(e, "fetching the job's inputs"))?;
     let manifest: Manifest = std::fs::read(input.join(MANIFEST_FILE))
         .map_err(ApiError::from)
@@ -570,7 +577,7 @@ fn execute(
         return Err(Stop::Stopped);
     }
     let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
-    let set = open_inputs(inner, id, lights, &input, &manifest, clock)?;
+    let set = open_inputs(inner, scanned, lights, &input, &manifest, clock)?;
     let set = set.noted(manifest.notes.clone());
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
@@ -589,13 +596,13 @@ fn execute(
     Ok((summarize(&report), artifacts))
 }
 
-/// The first pass over the job's images, taking those scanned during the upload when
-/// there are any; the solve reads the bands back from their scratch copies. Once `clock` says stop,
+/// The first pass over the job's images, taking those the upload scanned (`scanned`, by
+/// file name) when there are any; the solve reads the bands back from their scratch copies. Once `clock` says stop,
 /// the images not yet started are not scanned and the set, which then holds a placeholder
 /// error for them, is dropped.
 fn open_inputs(
     inner: &Inner,
-    id: Uuid,
+    scanned: HashMap<String, Prescanned>,
     lights: Vec<lights::Light>,
     input: &Path,
     manifest: &Manifest,
@@ -613,14 +620,7 @@ fn open_inputs(
         name: m.name.clone(),
         path: input.join(&m.file),
     });
-    // Waits for scans still running (on rayon: this is a worker thread, not a pool one).
-    let ready = Mutex::new(
-        inner
-            .prefetch
-            .take(id)
-            .map(Prefetch::finish)
-            .unwrap_or_default(),
-    );
+    let ready = Mutex::new(scanned);
     let taken = AtomicUsize::new(0);
     // The decoded images go beside the (fetched) inputs, as the upload's scans put them.
     let set = stream::open_with(

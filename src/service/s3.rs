@@ -13,7 +13,8 @@
 //! each staged file up, as one PUT when it fits one part and otherwise as a multipart
 //! upload of [`PART_BYTES`] parts with at most [`PARTS_IN_FLIGHT`] in flight, so no file is
 //! ever whole in memory. A job's worker fetches its inputs back into the scratch
-//! directory. Files go up and come back [`FILES_IN_FLIGHT`] at a time. An attempt writes
+//! directory, but for the images its upload's first pass already decoded on the same
+//! instance ([`super::prefetch`]). Files go up and come back [`FILES_IN_FLIGHT`] at a time. An attempt writes
 //! under a key of its own and its keys are recorded with the
 //! job, so nothing is renamed and no half-written artifact can be served.
 //!
@@ -324,7 +325,7 @@ impl BlobStore for S3Store {
         }
     }
 
-    fn fetch_inputs(&self, id: Uuid) -> io::Result<PathBuf> {
+    fn fetch_inputs(&self, id: Uuid, have: &dyn Fn(&str) -> bool) -> io::Result<PathBuf> {
         let dir = self.staged(id, "input");
         match std::fs::remove_dir_all(&dir) {
             Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
@@ -341,7 +342,7 @@ impl BlobStore for S3Store {
                 .await
                 .map_err(unavailable)?;
             futures_util::stream::iter(keys.into_iter().filter_map(|key| {
-                let name = key.filename()?.to_string();
+                let name = key.filename().filter(|n| !have(n))?.to_string();
                 Some(self.download(key, dir.join(name)))
             }))
             .buffer_unordered(FILES_IN_FLIGHT)
