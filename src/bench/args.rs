@@ -29,6 +29,11 @@ pub struct BenchArgs {
     /// AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION, AWS_ALLOW_HTTP).
     #[arg(long, requires = "database_url")]
     pub store: Option<String>,
+    /// With --database-url: processes (with their children) whose CPU time over each
+    /// PostgreSQL + S3 job is shown beside the job's, e.g. the S3 server and PostgreSQL's
+    /// postmaster when they share the machine.
+    #[arg(long, value_delimiter = ',', requires = "database_url")]
+    pub server_pids: Vec<u32>,
     /// Also time status requests while every server worker is busy with a big job.
     #[arg(long)]
     pub load: bool,

@@ -15,7 +15,7 @@ use tokio::net::TcpListener;
 
 use super::args::BenchArgs;
 use super::client::{Conn, REQUEST_TIMEOUT};
-use super::memory::{reset_peak, status_bytes};
+use super::memory::{own_cpu_ms, reset_peak, status_bytes, tree_cpu_ms};
 use super::sets::SizeResult;
 use super::stats::ms;
 
@@ -139,25 +139,39 @@ pub(super) struct HttpRun {
     pub(super) upload_ms: f64,
     /// Process VmHWM over the job, when it could be reset before it.
     pub(super) peak_bytes: Option<f64>,
+    /// CPU time of this process (servers and client) over the job.
+    pub(super) cpu_ms: f64,
+    /// CPU time of the `servers` process trees over the job.
+    pub(super) servers_cpu_ms: f64,
 }
 
-/// One HTTP run: upload, poll until succeeded, delete the job.
+/// One HTTP run: upload, poll until succeeded, delete the job. `servers`: processes
+/// outside this one that the job uses (the S3 server, PostgreSQL), whose CPU time is
+/// counted too.
 pub(super) async fn http_run(
     set: &SizeResult,
     label: &str,
-    run: usize,
-    runs: usize,
+    (run, runs): (usize, usize),
     addr: SocketAddr,
+    servers: &[u32],
 ) -> anyhow::Result<HttpRun> {
     release_free_heap();
     let reset = reset_peak();
+    let (cpu, servers_cpu) = (own_cpu_ms(), tree_cpu_ms(servers));
     let (id, upload, total) = submit_and_wait(addr, set).await?;
+    let (cpu, servers_cpu) = (own_cpu_ms() - cpu, tree_cpu_ms(servers) - servers_cpu);
     let peak = status_bytes("VmHWM");
     let mut conn = Conn::connect(addr).await?;
     let r = conn.request("DELETE", &job_path(&id)).await?;
     ensure!(r.status == 204, "deleting job {id}: {}", r.describe());
+    let servers_note = if servers.is_empty() {
+        String::new()
+    } else {
+        format!(", servers' CPU {servers_cpu:.0} ms")
+    };
     eprintln!(
-        "bench: {label} {}² run {}/{runs}: upload {:.0} ms, succeeded after {:.0} ms",
+        "bench: {label} {}² run {}/{runs}: upload {:.0} ms, succeeded after {:.0} ms, CPU \
+         {cpu:.0} ms{servers_note}",
         set.size,
         run + 1,
         ms(upload),
@@ -167,6 +181,8 @@ pub(super) async fn http_run(
         total_ms: ms(total),
         upload_ms: ms(upload),
         peak_bytes: peak.filter(|_| reset),
+        cpu_ms: cpu,
+        servers_cpu_ms: servers_cpu,
     })
 }
 

@@ -126,22 +126,28 @@ fn measure(
         drop(gradients);
         for run in 0..args.runs {
             timing::core_run(set, run, args.runs, tmp)?;
+            let rounds = (run, args.runs);
             if let (true, Some(server)) = (args.http, server) {
                 let r =
-                    server
-                        .rt
-                        .block_on(http::http_run(set, "HTTP", run, args.runs, server.addr))?;
+                    (server.rt).block_on(http::http_run(set, "HTTP", rounds, server.addr, &[]))?;
                 set.http_ms.push(r.total_ms);
                 set.upload_ms.push(r.upload_ms);
+                set.http_cpu_ms.push(r.cpu_ms);
                 set.http_peak_bytes.extend(r.peak_bytes);
             }
             if let Some(shared) = shared {
                 let label = "HTTP on PostgreSQL + S3";
-                let r =
-                    shared
-                        .rt
-                        .block_on(http::http_run(set, label, run, args.runs, shared.addr))?;
+                let r = (shared.rt).block_on(http::http_run(
+                    set,
+                    label,
+                    rounds,
+                    shared.addr,
+                    &args.server_pids,
+                ))?;
                 set.shared_http_ms.push(r.total_ms);
+                set.shared_upload_ms.push(r.upload_ms);
+                set.shared_cpu_ms.push(r.cpu_ms);
+                set.shared_servers_cpu_ms.push(r.servers_cpu_ms);
             }
         }
         for run in 0..args.runs {

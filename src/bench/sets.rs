@@ -70,8 +70,15 @@ pub(super) struct SizeResult {
     pub(super) upload_ms: Vec<f64>,
     /// Process VmHWM over each HTTP job (server and client together).
     pub(super) http_peak_bytes: Vec<f64>,
-    /// The same HTTP job on the PostgreSQL + S3 server (`--database-url`, `--store`).
+    /// This process's CPU time over each HTTP job (server and client).
+    pub(super) http_cpu_ms: Vec<f64>,
+    /// The same HTTP job on the PostgreSQL + S3 server (`--database-url`, `--store`):
+    /// until `succeeded`, until the 202, this process's CPU time, and that of
+    /// `--server-pids`.
     pub(super) shared_http_ms: Vec<f64>,
+    pub(super) shared_upload_ms: Vec<f64>,
+    pub(super) shared_cpu_ms: Vec<f64>,
+    pub(super) shared_servers_cpu_ms: Vec<f64>,
     /// `integrate` alone with `poisson`, `frankot-chellappa` and `robust-poisson`, per run.
     pub(super) poisson_ms: Vec<f64>,
     pub(super) fc_ms: Vec<f64>,
@@ -100,7 +107,11 @@ impl SizeResult {
             http_ms: Vec::new(),
             upload_ms: Vec::new(),
             http_peak_bytes: Vec::new(),
+            http_cpu_ms: Vec::new(),
             shared_http_ms: Vec::new(),
+            shared_upload_ms: Vec::new(),
+            shared_cpu_ms: Vec::new(),
+            shared_servers_cpu_ms: Vec::new(),
             poisson_ms: Vec::new(),
             fc_ms: Vec::new(),
             robust_ms: Vec::new(),

@@ -1,8 +1,10 @@
 //! `--light-sweep`: the default job at a fixed size over a range of light counts, each run
 //! as `photostereo reconstruct` in a process of its own, so that each peak resident size
 //! is that job's alone (read from `wait4`), and the time per pixel-image: of the whole
-//! job, and of its work per image (the job less its stages per pixel, whose cost does not
-//! depend on the image count).
+//! job, and of each added image (the step in the job's time from one light count to the
+//! next, over the pixel-images added). The job's stages per pixel cost the same whatever
+//! the image count, so its whole time per pixel-image falls as images are added; the
+//! added images' cost is the one that must stay flat.
 
 use std::path::Path;
 use std::time::Instant;
@@ -12,7 +14,7 @@ use photostereo::core::progress::Stage;
 use photostereo::core::synth;
 
 use super::memory::{reset_peak, status_bytes, wait_with_peak};
-use super::stats::ms;
+use super::stats::{median, ms};
 
 /// One point of the sweep: a size and a light count, and what each run measured.
 pub(super) struct Point {
@@ -34,13 +36,12 @@ impl Point {
         ms * 1e6 / (self.size * self.size * self.lights) as f64
     }
 
-    /// Each run's work per image: its time less its stages per pixel, ms.
-    pub(super) fn per_image_ms(&self) -> Vec<f64> {
-        self.ms
-            .iter()
-            .zip(&self.per_pixel_ms)
-            .map(|(all, fixed)| all - fixed)
-            .collect()
+    /// Nanoseconds per pixel-image of the images this point has beyond `before`: the
+    /// step between the two points' median times over the pixel-images it adds.
+    pub(super) fn ns_per_added_pixel_image(&self, before: &Point) -> Option<f64> {
+        let added = self.lights.checked_sub(before.lights).filter(|&n| n > 0)?;
+        let step = median(&self.ms)? - median(&before.ms)?;
+        Some(step * 1e6 / (self.size * self.size * added) as f64)
     }
 }
 
@@ -165,8 +166,7 @@ fn alone(exe: &Path, dir: &Path, out: &Path, options: &[String]) -> anyhow::Resu
 
 /// The wall time of a job's stages per pixel, from its result.json's `timings_ms`: mask,
 /// then integration and the pictures written beside it (both timed from one start, so the
-/// longer of the two), then mesh. The rest of the job (start, decode, solve) is its work
-/// per image.
+/// longer of the two), then mesh.
 fn per_pixel_ms(report: &[u8]) -> anyhow::Result<f64> {
     #[derive(serde::Deserialize)]
     struct Report {
