@@ -16,8 +16,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use common::*;
-use photostereo::service::error::Problem;
 use photostereo::service::pg::PgRepo;
+use photostereo::service::problem::Problem;
 use photostereo::service::repo::{
     Admission, ArtifactInfo, CalibrationRecord, Finish, JobRecord, JobRepo, JobStatus, Lease,
     Remembered,

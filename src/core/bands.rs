@@ -1,12 +1,13 @@
 //! The solve's view of an image set: what it is (size, depth, lights, mask), the rows the
 //! robust pre-pass samples, and bands of rows read top to bottom in lockstep over the
 //! images. A set behind a [`Stack`] need not be in memory whole: `stream` reads its files
-//! band by band; an [`ImageSet`] already in memory serves itself as one band.
+//! band by band; an [`ImageSet`] already in memory serves itself as one band. A band's
+//! solve fills the same rows of the output maps ([`SurfaceRows`]).
 
 use std::borrow::Borrow;
 use std::ops::Range;
 
-use ndarray::Array2;
+use ndarray::{Array2, ArrayViewMut2, ArrayViewMut3};
 
 use super::InputError;
 use super::intake::ImageSet;
@@ -143,4 +144,15 @@ impl<S: Borrow<ImageSet> + Send> Stack for InMemory<S> {
             .map(|m| &m[span.start * 9..span.end * 9]);
         Ok(Band { planes, moments })
     }
+}
+
+/// Some rows of the solve's per-pixel maps (its `Surface`), for a
+/// band's solve to fill.
+pub struct SurfaceRows<'a> {
+    pub albedo: ArrayViewMut2<'a, f32>,
+    pub normals: ArrayViewMut3<'a, f32>,
+    pub residual: ArrayViewMut2<'a, f32>,
+    pub confidence: ArrayViewMut2<'a, f32>,
+    pub inliers: ArrayViewMut2<'a, u16>,
+    pub unreliable: ArrayViewMut2<'a, bool>,
 }

@@ -8,13 +8,18 @@
 //! rayon worker in the middle of the integration, which the pictures are written beside.
 
 use std::fs::File;
-use std::io::BufWriter;
+use std::io::{BufWriter, Seek, Write};
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::thread::JoinHandle;
 
 use super::error::RunError;
-use super::outputs::WriteSeek;
+
+/// What an artifact is written to: seekable, since the EXR writer goes back to fill in its
+/// offset table.
+pub trait WriteSeek: Write + Seek {}
+
+impl<T: Write + Seek> WriteSeek for T {}
 
 /// Write `bytes` to `dir/name` (see the module docs), on this thread.
 pub fn write_atomic(dir: &Path, name: &str, bytes: &[u8]) -> Result<(), RunError> {

@@ -278,7 +278,7 @@ pub fn conditioning(lights: &[Light]) -> (f64, usize) {
             }
         }
     }
-    let eig = super::solve::sym3_eigenvalues(&m);
+    let eig = super::lambert::sym3_eigenvalues(&m);
     let max = eig[2].max(0.0);
     let rank = eig.iter().filter(|&&e| e > max * 1e-12 && e > 0.0).count();
     let min = eig[0].max(0.0);

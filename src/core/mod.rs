@@ -16,6 +16,7 @@ pub mod heap;
 mod histogram;
 pub mod intake;
 pub mod integrate;
+pub mod lambert;
 pub mod layout;
 pub mod lights;
 pub mod mask;

@@ -1,7 +1,7 @@
 //! Encoders: the PNG/EXR pictures of a reconstruction and `result.json`, written in
 //! parallel, each under a temporary name and renamed once complete.
 
-use std::io::{Cursor, Seek, Write};
+use std::io::{Cursor, Write};
 use std::path::Path;
 
 use exr::image::write::channels::WritableChannels;
@@ -12,7 +12,7 @@ use ndarray::{Array2, Array3, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
-use super::commit::Committer;
+use super::commit::{Committer, WriteSeek};
 use super::error::RunError;
 use super::progress::Halt;
 use super::reconstruction::Reconstruction;
@@ -150,11 +150,6 @@ where
         )
         .map_err(std::io::Error::other)
 }
-
-/// A seekable writer: the EXR writer goes back to fill in its offset table.
-pub trait WriteSeek: Write + Seek {}
-
-impl<T: Write + Seek> WriteSeek for T {}
 
 /// A single-part scan-line float EXR of `channels`, uncompressed: float normals and
 /// heights barely compress losslessly and the compressors cost more than they save.

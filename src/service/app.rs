@@ -10,8 +10,8 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
 use super::AppState;
+use super::download::not_modified;
 use super::error::ApiError;
-use super::routes::not_modified;
 use super::util::strong_etag;
 
 /// name, content type, bytes.

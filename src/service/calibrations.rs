@@ -27,13 +27,14 @@ use crate::core::intake::{self, Limits};
 use super::AppState;
 use super::blobs::Served;
 use super::config::{Config, MAX_LIGHTS_BYTES};
-use super::download;
-use super::error::{ApiError, Problem};
+use super::download::{self, not_modified, not_modified_response};
+use super::error::ApiError;
 use super::idempotency::{self, PartHasher};
+use super::problem::Problem;
 use super::repo::{ArtifactInfo, CalibrationRecord, Remembered};
 use super::routes::{
-    ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, not_modified, not_modified_response,
-    open_submission, owned_calibration, request_id,
+    ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, open_submission, owned_calibration,
+    request_id,
 };
 use super::tenants::Caller;
 use super::upload::{self, BodyTap};

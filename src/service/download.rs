@@ -1,7 +1,8 @@
 //! Serving a stored file (a job's artifact, a calibration's file) from the store: the
 //! whole file, or one byte range of it (`Range: bytes=…`, 206; 416 when no byte of the
-//! file is in it), streamed as the store sends it. `If-None-Match` is the caller's (it
-//! answers before the store is asked).
+//! file is in it), streamed as the store sends it. `If-None-Match` is the caller's to
+//! check ([`not_modified`], before the store is asked); the headers of a file's answer
+//! are [`artifact_response`]'s, for files made on request too.
 
 use std::ops::Range;
 
@@ -12,7 +13,6 @@ use axum::response::{IntoResponse, Response};
 use super::AppState;
 use super::blobs::Served;
 use super::error::ApiError;
-use super::routes::artifact_response;
 
 /// What a request's `Range` asks of a file of `len` bytes.
 #[derive(Debug, PartialEq, Eq)]
@@ -127,6 +127,51 @@ pub(super) async fn stored(
     r.headers_mut()
         .insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
     Ok(r)
+}
+
+/// Whether `If-None-Match` names `etag` (or `*`).
+pub(super) fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
+    let bare = |t: &str| t.trim().trim_start_matches("W/").to_string();
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|t| t.trim() == "*" || bare(t) == etag)
+}
+
+/// 304 Not Modified, with the ETag and caching a full answer would carry.
+pub(super) fn not_modified_response(etag: &str, cache: &'static str) -> Response {
+    let mut r = StatusCode::NOT_MODIFIED.into_response();
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        r.headers_mut().insert(header::ETAG, v);
+    }
+    r.headers_mut()
+        .insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
+    r
+}
+
+/// A file's answer: its type, length, caching, ETag and file name.
+pub(super) fn artifact_response(
+    content_type: &'static str,
+    etag: &str,
+    cache: &'static str,
+    name: &str,
+    len: u64,
+    body: Body,
+) -> Response {
+    let mut r = Response::new(body);
+    let h = r.headers_mut();
+    h.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
+    h.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
+    if let Ok(v) = HeaderValue::from_str(etag) {
+        h.insert(header::ETAG, v);
+    }
+    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{name}\"")) {
+        h.insert(header::CONTENT_DISPOSITION, v);
+    }
+    r
 }
 
 #[cfg(test)]

@@ -14,7 +14,8 @@ use futures_util::Stream;
 use uuid::Uuid;
 
 use super::AppState;
-use super::error::{ApiError, Problem};
+use super::error::ApiError;
+use super::problem::Problem;
 use super::repo::{JobRecord, JobStatus};
 use super::routes::{JobId, JobView, owned_job};
 use super::tenants::Caller;

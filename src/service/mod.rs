@@ -28,6 +28,7 @@ mod metrics;
 mod openapi;
 pub mod pg;
 mod prefetch;
+pub mod problem;
 mod quota;
 pub mod repo;
 pub mod routes;
@@ -62,8 +63,9 @@ use utoipa_swagger_ui::SwaggerUi;
 use uuid::Uuid;
 
 pub use config::{Config, LogFormat, ServeArgs};
-pub use error::{ApiError, Problem};
+pub use error::ApiError;
 pub use health::{HealthcheckArgs, healthcheck};
+pub use problem::Problem;
 pub use upload::{parse_options, unpack_archive};
 
 use blobs::{BlobStore, LocalStore};

@@ -12,7 +12,7 @@ use crate::core::outputs::{ALL, ARTIFACTS};
 use super::calibrations::{
     CalibrationList, CalibrationView, CircleView, HighlightView, LightView, Measured, SkippedView,
 };
-use super::error::Problem;
+use super::problem::Problem;
 use super::repo::JobStatus;
 use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
 

@@ -17,7 +17,7 @@ use deadpool_postgres::{Manager, ManagerConfig, Pool, RecyclingMethod};
 use tokio_postgres::{NoTls, Row};
 use uuid::Uuid;
 
-use super::error::Problem;
+use super::problem::Problem;
 use super::repo::{
     Admission, CalibrationRecord, Callback, Finish, JobRecord, JobRepo, JobStatus, Lease,
     RawCalibration, RawRecord, Reaped, Remembered, RepoError, RepoResult, decode_calibration,

@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 use uuid::Uuid;
 
-use super::error::Problem;
+use super::problem::Problem;
 
 /// Where a job is in its life.
 #[derive(

@@ -18,9 +18,10 @@ use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
 use super::blobs::Served;
-use super::download;
-use super::error::{ApiError, PROBLEM_JSON, Problem};
+use super::download::{self, artifact_response, not_modified, not_modified_response};
+use super::error::ApiError;
 use super::idempotency::{self, PartHasher};
+use super::problem::{PROBLEM_JSON, Problem};
 use super::repo::{
     Admission, CalibrationRecord, Callback, CallbackState, JobRecord, JobStatus, Remembered,
 };
@@ -942,48 +943,6 @@ fn parse_light(raw: &str) -> Result<[f64; 3], ApiError> {
         return Err(bad("zero vector"));
     }
     Ok(v)
-}
-
-pub(super) fn not_modified(headers: &HeaderMap, etag: &str) -> bool {
-    let bare = |t: &str| t.trim().trim_start_matches("W/").to_string();
-    headers
-        .get_all(header::IF_NONE_MATCH)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
-        .flat_map(|v| v.split(','))
-        .any(|t| t.trim() == "*" || bare(t) == etag)
-}
-
-pub(super) fn not_modified_response(etag: &str, cache: &'static str) -> Response {
-    let mut r = StatusCode::NOT_MODIFIED.into_response();
-    if let Ok(v) = HeaderValue::from_str(etag) {
-        r.headers_mut().insert(header::ETAG, v);
-    }
-    r.headers_mut()
-        .insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
-    r
-}
-
-pub(super) fn artifact_response(
-    content_type: &'static str,
-    etag: &str,
-    cache: &'static str,
-    name: &str,
-    len: u64,
-    body: Body,
-) -> Response {
-    let mut r = Response::new(body);
-    let h = r.headers_mut();
-    h.insert(header::CONTENT_TYPE, HeaderValue::from_static(content_type));
-    h.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
-    h.insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
-    if let Ok(v) = HeaderValue::from_str(etag) {
-        h.insert(header::ETAG, v);
-    }
-    if let Ok(v) = HeaderValue::from_str(&format!("inline; filename=\"{name}\"")) {
-        h.insert(header::CONTENT_DISPOSITION, v);
-    }
-    r
 }
 
 /// Liveness: the process answers.

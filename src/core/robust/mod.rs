@@ -24,12 +24,11 @@ use rayon::prelude::*;
 
 mod lanes;
 
-use super::bands::{InMemory, Samples, Stack};
+use super::bands::{InMemory, Samples, Stack, SurfaceRows};
 use super::intake::ImageSet;
+use super::lambert::{invert3, pseudo_inverse, render_observation};
 use super::lights::Light;
 use super::progress::Halt;
-use super::solve::SurfaceRows;
-use super::solve::{invert3, pseudo_inverse, render_observation};
 
 const SCALE: f32 = 1.0 / 65535.0;
 /// Re-fits per pixel at most; the inlier set almost always settles in two.
