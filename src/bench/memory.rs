@@ -65,6 +65,12 @@ pub(super) fn own_cpu_ms() -> f64 {
     ms(usage.ru_utime) + ms(usage.ru_stime)
 }
 
+/// The machine's online cores (whatever this process's affinity).
+pub(super) fn online_cores() -> usize {
+    // SAFETY: sysconf has no preconditions.
+    unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) }.max(1) as usize
+}
+
 /// CPU time (user + system) the live processes `pids` and their live descendants have
 /// used, ms (from /proc/<pid>/stat; a process that has gone counts no more).
 pub(super) fn tree_cpu_ms(pids: &[u32]) -> f64 {

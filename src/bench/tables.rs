@@ -4,7 +4,7 @@ use std::fmt::Write as _;
 
 use super::args::BenchArgs;
 use super::http::{LoadResult, POLL_EVERY};
-use super::memory::MB;
+use super::memory::{MB, online_cores};
 use super::sets::SizeResult;
 use super::stats::{max_of, median, percentile};
 
@@ -144,15 +144,29 @@ pub(super) fn tables(
     }
 
     if args.database_url.is_some() {
+        // The floor holds when the job and the servers share every core; when this process
+        // may run on only some of them (taskset), the servers may have the others.
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let shared_cores = cores >= online_cores();
+        let floor_note = if shared_cores {
+            format!(
+                "floor = all that CPU spread over the {cores} cores, the least wall time the \
+                 job could take on this machine"
+            )
+        } else {
+            format!(
+                "no floor: this process runs on {cores} of the machine's {} cores, so the \
+                 servers may have cores of their own",
+                online_cores()
+            )
+        };
         let _ = writeln!(
             o,
             "\n### HTTP: PostgreSQL + S3 against SQLite + data directory (medians)\n\n\
              Two in-process servers, the same workers; each round runs the job on the \
              SQLite + data directory server, then on the `--database-url` + `--store` one. \
              CPU = this process's (servers and client) over the job; servers' CPU = that of \
-             `--server-pids` and their children; floor = all that CPU spread over the {cores} \
-             cores, the least wall time the job could take on this machine.\n"
+             `--server-pids` and their children; {floor_note}.\n"
         );
         let _ = writeln!(
             o,
@@ -162,8 +176,9 @@ pub(super) fn tables(
         for s in sets {
             let (local, shared) = (median(&s.http_ms), median(&s.shared_http_ms));
             let servers = median(&s.shared_servers_cpu_ms).filter(|_| !args.server_pids.is_empty());
-            let floor =
-                median(&s.shared_cpu_ms).map(|cpu| (cpu + servers.unwrap_or(0.0)) / cores as f64);
+            let floor = (median(&s.shared_cpu_ms))
+                .filter(|_| shared_cores)
+                .map(|cpu| (cpu + servers.unwrap_or(0.0)) / cores as f64);
             let _ = writeln!(
                 o,
                 "| {}² × {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
