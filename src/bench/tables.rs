@@ -45,7 +45,14 @@ pub(super) fn tables(
         args.lights,
         args.runs,
         match (args.http, &args.store) {
-            (true, Some(store)) => format!(" --http --database-url postgres://… --store {store}"),
+            (true, Some(store)) => format!(
+                " --http --database-url postgres://… --store {store}{}",
+                if args.server_pids.is_empty() {
+                    ""
+                } else {
+                    " --server-pids …"
+                }
+            ),
             (true, None) => " --http".to_string(),
             _ => String::new(),
         },
