@@ -150,6 +150,23 @@ impl BinServer {
         self.logs.lock().unwrap().join("\n")
     }
 
+    /// The logs once a line holds `needle`: they reach the test through a thread draining
+    /// the server's stdout, which may lag its answers. Fails the test after `timeout`.
+    pub async fn logs_with(&self, needle: &str, timeout: Duration) -> String {
+        let start = std::time::Instant::now();
+        loop {
+            let logs = self.logs();
+            if logs.contains(needle) {
+                return logs;
+            }
+            assert!(
+                start.elapsed() < timeout,
+                "no {needle:?} in the logs: {logs}"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
     /// A field of /proc/<pid>/status in kB (`VmRSS`, `VmHWM`).
     pub fn memory_kb(&self, field: &str) -> u64 {
         let status = std::fs::read_to_string(format!("/proc/{}/status", self.pid()))
