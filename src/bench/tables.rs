@@ -154,7 +154,8 @@ pub(super) fn tables(
         // The floor holds when the job and the servers share every core; when this process
         // may run on only some of them (taskset), the servers may have the others.
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let shared_cores = cores >= online_cores();
+        let online = online_cores();
+        let shared_cores = cores >= online;
         let floor_note = if shared_cores {
             format!(
                 "floor = all that CPU spread over the {cores} cores, the least wall time the \
@@ -162,9 +163,8 @@ pub(super) fn tables(
             )
         } else {
             format!(
-                "no floor: this process runs on {cores} of the machine's {} cores, so the \
-                 servers may have cores of their own",
-                online_cores()
+                "no floor: this process runs on {cores} of the machine's {online} cores, so \
+                 the servers may have cores of their own"
             )
         };
         let _ = writeln!(

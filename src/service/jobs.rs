@@ -597,9 +597,9 @@ fn execute(
 }
 
 /// The first pass over the job's images, taking those the upload scanned (`scanned`, by
-/// file name) when there are any; the solve reads the bands back from their scratch copies. Once `clock` says stop,
-/// the images not yet started are not scanned and the set, which then holds a placeholder
-/// error for them, is dropped.
+/// file name) when there are any; the solve reads the bands back from their scratch
+/// copies. Once `clock` says stop, the images not yet started are not scanned and the set,
+/// which then holds a placeholder error for them, is dropped.
 fn open_inputs(
     inner: &Inner,
     scanned: HashMap<String, Prescanned>,

@@ -14,9 +14,9 @@
 //! upload of [`PART_BYTES`] parts with at most [`PARTS_IN_FLIGHT`] in flight, so no file is
 //! ever whole in memory. A job's worker fetches its inputs back into the scratch
 //! directory, but for the images its upload's first pass already decoded on the same
-//! instance ([`super::prefetch`]). Files go up and come back [`FILES_IN_FLIGHT`] at a time. An attempt writes
-//! under a key of its own and its keys are recorded with the
-//! job, so nothing is renamed and no half-written artifact can be served.
+//! instance ([`super::prefetch`]). Files go up and come back [`FILES_IN_FLIGHT`] at a
+//! time. An attempt writes under a key of its own and its keys are recorded with the job,
+//! so nothing is renamed and no half-written artifact can be served.
 //!
 //! The store's API is async; its callers here are blocking threads, which drive each
 //! call with the runtime's [`Handle::block_on`]. Only [`BlobStore::read`] (serving) is
