@@ -2,7 +2,7 @@
 # A newcomer's first test run: clone this checkout (its HEAD) into an empty temporary
 # directory, so that no ../shared/seed-data is beside it, and run the suites that read the
 # seed data with CI and PHOTOSTEREO_SEED_DATA unset. They must pass, and every test that
-# takes seed data (calls `seed!`) must print its skip line: a silent pass would hide a test
+# takes seed data (calls `seed!` or `real!`) must print its skip line: a silent pass would hide a test
 # that never ran. The full run in .ci/run covers the other suites.
 #
 # The clone builds in its own target directory beside CARGO_TARGET_DIR: cargo's
@@ -12,10 +12,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# "tests/api.rs limits_get_413": each test that calls seed!, after the fn it is in.
+# "tests/api.rs limits_get_413": each test that calls seed! or real!, after the fn it is in.
 needs_seed="$(awk '
   match($0, /fn [a-z0-9_]+\(/) { name = substr($0, RSTART + 3, RLENGTH - 4) }
-  /seed!\(/ { print FILENAME, name }' tests/*.rs | sort -u)"
+  /(seed|real)!\(/ { print FILENAME, name }' tests/*.rs | sort -u)"
 mapfile -t suites < <(cut -d' ' -f1 <<<"$needs_seed" | sort -u | xargs -n1 basename -s .rs)
 
 work="$(mktemp -d)"
@@ -29,7 +29,7 @@ done
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-$PWD/target}-fresh-clone"
 (
   cd "$work/photostereo"
-  env -u CI -u PHOTOSTEREO_SEED_DATA cargo test --release --locked "${args[@]}"
+  env -u CI -u PHOTOSTEREO_SEED_DATA -u PHOTOSTEREO_REAL_DATA cargo test --release --locked "${args[@]}"
 ) 2>&1 | tee "$work/log"
 
 missing=0

@@ -133,11 +133,19 @@ struct CalibrateArgs {
     #[arg(long, short)]
     out: PathBuf,
     /// The sphere's circle in pixels, as cx,cy,r (0-based, pixel centres at integers: the
-    /// first pixel's centre is 0,0) instead of fitting its outline.
+    /// first pixel's centre is 0,0) instead of fitting its outline. Give it once per ball
+    /// when the frame holds several: each is calibrated and the lights are placed where
+    /// the balls' rays meet (--positions).
     #[arg(long, value_parser = circle_arg, allow_hyphen_values = true)]
-    circle: Option<[f64; 3]>,
+    circle: Vec<[f64; 3]>,
+    /// With several balls: write the lights' positions (`name, x, y, z`) here.
+    #[arg(long)]
+    positions: Option<PathBuf>,
+    /// The balls' diameter, in the unit the positions should be in (default: ball radii).
+    #[arg(long)]
+    ball_diameter: Option<f64>,
     /// A mask image of the sphere (non-zero = sphere) instead of fitting its outline.
-    #[arg(long, conflicts_with = "circle")]
+    #[arg(long)]
     sphere_mask: Option<PathBuf>,
     /// Write the overlay picture (circle and numbered highlights over the maximum image).
     #[arg(long)]
@@ -160,12 +168,33 @@ struct CalibrateArgs {
 
 fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
     use photostereo::core::calibrate::{self, Camera, Circle, CircleSource, Settings};
-    let (images, names) = calibrate::load_dir(&args.dir)?;
-    let circle = match (args.circle, &args.sphere_mask) {
-        (Some([cx, cy, r]), _) => CircleSource::Given(Circle { cx, cy, r }),
-        (None, Some(mask)) => calibrate::read_mask(mask)?,
-        (None, None) => CircleSource::Fit,
+    let calibrate::SphereFolder {
+        images,
+        names,
+        ambient,
+    } = calibrate::load_dir(&args.dir)?;
+    let circles: Vec<Circle> = args
+        .circle
+        .iter()
+        .map(|&[cx, cy, r]| Circle { cx, cy, r })
+        .collect();
+    let circle = match (circles.len(), &args.sphere_mask) {
+        (1.., Some(_)) => anyhow::bail!("give --circle or --sphere-mask, not both"),
+        (1, None) => CircleSource::Given(circles[0]),
+        (2.., None) => CircleSource::Balls(circles),
+        (0, Some(mask)) => calibrate::read_mask(mask)?,
+        (0, None) => CircleSource::Fit,
     };
+    if let Some(d) = args.ball_diameter
+        && !(d.is_finite() && d > 0.0)
+    {
+        anyhow::bail!("--ball-diameter must be a positive number, got {d}");
+    }
+    if args.positions.is_some() && args.circle.len() < 2 {
+        anyhow::bail!(
+            "--positions needs two balls or more in the frame, each given by --circle cx,cy,r"
+        );
+    }
     let camera = match args.focal_length {
         Some(f) if f.is_finite() && f > 0.0 => {
             let (h, w) = images.first().map_or((1, 1), |i| i.plane.dim());
@@ -182,7 +211,10 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
         camera,
         skip_bad: args.skip_bad,
     };
-    let mut cal = calibrate::calibrate(&images, names.as_deref(), &settings)?;
+    if let Some(a) = &ambient {
+        eprintln!("ambient image: {}", a.name);
+    }
+    let mut cal = calibrate::calibrate(&images, names.as_deref(), ambient.as_ref(), &settings)?;
     if let Some(matte) = &args.matte {
         cal.fit_intensities(&calibrate::load_images(matte)?)?;
     }
@@ -208,7 +240,25 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
     let write = |path: &PathBuf, bytes: &[u8]| {
         std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
     };
+    for l in &cal.lights {
+        if let Some(p) = &l.position {
+            let k = args.ball_diameter.map_or(1.0, |d| d / 2.0);
+            eprintln!(
+                "position {:>3}  {:<20}  {:>9.3}, {:>9.3}, {:>9.3}  residual {:.3}  rays {:.2}° apart",
+                l.index + 1,
+                l.name,
+                k * p.position[0],
+                k * p.position[1],
+                k * p.position[2],
+                k * p.residual,
+                p.spread_deg
+            );
+        }
+    }
     write(&args.out, cal.table().as_bytes())?;
+    if let (Some(path), Some(table)) = (&args.positions, cal.positions_table(args.ball_diameter)) {
+        write(path, table.as_bytes())?;
+    }
     if let Some(p) = &args.overlay {
         write(p, &cal.overlay_png())?;
     }

@@ -31,8 +31,8 @@ fn run(
 ) -> (tempfile::TempDir, Result<Calibration, CalibrationError>) {
     let dir = tempfile::tempdir().unwrap();
     set.write(dir.path(), None).unwrap();
-    let (images, names) = calibrate::load_dir(dir.path()).unwrap();
-    let result = calibrate::calibrate(&images, names.as_deref(), settings);
+    let f = calibrate::load_dir(dir.path()).unwrap();
+    let result = calibrate::calibrate(&f.images, f.names.as_deref(), f.ambient.as_ref(), settings);
     (dir, result)
 }
 
@@ -127,12 +127,12 @@ fn a_given_circle_or_mask_overrides_the_fit() {
 fn images_of(set: &ChromeSet) -> (tempfile::TempDir, Vec<SphereImage>) {
     let dir = tempfile::tempdir().unwrap();
     set.write(dir.path(), None).unwrap();
-    let (images, _) = calibrate::load_dir(dir.path()).unwrap();
+    let images = calibrate::load_dir(dir.path()).unwrap().images;
     (dir, images)
 }
 
 fn error_of(images: &[SphereImage], settings: &Settings) -> String {
-    calibrate::calibrate(images, None, settings)
+    calibrate::calibrate(images, None, None, settings)
         .unwrap_err()
         .to_string()
 }
@@ -162,7 +162,7 @@ fn bad_images_are_errors_naming_them_and_skip_bad_leaves_them_out() {
     without_3.remove(2);
     let e = error_of(&without_3, &auto());
     assert!(
-        e.contains("ball06.png") && e.contains("two equally plausible"),
+        e.contains("ball06.png") && e.contains("two highlights about equally strong"),
         "{e}"
     );
 
@@ -170,7 +170,7 @@ fn bad_images_are_errors_naming_them_and_skip_bad_leaves_them_out() {
         skip_bad: true,
         ..auto()
     };
-    let cal = calibrate::calibrate(&images, None, &skip).unwrap();
+    let cal = calibrate::calibrate(&images, None, None, &skip).unwrap();
     let left_out: Vec<&str> = cal.skipped.iter().map(|s| s.image.as_str()).collect();
     assert_eq!(left_out, ["ball03.png", "ball06.png"]);
     assert_eq!(cal.lights.len(), 6);
@@ -180,7 +180,7 @@ fn bad_images_are_errors_naming_them_and_skip_bad_leaves_them_out() {
     assert!(!cal.table().contains("ball03.png"));
 
     // Too few usable images, too few images, different sizes, a circle off the image.
-    let e = calibrate::calibrate(&images[1..4], None, &skip)
+    let e = calibrate::calibrate(&images[1..4], None, None, &skip)
         .unwrap_err()
         .to_string();
     assert!(e.contains("only 2 of 3") && e.contains("ball03.png"), "{e}");
@@ -219,8 +219,8 @@ fn matte_sphere_gives_relative_intensities_within_2_percent() {
     let k = synth::matte_intensities(set.lights.len(), 5);
     let dir = tempfile::tempdir().unwrap();
     set.write(dir.path(), Some(&k)).unwrap();
-    let (images, names) = calibrate::load_dir(dir.path()).unwrap();
-    let mut cal = calibrate::calibrate(&images, names.as_deref(), &auto()).unwrap();
+    let f = calibrate::load_dir(dir.path()).unwrap();
+    let mut cal = calibrate::calibrate(&f.images, f.names.as_deref(), None, &auto()).unwrap();
     let matte = calibrate::load_images(&dir.path().join("matte")).unwrap();
     cal.fit_intensities(&matte).unwrap();
     let mean = k.iter().sum::<f64>() / k.len() as f64;

@@ -148,6 +148,11 @@ pub struct HighlightView {
     pub elongation: f64,
     /// The blob's equivalent angular radius, degrees.
     pub radius_deg: f64,
+    /// How sure the finder is that this is the light's own highlight, 0..1: it beats
+    /// any other candidate clearly, the environment explains little of it, and it has a
+    /// few pixels at least. Absent in calibrations stored before it was measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confidence: Option<f64>,
 }
 
 /// A sphere image left out.
@@ -197,6 +202,10 @@ pub struct CalibrationUpload {
     /// of refusing the upload.
     #[schema(value_type = String, required = false, example = "true")]
     skip_bad: Option<String>,
+    /// The ball with the rig's lights off (room lights on as in the other images): what
+    /// it shows is environment, never a light.
+    #[schema(value_type = super::routes::ImageFile, required = false)]
+    ambient: Option<Vec<u8>>,
 }
 
 /// The `{id}` of a calibration URL; anything that is not a UUID names none (404).
@@ -399,13 +408,14 @@ struct Form {
     images: Vec<Stored>,
     matte: Vec<Stored>,
     mask: Option<Stored>,
+    ambient: Option<Stored>,
     circle: Option<Circle>,
     names: Option<Vec<String>>,
     focal_length: Option<f64>,
     skip_bad: Option<bool>,
 }
 
-const PARTS: &str = "images, names, circle, mask, matte, focal_length or skip_bad";
+const PARTS: &str = "images, names, circle, mask, ambient, matte, focal_length or skip_bad";
 
 /// Read the multipart body into `dir`, checking what is cheap: the parts, each image's
 /// format and dimensions (from its header) against the limits and the first image.
@@ -469,21 +479,26 @@ async fn receive(
                     form.matte.push(stored);
                 }
             }
-            "mask" => {
-                upload::once(&form.mask, "mask")?;
+            "mask" | "ambient" => {
+                let slot = if part == "mask" {
+                    &mut form.mask
+                } else {
+                    &mut form.ambient
+                };
+                upload::once(slot, &part)?;
                 let name = field
                     .file_name()
                     .filter(|n| !n.is_empty())
-                    .unwrap_or("mask")
+                    .unwrap_or(&part)
                     .to_string();
-                let file = "mask.img".to_string();
+                let file = format!("{part}.img");
                 let into = Some((&mut stored, name.as_str()));
                 let (head, _) =
                     upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash, into)
                         .await?;
                 let (width, height, _) =
                     upload::probe(dir.join(&file), name.clone(), head, config).await?;
-                form.mask = Some(Stored {
+                *slot = Some(Stored {
                     name,
                     file,
                     width,
@@ -676,7 +691,12 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
         camera,
         skip_bad: form.skip_bad.unwrap_or(false),
     };
-    let mut cal = calibrate::calibrate(&images, form.names.as_deref(), &settings)?;
+    let ambient = match &form.ambient {
+        Some(a) => Some(decode(std::slice::from_ref(a))?.remove(0)),
+        None => None,
+    };
+    let mut cal =
+        calibrate::calibrate(&images, form.names.as_deref(), ambient.as_ref(), &settings)?;
     drop(images);
     if !form.matte.is_empty() {
         cal.fit_intensities(&decode(&form.matte)?)?;
@@ -742,6 +762,7 @@ fn measured(cal: &Calibration, form: &Form, w: usize, h: usize, source: &str) ->
                         rim_distance: hl.rim_distance,
                         elongation: hl.elongation,
                         radius_deg: hl.radius_deg,
+                        confidence: Some(hl.confidence),
                     },
                 }
             })

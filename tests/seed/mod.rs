@@ -36,6 +36,7 @@ pub fn seed_or_skip(name: &str) -> Option<PathBuf> {
 }
 
 /// `seed!("synth-images")`: the set's path, or return from the test (skipped).
+#[allow(unused_macros)]
 macro_rules! seed {
     ($name:expr) => {
         match $crate::seed::seed_or_skip($name) {
@@ -44,4 +45,43 @@ macro_rules! seed {
         }
     };
 }
+#[allow(unused_imports)]
 pub(crate) use seed;
+
+/// A real capture under `../shared/real` (or `PHOTOSTEREO_REAL_DATA`), e.g.
+/// `chrome/psbox-probe1`, found and skipped exactly as the seed data is.
+pub fn real_or_skip(name: &str) -> Option<PathBuf> {
+    let root = std::env::var_os("PHOTOSTEREO_REAL_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/real"));
+    let dir = root.join(name);
+    if dir.join("NOTE.txt").is_file() {
+        return Some(dir);
+    }
+    assert!(
+        std::env::var("CI").as_deref() != Ok("true"),
+        "real captures missing: {} (CI=true needs them; set PHOTOSTEREO_REAL_DATA=/path/to/real)",
+        dir.display()
+    );
+    let thread = std::thread::current();
+    let test = thread.name().unwrap_or("a test");
+    let _ = writeln!(
+        std::io::stderr(),
+        "SKIPPED {test}: no real captures at {} (set PHOTOSTEREO_REAL_DATA=/path/to/real)",
+        root.display()
+    );
+    None
+}
+
+/// `real!("chrome/psbox-probe1")`: the capture's path, or return from the test (skipped).
+#[allow(unused_macros)]
+macro_rules! real {
+    ($name:expr) => {
+        match $crate::seed::real_or_skip($name) {
+            Some(dir) => dir,
+            None => return,
+        }
+    };
+}
+#[allow(unused_imports)]
+pub(crate) use real;

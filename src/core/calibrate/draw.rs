@@ -8,22 +8,61 @@ use ndarray::Array2;
 use super::Circle;
 
 const OUTLINE: Rgb<u8> = Rgb([40, 220, 90]);
-const MARK: Rgb<u8> = Rgb([255, 60, 40]);
 const LABEL: Rgb<u8> = Rgb([255, 230, 60]);
 
+/// A highlight on the overlay: its number, position and confidence (0..1).
+pub struct Mark {
+    pub number: usize,
+    pub x: f64,
+    pub y: f64,
+    pub confidence: f64,
+}
+
+/// Ring colour by confidence: green when sure, amber when doubtful, red when not.
+fn confidence_colour(c: f64) -> Rgb<u8> {
+    if c >= 0.7 {
+        Rgb([60, 230, 90])
+    } else if c >= 0.4 {
+        Rgb([255, 170, 30])
+    } else {
+        Rgb([255, 50, 40])
+    }
+}
+
 /// The overlay: `max` (gamma 1/2 so the dim sphere shows), the circle, and each
-/// highlight (number, x, y) ringed and numbered.
-pub fn overlay(max: &Array2<u16>, circle: &Circle, marks: &[(usize, f64, f64)]) -> RgbImage {
+/// highlight ringed in its confidence's colour, labelled with its number and its
+/// confidence in percent.
+pub fn overlay(max: &Array2<u16>, circles: &[Circle], marks: &[Mark]) -> RgbImage {
     let (h, w) = max.dim();
     let mut img = RgbImage::from_fn(w as u32, h as u32, |x, y| {
         let v = ((max[[y as usize, x as usize]] as f64 / 65535.0).sqrt() * 255.0) as u8;
         Rgb([v, v, v])
     });
-    ring(&mut img, circle.cx, circle.cy, circle.r, OUTLINE);
-    ring(&mut img, circle.cx, circle.cy, 1.5, OUTLINE);
-    for &(n, x, y) in marks {
-        ring(&mut img, x, y, 4.0, MARK);
-        text(&mut img, x + 5.0, y + 4.0, &n.to_string(), LABEL, 2);
+    for circle in circles {
+        ring(&mut img, circle.cx, circle.cy, circle.r, OUTLINE);
+        ring(&mut img, circle.cx, circle.cy, 1.5, OUTLINE);
+    }
+    for m in marks {
+        let colour = confidence_colour(m.confidence);
+        ring(&mut img, m.x, m.y, 4.0, colour);
+        ring(&mut img, m.x, m.y, 5.0, colour);
+        text(
+            &mut img,
+            m.x + 6.0,
+            m.y + 4.0,
+            &m.number.to_string(),
+            LABEL,
+            2,
+        );
+        let percent = (100.0 * m.confidence).round() as u32;
+        text(
+            &mut img,
+            m.x + 6.0,
+            m.y + 16.0,
+            &percent.to_string(),
+            colour,
+            1,
+        );
     }
     img
 }

@@ -1,215 +1,356 @@
-//! One image's highlight: the light's mirror image on the sphere, told apart from the
-//! other bright things a chrome ball reflects, and its direction to sub-pixel accuracy.
+//! One image's highlight: the light's own mirror image on the sphere, told apart from the
+//! environment the ball reflects in every image, and its direction.
 //!
-//! Candidates are the connected regions inside the sphere brighter than halfway between
-//! the sphere's median and its brightest pixel. Each is judged by its shape in the space
-//! of reflected directions (the mirror map stretches an image blob along the outline and
-//! squeezes it towards the rim by 1/n_z each way, so a round light is round there): a
-//! light is compact (elongation at most [`MAX_ELONGATION`]) and small (equivalent radius
-//! at most [`MAX_RADIUS_DEG`]). Streaks and the mirrored room and objects are not. Of the
-//! compact candidates the light is the brightest (clipped, or within 20 % of the
-//! brightest peak) with the most light above the threshold; a second one as bright and
-//! at least half as large makes the image ambiguous.
+//! 1. The residual (image less the environment, see [`super::environment`]) is what this
+//!    image has and the others lack. Its significant pixels (above the noise and a quarter
+//!    of its peak) form blobs (pixels within 2 of each other join, so a clipped core split
+//!    by JPEG ringing stays one).
+//! 2. The light is the brightest blob: of the blobs whose peak is clipped or within 20 %
+//!    of the brightest value on the ball (a light outshines what it lights), the one with the most residual light, counted where few other
+//!    images have a residual too (a reflection of the room that the lights brighten
+//!    recurs from image to image; a light does not). A runner-up nearly as strong makes
+//!    the image ambiguous.
+//! 3. Its core is the light's disc: the clipped pixels when the peak clips (the glare
+//!    and the scratches' streaks around a real highlight are not the light and are seldom
+//!    symmetric), else the pixels above half the blob's peak. No shape is refused: a
+//!    highlight may be small or large, round or elongated.
+//! 4. The direction is the radiance-weighted centroid of the reflected directions over the
+//!    core. An orthographic mirror sphere maps equal image areas to equal solid angles, so
+//!    this is the centre of the light's disc of directions, unbiased by the squeeze near
+//!    the rim.
 //!
-//! The direction is the centroid in direction space: every pixel of the blob (and its
-//! rim down to a tenth of the peak) contributes its reflected direction weighted by its
-//! brightness above the local background. An orthographic mirror sphere maps equal image
-//! areas to equal solid angles, so this is the centroid of the light's disc of directions,
-//! unbiased by the squeeze near the rim.
+//! Every highlight gets a confidence in [0, 1]: how clearly it beats the runner-up, how
+//! much of its brightness the environment leaves unexplained, and whether its core has a
+//! few pixels at least.
+
+use std::collections::HashSet;
 
 use ndarray::Array2;
 
 use super::Circle;
+use super::environment::Disc;
 use super::mirror::{Camera, normalise};
 
-/// Most elongation (ratio of the principal axes, in direction space) of a light's blob.
-pub const MAX_ELONGATION: f64 = 3.0;
-/// Largest equivalent angular radius of a light's blob, degrees.
-pub const MAX_RADIUS_DEG: f64 = 8.0;
+/// Pixels at most this far apart (in rows and in columns) belong to one blob.
+const JOIN: isize = 2;
+/// A clipped core of fewer pixels takes its partly covered edge too.
+const SMALL_CORE: usize = 64;
+/// A runner-up with at least this share of the winner's score makes the image ambiguous.
+const AMBIGUOUS: f64 = 0.8;
+/// Below this share of its brightness unexplained by the environment, a highlight is the
+/// environment's, not a light's.
+const MIN_OWN: f64 = 0.3;
+/// A light's direction at most this far behind the ball's equator plane (z below
+/// −sin of it) is refused: no highlight of a light there reaches the camera but a rim
+/// glint.
+pub const MAX_BEHIND_DEG: f64 = 10.0;
 
 /// A highlight found in one image.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Highlight {
     /// Unit light direction.
     pub direction: [f64; 3],
-    /// Brightness-weighted centroid, pixels (0-based, pixel centres at integers).
+    /// Radiance-weighted centroid of the core, pixels (0-based, centres at integers).
     pub x: f64,
     pub y: f64,
-    /// Pixels above the blob threshold.
+    /// Pixels in the core.
     pub pixels: usize,
     /// Brightest value, fraction of full scale, and whether it is clipped.
     pub peak: f64,
     pub clipped: bool,
     /// Distance of the centroid from the outline, pixels.
     pub rim_distance: f64,
+    /// Ratio of the core's principal axes in direction space (1 = round).
     pub elongation: f64,
-    /// Equivalent angular radius of the blob, degrees.
+    /// Equivalent angular radius of the core, degrees.
     pub radius_deg: f64,
+    /// How sure the finder is, 0..1 (see the module's notes).
+    pub confidence: f64,
 }
 
-/// A bright region inside the sphere.
+/// What every image of a set is judged against.
+pub struct Context<'a> {
+    pub circle: &'a Circle,
+    pub camera: &'a Camera,
+    pub env: &'a Array2<u16>,
+    /// Images in the set (for the recurrence share).
+    pub count: usize,
+    /// At and above: a clipped pixel (the `clipped` flag, and a clipped blob's core).
+    pub clip: u16,
+}
+
+fn residual(plane: &Array2<u16>, env: &Array2<u16>, p: (usize, usize)) -> f64 {
+    plane[p].saturating_sub(env[p]) as f64
+}
+
+/// The residual's significance threshold in one image: above its noise and a quarter of
+/// its peak on the ball; an error when nothing on the ball stands out.
+fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String> {
+    let mut diffs = Vec::new();
+    let mut peak = 0.0f64;
+    let mut n = 0usize;
+    for (r, c) in disc.pixels() {
+        n += 1;
+        peak = peak.max(residual(plane, ctx.env, (r, c)));
+        if c > disc.c0 && disc.contains(r, c - 1) {
+            diffs.push(plane[[r, c]].abs_diff(plane[[r, c - 1]]));
+        }
+    }
+    if n < 20 {
+        return Err("the sphere covers almost no pixels of the image".into());
+    }
+    let noise = 1.4826 * median_u16(&mut diffs) as f64 / std::f64::consts::SQRT_2;
+    let least = (10.0 * noise).max(0.02 * 65535.0);
+    if peak < least {
+        return Err(format!(
+            "no highlight: nothing on the sphere is brighter than in the other images (at most {:.3} of full scale above them); the light's highlight is missing, or this image is like the others",
+            peak / 65535.0
+        ));
+    }
+    Ok((6.0 * noise).max(0.01 * 65535.0).max(0.25 * peak))
+}
+
+/// The pixels of `plane` whose residual is significant, or why none are.
+pub fn significant(plane: &Array2<u16>, ctx: &Context) -> Result<Vec<(usize, usize)>, String> {
+    let disc = Disc::new(ctx.circle, plane.dim());
+    let floor = floor(plane, ctx, &disc)?;
+    Ok(disc
+        .pixels()
+        .filter(|&p| residual(plane, ctx.env, p) >= floor)
+        .collect())
+}
+
+/// A blob of significant residual.
 struct Blob {
     pixels: Vec<(usize, usize)>,
+    /// Brightest image value in it.
     peak: u16,
-    energy: f64,
-    elongation: f64,
-    radius_deg: f64,
+    /// Its largest residual.
+    peak_residual: f64,
+    /// Residual light, each pixel weighted by how seldom other images have one there.
+    score: f64,
     centre: (f64, f64),
 }
 
-/// The highlight in `plane` on the sphere `circle`; `clip` is the value at and above
-/// which a pixel counts as clipped. The error says what was found instead.
+/// The highlight of `plane`, or why there is none. `recurrence` counts per pixel the
+/// images with a significant residual there.
 pub fn find(
     plane: &Array2<u16>,
-    circle: &Circle,
-    camera: &Camera,
-    clip: u16,
+    ctx: &Context,
+    recurrence: &Array2<u16>,
 ) -> Result<Highlight, String> {
-    let (h, w) = plane.dim();
-    let inside =
-        |r: usize, c: usize| (c as f64 - circle.cx).hypot(r as f64 - circle.cy) <= circle.r - 0.5;
-    let r0 = (circle.cy - circle.r).floor().max(0.0) as usize;
-    let r1 = ((circle.cy + circle.r).ceil() as usize).min(h - 1);
-    let c0 = (circle.cx - circle.r).floor().max(0.0) as usize;
-    let c1 = ((circle.cx + circle.r).ceil() as usize).min(w - 1);
-    let mut values = Vec::new();
-    let mut diffs = Vec::new();
-    for r in r0..=r1 {
-        for c in c0..=c1 {
-            if inside(r, c) {
-                values.push(plane[[r, c]]);
-                if c > c0 && inside(r, c - 1) {
-                    diffs.push(plane[[r, c]].abs_diff(plane[[r, c - 1]]));
-                }
+    let disc = Disc::new(ctx.circle, plane.dim());
+    let floor = floor(plane, ctx, &disc)?;
+    let keep = |p: (usize, usize)| disc.contains(p.0, p.1) && residual(plane, ctx.env, p) >= floor;
+    let others = (ctx.count.max(2) - 1) as f64;
+    let blobs: Vec<Blob> = groups(&disc, &keep)
+        .into_iter()
+        .map(|pixels| {
+            let (mut peak, mut peak_residual, mut score) = (0u16, 0.0f64, 0.0);
+            let (mut sx, mut sy) = (0.0, 0.0);
+            for &p in &pixels {
+                let e = residual(plane, ctx.env, p);
+                peak = peak.max(plane[p]);
+                peak_residual = peak_residual.max(e);
+                let unique = 1.0 - (recurrence[p].max(1) - 1) as f64 / others;
+                score += e * unique * unique;
+                sx += p.1 as f64;
+                sy += p.0 as f64;
             }
-        }
-    }
-    if values.len() < 20 {
-        return Err("the sphere covers almost no pixels of the image".into());
-    }
-    let median = median_u16(&mut values.clone()) as f64;
-    let peak = *values.iter().max().expect("not empty") as f64;
-    let noise = 1.4826 * median_u16(&mut diffs) as f64 / std::f64::consts::SQRT_2;
-    if peak - median < (10.0 * noise).max(0.02 * 65535.0) {
-        return Err(format!(
-            "no highlight: the brightest point on the sphere is only {:.3} of full scale above its median",
-            (peak - median) / 65535.0
-        ));
-    }
-    let threshold = median + 0.5 * (peak - median);
-    let blobs = components(plane, (r0, r1, c0, c1), &inside, threshold, circle);
-    let (lights, others): (Vec<&Blob>, Vec<&Blob>) = blobs
+            let n = pixels.len() as f64;
+            Blob {
+                pixels,
+                peak,
+                peak_residual,
+                score,
+                centre: (sx / n, sy / n),
+            }
+        })
+        .collect();
+    // A light outshines whatever it lights: its blob reaches (near) the brightest value
+    // on the ball, or clips.
+    let ball_top = disc.pixels().map(|p| plane[p]).max().unwrap_or(0) as f64;
+    let mut contenders: Vec<&Blob> = blobs
         .iter()
-        .partition(|b| b.elongation <= MAX_ELONGATION && b.radius_deg <= MAX_RADIUS_DEG);
-    if lights.is_empty() {
-        let seen: Vec<String> = others
-            .iter()
-            .take(3)
-            .map(|b| {
-                format!(
-                    "at ({:.0}, {:.0}) {:.1}° across, elongation {:.1}",
-                    b.centre.0,
-                    b.centre.1,
-                    2.0 * b.radius_deg,
-                    b.elongation
-                )
-            })
-            .collect();
+        .filter(|b| b.peak >= ctx.clip || b.peak as f64 >= 0.8 * ball_top)
+        .collect();
+    if contenders.is_empty() {
+        return Err(
+            "no highlight: what this image adds to the others is dimmer than what the ball shows in all of them (a lit object, not a light); is the light behind the ball or hidden?"
+                .into(),
+        );
+    }
+    contenders.sort_by(|a, b| b.score.total_cmp(&a.score));
+    let Some(&best) = contenders.first() else {
+        return Err("no highlight: no bright blob on the sphere".into());
+    };
+    let second = contenders.get(1).map_or(0.0, |b| b.score);
+    if best.score <= 0.0 {
         return Err(format!(
-            "no highlight: the bright regions on the sphere are too large or elongated to be a light ({})",
-            seen.join("; ")
+            "no highlight of its own: the brightest blob, at ({:.0}, {:.0}), is there in the other images too (a room light or a reflection that stays put); add an ambient image of the ball with the rig's lights off (ambient.png), or leave the image out with --skip-bad",
+            best.centre.0, best.centre.1
         ));
     }
-    let top = lights.iter().map(|b| b.peak).max().expect("not empty");
-    let bright = |b: &&&Blob| b.peak >= clip || b.peak as f64 >= 0.8 * top as f64;
-    let mut contenders: Vec<&Blob> = lights.iter().filter(bright).copied().collect();
-    contenders.sort_by(|a, b| b.energy.total_cmp(&a.energy));
-    let best = contenders[0];
-    if let Some(second) = contenders.get(1) {
-        let as_bright = (second.peak >= clip && best.peak >= clip)
-            || second.peak as f64 >= 0.9 * best.peak as f64;
-        if as_bright && second.energy >= 0.5 * best.energy {
-            return Err(format!(
-                "two equally plausible highlights, at ({:.1}, {:.1}) and ({:.1}, {:.1})",
-                best.centre.0, best.centre.1, second.centre.0, second.centre.1
-            ));
-        }
+    if second >= AMBIGUOUS * best.score {
+        let b = contenders[1];
+        return Err(format!(
+            "two highlights about equally strong, at ({:.0}, {:.0}) and ({:.0}, {:.0}), neither in the other images; add an ambient image of the ball with the rig's lights off (ambient.png), or leave the image out with --skip-bad",
+            best.centre.0, best.centre.1, b.centre.0, b.centre.1
+        ));
     }
-    refine(plane, circle, camera, best, threshold, clip, &inside)
+    let core = core_of(plane, ctx, best);
+    let hl = measure(plane, ctx, &core, best.peak)?;
+    let dominance = best.score / (best.score + second);
+    let own = hl.own;
+    if own < MIN_OWN {
+        return Err(format!(
+            "the highlight at ({:.0}, {:.0}) is mostly the environment's (only {:.0} % of its brightness is not in the other images); add an ambient image of the ball with the rig's lights off (ambient.png), or leave the image out with --skip-bad",
+            hl.highlight.x,
+            hl.highlight.y,
+            100.0 * own
+        ));
+    }
+    let behind = -MAX_BEHIND_DEG.to_radians().sin();
+    if hl.highlight.direction[2] < behind {
+        return Err(format!(
+            "the highlight at ({:.0}, {:.0}) stands for a light {:.0}° behind the ball, which cannot light the object: a glint at the rim, or the circle is wrong (give --circle cx,cy,r)",
+            hl.highlight.x,
+            hl.highlight.y,
+            -hl.highlight.direction[2].asin().to_degrees()
+        ));
+    }
+    let support = (hl.highlight.pixels as f64 / 4.0).min(1.0);
+    let clear = ((dominance - 0.5) / 0.4).clamp(0.0, 1.0);
+    Ok(Highlight {
+        confidence: clear * own.min(1.0) * support,
+        ..hl.highlight
+    })
 }
 
-/// Connected (8-neighbour) regions of pixels at or above `threshold` inside the sphere,
-/// with their shape measured in direction space.
-fn components(
-    plane: &Array2<u16>,
-    (r0, r1, c0, c1): (usize, usize, usize, usize),
-    inside: &dyn Fn(usize, usize) -> bool,
-    threshold: f64,
-    circle: &Circle,
-) -> Vec<Blob> {
-    let mut seen = Array2::from_elem(plane.dim(), false);
-    let mut blobs = Vec::new();
-    for r in r0..=r1 {
-        for c in c0..=c1 {
-            if seen[[r, c]] || !inside(r, c) || (plane[[r, c]] as f64) < threshold {
-                continue;
-            }
-            let mut pixels = Vec::new();
-            let mut stack = vec![(r, c)];
-            seen[[r, c]] = true;
-            while let Some((y, x)) = stack.pop() {
-                pixels.push((y, x));
-                for dy in -1isize..=1 {
-                    for dx in -1isize..=1 {
-                        let (ny, nx) = (y as isize + dy, x as isize + dx);
-                        if ny < r0 as isize
-                            || nx < c0 as isize
-                            || ny > r1 as isize
-                            || nx > c1 as isize
-                        {
-                            continue;
-                        }
-                        let (ny, nx) = (ny as usize, nx as usize);
-                        if !seen[[ny, nx]] && inside(ny, nx) && plane[[ny, nx]] as f64 >= threshold
-                        {
-                            seen[[ny, nx]] = true;
-                            stack.push((ny, nx));
-                        }
-                    }
+/// The light's disc within its blob. Clipped: the clipped pixels (the group holding the
+/// most light); a small core also takes the partly covered pixels on its edge, which carry
+/// most of its sub-pixel position (on a large core their share is small, and the glare
+/// beside a real highlight would bias them). Not clipped: the pixels down to a tenth of
+/// the peak, joined to it.
+fn core_of(plane: &Array2<u16>, ctx: &Context, blob: &Blob) -> Vec<(usize, usize)> {
+    let disc = Disc::new(ctx.circle, plane.dim());
+    let light =
+        |g: &Vec<(usize, usize)>| -> f64 { g.iter().map(|&p| residual(plane, ctx.env, p)).sum() };
+    if blob.peak < ctx.clip {
+        let tenth = 0.1 * blob.peak_residual;
+        let top = *blob
+            .pixels
+            .iter()
+            .max_by(|&&a, &&b| residual(plane, ctx.env, a).total_cmp(&residual(plane, ctx.env, b)))
+            .expect("a blob has pixels");
+        let keep = |p: (usize, usize)| residual(plane, ctx.env, p) >= tenth;
+        return groups(&disc, &keep)
+            .into_iter()
+            .find(|g| g.contains(&top))
+            .unwrap_or_default();
+    }
+    let member: HashSet<(usize, usize)> = blob.pixels.iter().copied().collect();
+    let keep = |p: (usize, usize)| member.contains(&p) && plane[p] >= ctx.clip;
+    let mut core = groups(&disc, &keep)
+        .into_iter()
+        .max_by(|a, b| light(a).total_cmp(&light(b)))
+        .unwrap_or_default();
+    if core.len() < SMALL_CORE {
+        let inner: HashSet<(usize, usize)> = core.iter().copied().collect();
+        let mut edge = HashSet::new();
+        for &(r, c) in &core {
+            for (dr, dc) in [
+                (-1, 0),
+                (1, 0),
+                (0, -1),
+                (0, 1),
+                (-1, -1),
+                (-1, 1),
+                (1, -1),
+                (1, 1),
+            ] {
+                let (y, x) = (r as isize + dr, c as isize + dc);
+                if y < 0 || x < 0 {
+                    continue;
+                }
+                let p = (y as usize, x as usize);
+                if p.0 < plane.dim().0
+                    && p.1 < plane.dim().1
+                    && disc.contains(p.0, p.1)
+                    && !inner.contains(&p)
+                {
+                    edge.insert(p);
                 }
             }
-            blobs.push(measure(plane, pixels, threshold, circle));
         }
+        core.extend(edge);
     }
-    blobs
+    core
 }
 
+struct Measured {
+    highlight: Highlight,
+    /// Share of the core's brightness the environment does not explain.
+    own: f64,
+}
+
+/// Direction, position and shape of a core.
 fn measure(
     plane: &Array2<u16>,
-    pixels: Vec<(usize, usize)>,
-    threshold: f64,
-    circle: &Circle,
-) -> Blob {
-    let n = pixels.len() as f64;
-    let (mut sx, mut sy) = (0.0, 0.0);
-    let (mut peak, mut energy) = (0u16, 0.0);
-    for &(r, c) in &pixels {
-        sx += c as f64;
-        sy += r as f64;
-        let v = plane[[r, c]];
-        peak = peak.max(v);
-        energy += v as f64 - threshold;
+    ctx: &Context,
+    core: &[(usize, usize)],
+    peak: u16,
+) -> Result<Measured, String> {
+    let circle = ctx.circle;
+    let (mut sum, mut sx, mut sy, mut sw, mut total) = ([0.0; 3], 0.0, 0.0, 0.0, 0.0);
+    for &(r, c) in core {
+        let Some(d) = ctx.camera.light_at(circle, c as f64, r as f64) else {
+            continue;
+        };
+        let wt = residual(plane, ctx.env, (r, c));
+        for k in 0..3 {
+            sum[k] += wt * d[k];
+        }
+        sx += wt * c as f64;
+        sy += wt * r as f64;
+        sw += wt;
+        total += plane[[r, c]] as f64;
     }
-    let (mx, my) = (sx / n, sy / n);
+    if sw <= 0.0 {
+        return Err("the highlight has no light above the environment".into());
+    }
+    let (x, y) = (sx / sw, sy / sw);
+    let (elongation, radius_deg) = shape(core, circle, (x, y));
+    Ok(Measured {
+        highlight: Highlight {
+            direction: normalise(sum),
+            x,
+            y,
+            pixels: core.len(),
+            peak: peak as f64 / 65535.0,
+            clipped: peak >= ctx.clip,
+            rim_distance: circle.r - (x - circle.cx).hypot(y - circle.cy),
+            elongation,
+            radius_deg,
+            confidence: 0.0,
+        },
+        own: sw / total.max(1.0),
+    })
+}
+
+/// Elongation and equivalent angular radius of a set of pixels in direction space: the
+/// mirror map stretches an image blob along the outline and squeezes it towards the rim
+/// by 1/n_z each way.
+fn shape(pixels: &[(usize, usize)], circle: &Circle, (mx, my): (f64, f64)) -> (f64, f64) {
+    let n = pixels.len().max(1) as f64;
     // Image covariance, each pixel a unit square (variance 1/12 per axis).
     let (mut cxx, mut cyy, mut cxy) = (1.0 / 12.0, 1.0 / 12.0, 0.0);
-    for &(r, c) in &pixels {
+    for &(r, c) in pixels {
         let (dx, dy) = (c as f64 - mx, r as f64 - my);
         cxx += dx * dx / n;
         cyy += dy * dy / n;
         cxy += dx * dy / n;
     }
-    // Into radial / tangential axes, scaled by the mirror map there.
     let (ox, oy) = (mx - circle.cx, my - circle.cy);
     let rho = ox.hypot(oy);
     let (ux, uy) = if rho > 1e-6 {
@@ -227,88 +368,46 @@ fn measure(
     let spread = (0.25 * (a - d).powi(2) + b * b).sqrt();
     let elongation = ((mean + spread) / (mean - spread).max(1e-12)).sqrt();
     let radius_deg = (n * sr * st / std::f64::consts::PI).sqrt().to_degrees();
-    Blob {
-        pixels,
-        peak,
-        energy,
-        elongation,
-        radius_deg,
-        centre: (mx, my),
-    }
+    (elongation, radius_deg)
 }
 
-/// The direction-space centroid of `blob` and its surroundings down to a tenth of its
-/// peak above the local background (the median of a ring around it).
-fn refine(
-    plane: &Array2<u16>,
-    circle: &Circle,
-    camera: &Camera,
-    blob: &Blob,
-    threshold: f64,
-    clip: u16,
-    inside: &dyn Fn(usize, usize) -> bool,
-) -> Result<Highlight, String> {
-    let (h, w) = plane.dim();
-    let (mut r0, mut r1, mut c0, mut c1) = (usize::MAX, 0, usize::MAX, 0);
-    for &(r, c) in &blob.pixels {
-        (r0, r1, c0, c1) = (r0.min(r), r1.max(r), c0.min(c), c1.max(c));
-    }
-    let grow = |lo: usize, hi: usize, by: usize, len: usize| {
-        (lo.saturating_sub(by), (hi + by).min(len - 1))
-    };
-    let (ir0, ir1) = grow(r0, r1, 3, h);
-    let (ic0, ic1) = grow(c0, c1, 3, w);
-    let (or0, or1) = grow(r0, r1, 6, h);
-    let (oc0, oc1) = grow(c0, c1, 6, w);
-    let mut ring = Vec::new();
-    for r in or0..=or1 {
-        for c in oc0..=oc1 {
-            let in_window = (ir0..=ir1).contains(&r) && (ic0..=ic1).contains(&c);
-            if !in_window && inside(r, c) && (plane[[r, c]] as f64) < threshold {
-                ring.push(plane[[r, c]]);
+/// Groups of the disc's pixels that `keep` accepts, pixels within [`JOIN`] of each other
+/// joined.
+fn groups(disc: &Disc, keep: &dyn Fn((usize, usize)) -> bool) -> Vec<Vec<(usize, usize)>> {
+    let (rows, cols) = (disc.r1 - disc.r0 + 1, disc.c1 - disc.c0 + 1);
+    let mut seen = Array2::from_elem((rows, cols), false);
+    let mut out = Vec::new();
+    for (r, c) in disc.pixels() {
+        if seen[[r - disc.r0, c - disc.c0]] || !keep((r, c)) {
+            continue;
+        }
+        let mut group = Vec::new();
+        let mut stack = vec![(r, c)];
+        seen[[r - disc.r0, c - disc.c0]] = true;
+        while let Some((y, x)) = stack.pop() {
+            group.push((y, x));
+            for dy in -JOIN..=JOIN {
+                for dx in -JOIN..=JOIN {
+                    let (ny, nx) = (y as isize + dy, x as isize + dx);
+                    if ny < disc.r0 as isize
+                        || nx < disc.c0 as isize
+                        || ny > disc.r1 as isize
+                        || nx > disc.c1 as isize
+                    {
+                        continue;
+                    }
+                    let p = (ny as usize, nx as usize);
+                    let s = &mut seen[[p.0 - disc.r0, p.1 - disc.c0]];
+                    if !*s && keep(p) {
+                        *s = true;
+                        stack.push(p);
+                    }
+                }
             }
         }
+        out.push(group);
     }
-    let base = if ring.is_empty() {
-        threshold
-    } else {
-        median_u16(&mut ring) as f64
-    };
-    let floor = base + 0.1 * (blob.peak as f64 - base);
-    let (mut sum, mut sx, mut sy, mut sw) = ([0.0; 3], 0.0, 0.0, 0.0);
-    for r in ir0..=ir1 {
-        for c in ic0..=ic1 {
-            let v = plane[[r, c]] as f64;
-            if !inside(r, c) || v < floor {
-                continue;
-            }
-            let Some(d) = camera.light_at(circle, c as f64, r as f64) else {
-                continue;
-            };
-            let wt = v - base;
-            for k in 0..3 {
-                sum[k] += wt * d[k];
-            }
-            sx += wt * c as f64;
-            sy += wt * r as f64;
-            sw += wt;
-        }
-    }
-    if sw <= 0.0 {
-        return Err("the highlight has no light above its surroundings".into());
-    }
-    let (x, y) = (sx / sw, sy / sw);
-    Ok(Highlight {
-        direction: normalise(sum),
-        x,
-        y,
-        pixels: blob.pixels.len(),
-        peak: blob.peak as f64 / 65535.0,
-        clipped: blob.peak >= clip,
-        rim_distance: circle.r - (x - circle.cx).hypot(y - circle.cy),
-        elongation: blob.elongation,
-        radius_deg: blob.radius_deg,
-    })
+    out
 }
 
 fn median_u16(v: &mut [u16]) -> u16 {

@@ -25,39 +25,61 @@ impl Camera {
                 let h = 1.0 - u * u - v * v;
                 (h >= 0.0).then(|| reflect([0.0, 0.0, -1.0], [u, v, h.sqrt()]))
             }
-            Self::Perspective {
-                focal_px,
-                principal,
-            } => {
-                // The unit sphere's centre from the circle: on the ray through the circle's
-                // centre, at the distance where it subtends the circle's angular radius.
-                let ray =
-                    |px: f64, py: f64| normalise([px - principal[0], py - principal[1], -focal_px]);
-                let to_centre = ray(circle.cx, circle.cy);
-                // The edge point across the line from the principal point, where the
-                // outline is least stretched by the projection.
-                let (ox, oy) = (circle.cx - principal[0], circle.cy - principal[1]);
-                let len = (ox * ox + oy * oy).sqrt();
-                let (tx, ty) = if len > 1e-9 {
-                    (-oy / len, ox / len)
-                } else {
-                    (1.0, 0.0)
-                };
-                let edge = ray(circle.cx + circle.r * tx, circle.cy + circle.r * ty);
-                let half_angle = dot(to_centre, edge).clamp(-1.0, 1.0).acos();
-                let distance = 1.0 / half_angle.sin();
-                let c = to_centre.map(|v| v * distance);
-                let d = ray(x, y);
-                let b = dot(d, c);
-                let disc = b * b - (dot(c, c) - 1.0);
-                if disc < 0.0 {
-                    return None;
-                }
-                let t = b - disc.sqrt();
-                let n = normalise([t * d[0] - c[0], t * d[1] - c[1], t * d[2] - c[2]]);
+            Self::Perspective { .. } => {
+                let c = self.centre(circle)?;
+                let p = self.surface_point(circle, x, y)?;
+                let d = normalise(p);
+                let n = normalise([p[0] - c[0], p[1] - c[1], p[2] - c[2]]);
                 Some(reflect(d, n))
             }
         }
+    }
+
+    /// The view ray through pixel (x, y) (pinhole), unit length.
+    fn ray(&self, x: f64, y: f64) -> Option<[f64; 3]> {
+        match *self {
+            Self::Orthographic => None,
+            Self::Perspective {
+                focal_px,
+                principal,
+            } => Some(normalise([x - principal[0], y - principal[1], -focal_px])),
+        }
+    }
+
+    /// The unit ball's centre, camera at the origin (pinhole): on the ray through the
+    /// circle's centre, at the distance where it subtends the circle's angular radius,
+    /// measured at the edge point across the line from the principal point, where the
+    /// outline is least stretched by the projection.
+    fn centre(&self, circle: &Circle) -> Option<[f64; 3]> {
+        let Self::Perspective { principal, .. } = *self else {
+            return None;
+        };
+        let to_centre = self.ray(circle.cx, circle.cy)?;
+        let (ox, oy) = (circle.cx - principal[0], circle.cy - principal[1]);
+        let len = (ox * ox + oy * oy).sqrt();
+        let (tx, ty) = if len > 1e-9 {
+            (-oy / len, ox / len)
+        } else {
+            (1.0, 0.0)
+        };
+        let edge = self.ray(circle.cx + circle.r * tx, circle.cy + circle.r * ty)?;
+        let half_angle = dot(to_centre, edge).clamp(-1.0, 1.0).acos();
+        let distance = 1.0 / half_angle.sin();
+        Some(to_centre.map(|v| v * distance))
+    }
+
+    /// The point of the unit ball seen at (x, y), camera at the origin, in ball radii
+    /// (pinhole only); None off the ball.
+    pub fn surface_point(&self, circle: &Circle, x: f64, y: f64) -> Option<[f64; 3]> {
+        let c = self.centre(circle)?;
+        let d = self.ray(x, y)?;
+        let b = dot(d, c);
+        let disc = b * b - (dot(c, c) - 1.0);
+        if disc < 0.0 {
+            return None;
+        }
+        let t = b - disc.sqrt();
+        Some(d.map(|v| v * t))
     }
 
     /// Local scale of the mirror map at (x, y): radians of reflected direction per pixel

@@ -12,9 +12,11 @@
 //! z towards the camera).
 
 mod draw;
+mod environment;
 mod highlight;
 mod matte;
 mod mirror;
+mod positions;
 mod sphere;
 
 use std::path::Path;
@@ -23,9 +25,10 @@ use ndarray::Array2;
 use serde::Serialize;
 use thiserror::Error;
 
-pub use highlight::Highlight;
+pub use highlight::{Highlight, MAX_BEHIND_DEG};
 pub use mirror::Camera;
-pub use sphere::{OutlineFit, circle_of_mask, fit_outline, median_image};
+pub use positions::LightPosition;
+pub use sphere::{OutlineFit, circle_of_mask, fit_outline};
 
 use super::InputError;
 use super::intake::{self, Limits};
@@ -46,6 +49,9 @@ pub enum CircleSource {
     /// Fitted to the images' outline.
     Fit,
     Given(Circle),
+    /// Several balls in the frame, each its circle: each ball is calibrated, and each
+    /// light is placed where the balls' rays meet.
+    Balls(Vec<Circle>),
     /// A mask (true = sphere), its circle fitted to the mask's outline.
     Mask {
         name: String,
@@ -69,6 +75,10 @@ pub struct Settings {
     pub skip_bad: bool,
 }
 
+/// Lights that all come out within this angle of their mean direction are one light, or a
+/// reflection that stays put: not a calibration.
+pub const MIN_SPREAD_DEG: f64 = 2.0;
+
 /// One calibrated light.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CalibratedLight {
@@ -77,7 +87,12 @@ pub struct CalibratedLight {
     /// The sphere image's file name and the name the light table gives the light.
     pub image: String,
     pub name: String,
+    /// Its highlight on the (first) ball.
     pub highlight: Highlight,
+    /// Its highlights on the other balls, in the order of [`Calibration::more_circles`].
+    pub more: Vec<Highlight>,
+    /// Where the balls' rays meet, with several balls (None when they are parallel).
+    pub position: Option<LightPosition>,
     /// Relative intensity from a matte sphere, when fitted.
     pub intensity: Option<f64>,
 }
@@ -94,6 +109,10 @@ pub struct Skipped {
 #[derive(Debug, Clone)]
 pub struct Calibration {
     pub circle: Circle,
+    /// The other balls' circles, with several balls.
+    pub more_circles: Vec<Circle>,
+    /// Whether positions are relative to a pinhole camera (else to the first ball).
+    pub camera_is_pinhole: bool,
     /// How the outline fit went, when the circle was fitted to the images.
     pub outline: Option<OutlineFit>,
     pub lights: Vec<CalibratedLight>,
@@ -128,6 +147,14 @@ pub enum CalibrationError {
         count: usize,
         left_out: String,
     },
+    #[error(
+        "the {count} images are alike: none has a highlight the others lack (one light photographed {count} times, or the rig's lights did not change between the shots)"
+    )]
+    AllAlike { count: usize },
+    #[error(
+        "all {count} lights come out within {spread:.1}° of each other although the images differ: the highlight found is not the rig's light but something the ball shows in every image; add an ambient image of the ball with the rig's lights off (ambient.png) or give --circle"
+    )]
+    OneDirection { count: usize, spread: f64 },
     #[error("names: {0}")]
     Names(String),
     #[error("matte sphere image {name:?}: {reason}")]
@@ -135,13 +162,27 @@ pub enum CalibrationError {
 }
 
 /// Calibrate from the sphere images (one per light, in light order). `names` are the
-/// light table's names, one per image (default: the image names).
+/// light table's names, one per image (default: the image names); `ambient` is the ball
+/// with the rig's lights off, when there is one.
 pub fn calibrate(
     images: &[SphereImage],
     names: Option<&[String]>,
+    ambient: Option<&SphereImage>,
     settings: &Settings,
 ) -> Result<Calibration, CalibrationError> {
     let (w, h) = check_images(images)?;
+    if let Some(a) = ambient
+        && a.plane.dim() != images[0].plane.dim()
+    {
+        return Err(CalibrationError::Image {
+            name: a.name.clone(),
+            reason: format!(
+                "the ambient image is {}×{} but the sphere images are {w}×{h}",
+                a.plane.dim().1,
+                a.plane.dim().0
+            ),
+        });
+    }
     if let Some(n) = names
         && n.len() != images.len()
     {
@@ -152,12 +193,18 @@ pub fn calibrate(
         )));
     }
     let planes: Vec<Array2<u16>> = images.iter().map(|i| i.plane.clone()).collect();
+    let env = environment::estimate(&planes, ambient.map(|a| &a.plane));
     let (circle, outline) = match &settings.circle {
         CircleSource::Fit => {
-            let fit = fit_outline(&median_image(&planes)).map_err(CalibrationError::NoSphere)?;
+            let fit = fit_outline(&env.mapv(|v| v as f32 / 65535.0))
+                .map_err(CalibrationError::NoSphere)?;
             (fit.circle, Some(fit))
         }
         CircleSource::Given(c) => (*c, None),
+        CircleSource::Balls(cs) if cs.is_empty() => {
+            return Err(CalibrationError::NoSphere("no circle given".into()));
+        }
+        CircleSource::Balls(cs) => (cs[0], None),
         CircleSource::Mask { name, mask } => {
             if mask.dim() != (h, w) {
                 return Err(CalibrationError::Mask {
@@ -176,26 +223,60 @@ pub fn calibrate(
             (c, None)
         }
     };
-    check_circle(&circle, w, h)?;
-    let clip = clip_level(&planes);
-    let found: Vec<Result<Highlight, String>> = {
-        use rayon::prelude::*;
-        planes
-            .par_iter()
-            .map(|p| highlight::find(p, &circle, &settings.camera, clip))
-            .collect()
+    let more_circles = match &settings.circle {
+        CircleSource::Balls(cs) => cs[1..].to_vec(),
+        _ => Vec::new(),
     };
+    let circles: Vec<Circle> = std::iter::once(circle)
+        .chain(more_circles.iter().copied())
+        .collect();
+    for c in &circles {
+        check_circle(c, w, h)?;
+    }
+    let clip = clip_level(&planes);
+    let per_ball: Vec<Vec<Result<Highlight, String>>> = circles
+        .iter()
+        .map(|c| {
+            let ctx = highlight::Context {
+                circle: c,
+                camera: &settings.camera,
+                env: &env,
+                count: planes.len(),
+                clip,
+            };
+            find_highlights(&planes, &ctx)
+        })
+        .collect::<Result<_, _>>()?;
     let mut lights = Vec::new();
     let mut skipped = Vec::new();
-    for (i, (img, result)) in images.iter().zip(found).enumerate() {
-        match result {
-            Ok(hl) => lights.push(CalibratedLight {
-                index: i,
-                image: img.name.clone(),
-                name: names.map_or_else(|| img.name.clone(), |n| n[i].clone()),
-                highlight: hl,
-                intensity: None,
-            }),
+    for (i, img) in images.iter().enumerate() {
+        let found: Result<Vec<Highlight>, String> = per_ball
+            .iter()
+            .enumerate()
+            .map(|(b, ball)| {
+                ball[i].clone().map_err(|reason| {
+                    if circles.len() > 1 {
+                        format!("ball {}: {reason}", b + 1)
+                    } else {
+                        reason
+                    }
+                })
+            })
+            .collect();
+        match found {
+            Ok(mut hls) => {
+                let highlight = hls.remove(0);
+                let position = place(&settings.camera, &circles, &highlight, &hls);
+                lights.push(CalibratedLight {
+                    index: i,
+                    image: img.name.clone(),
+                    name: names.map_or_else(|| img.name.clone(), |n| n[i].clone()),
+                    highlight,
+                    more: hls,
+                    position,
+                    intensity: None,
+                });
+            }
             Err(reason) if settings.skip_bad => skipped.push(Skipped {
                 image: img.name.clone(),
                 reason,
@@ -219,12 +300,15 @@ pub fn calibrate(
             left_out: left_out.join("; "),
         });
     }
+    check_spread(&lights)?;
     let mut max_image = planes[0].clone();
     for p in &planes[1..] {
         max_image.zip_mut_with(p, |m, &v| *m = (*m).max(v));
     }
     Ok(Calibration {
         circle,
+        more_circles,
+        camera_is_pinhole: matches!(settings.camera, Camera::Perspective { .. }),
         outline,
         lights,
         skipped,
@@ -245,11 +329,11 @@ impl Calibration {
         }
         let (w, h) = check_images(matte)?;
         let planes: Vec<Array2<u16>> = matte.iter().map(|i| i.plane.clone()).collect();
-        let fit =
-            fit_outline(&median_image(&planes)).map_err(|reason| CalibrationError::Matte {
-                name: matte[0].name.clone(),
-                reason: format!("no sphere outline found: {reason}"),
-            })?;
+        let fit = fit_outline(&environment::estimate(&planes, None).mapv(|v| v as f32 / 65535.0))
+            .map_err(|reason| CalibrationError::Matte {
+            name: matte[0].name.clone(),
+            reason: format!("no sphere outline found: {reason}"),
+        })?;
         check_circle(&fit.circle, w, h)?;
         let used: Vec<Array2<u16>> = self
             .lights
@@ -286,10 +370,40 @@ impl Calibration {
         out
     }
 
+    /// The light positions (several balls) as a table `name, x, y, z`, in ball radii or,
+    /// given the balls' diameter, in its unit; a comment line says which. Lights whose rays
+    /// do not meet are left out. None with one ball.
+    pub fn positions_table(&self, ball_diameter: Option<f64>) -> Option<String> {
+        if self.more_circles.is_empty() {
+            return None;
+        }
+        let (k, unit) = match ball_diameter {
+            Some(d) => (d / 2.0, "the unit of --ball-diameter"),
+            None => (1.0, "ball radii"),
+        };
+        let mut out = format!(
+            "# light positions in {unit}; x = column right, y = row down, z towards the camera; origin: {}\n",
+            match self.camera_is_pinhole {
+                true => "the camera",
+                false => "the first ball's centre",
+            }
+        );
+        for l in &self.lights {
+            if let Some(p) = &l.position {
+                let x = p.position.map(|v| v * k);
+                out.push_str(&format!(
+                    "{}, {:.6}, {:.6}, {:.6}\n",
+                    l.name, x[0], x[1], x[2]
+                ));
+            }
+        }
+        Some(out)
+    }
+
     /// The per-light quality table, as aligned text.
     pub fn quality_table(&self) -> String {
         let mut out = String::from(
-            "  #  image                 name                  highlight x, y    px   peak  clip  rim px  elev °  azim °\n",
+            "  #  image                 name                  highlight x, y    px   peak  clip  rim px  elev °  azim °  conf\n",
         );
         for l in &self.lights {
             let hl = &l.highlight;
@@ -297,7 +411,7 @@ impl Calibration {
             let elevation = d[2].clamp(-1.0, 1.0).asin().to_degrees();
             let azimuth = d[1].atan2(d[0]).to_degrees();
             out.push_str(&format!(
-                "{:>3}  {:<20}  {:<20}  {:>8.2}, {:>7.2}  {:>4}  {:.3}  {:<4}  {:>6.1}  {:>6.1}  {:>6.1}\n",
+                "{:>3}  {:<20}  {:<20}  {:>8.2}, {:>7.2}  {:>4}  {:.3}  {:<4}  {:>6.1}  {:>6.1}  {:>6.1}  {:.2}\n",
                 l.index + 1,
                 l.image,
                 l.name,
@@ -308,7 +422,8 @@ impl Calibration {
                 if hl.clipped { "yes" } else { "no" },
                 hl.rim_distance,
                 elevation,
-                azimuth
+                azimuth,
+                hl.confidence
             ));
         }
         out
@@ -317,12 +432,20 @@ impl Calibration {
     /// The overlay picture as PNG: the circle and the numbered highlights over the
     /// maximum image.
     pub fn overlay_png(&self) -> Vec<u8> {
-        let marks: Vec<(usize, f64, f64)> = self
+        let marks: Vec<draw::Mark> = self
             .lights
             .iter()
-            .map(|l| (l.index + 1, l.highlight.x, l.highlight.y))
+            .map(|l| draw::Mark {
+                number: l.index + 1,
+                x: l.highlight.x,
+                y: l.highlight.y,
+                confidence: l.highlight.confidence,
+            })
             .collect();
-        png_bytes(&draw::overlay(&self.max_image, &self.circle, &marks))
+        let circles: Vec<Circle> = std::iter::once(self.circle)
+            .chain(self.more_circles.iter().copied())
+            .collect();
+        png_bytes(&draw::overlay(&self.max_image, &circles, &marks))
     }
 
     /// The light diagram as PNG (`lights.png`).
@@ -334,6 +457,80 @@ impl Calibration {
             .collect();
         png_bytes(&draw::lights_diagram(&dirs))
     }
+}
+
+/// Each image's highlight: its significant residual first, for the recurrence map, then
+/// the highlight judged against it. Images that are all alike are one error.
+fn find_highlights(
+    planes: &[Array2<u16>],
+    ctx: &highlight::Context,
+) -> Result<Vec<Result<Highlight, String>>, CalibrationError> {
+    use rayon::prelude::*;
+    let significant: Vec<Result<Vec<(usize, usize)>, String>> = planes
+        .par_iter()
+        .map(|p| highlight::significant(p, ctx))
+        .collect();
+    if significant.iter().all(|s| s.is_err()) {
+        return Err(CalibrationError::AllAlike {
+            count: planes.len(),
+        });
+    }
+    let lists: Vec<Vec<(usize, usize)>> = significant.into_iter().flatten().collect();
+    let recurrence = environment::recurrence(planes[0].dim(), &lists);
+    Ok(planes
+        .par_iter()
+        .map(|p| highlight::find(p, ctx, &recurrence))
+        .collect())
+}
+
+/// A light's position from its highlights on several balls (`first` on `circles[0]`).
+fn place(
+    camera: &Camera,
+    circles: &[Circle],
+    first: &Highlight,
+    more: &[Highlight],
+) -> Option<LightPosition> {
+    if circles.len() < 2 {
+        return None;
+    }
+    let scale = circles.iter().map(|c| c.r).sum::<f64>() / circles.len() as f64;
+    let rays: Vec<([f64; 3], [f64; 3])> = std::iter::once(first)
+        .chain(more)
+        .zip(circles)
+        .filter_map(|(h, c)| positions::ray(camera, c, (h.x, h.y), h.direction, &circles[0], scale))
+        .collect();
+    positions::intersect(&rays)
+}
+
+/// Refuse lights that all point the same way: the images show one light, or the finder
+/// followed something that stays put.
+fn check_spread(lights: &[CalibratedLight]) -> Result<(), CalibrationError> {
+    if lights.len() < 3 {
+        return Ok(());
+    }
+    let mut mean = [0.0; 3];
+    for l in lights {
+        for k in 0..3 {
+            mean[k] += l.highlight.direction[k];
+        }
+    }
+    let mean = mirror::normalise(mean);
+    let spread = lights
+        .iter()
+        .map(|l| {
+            mirror::dot(l.highlight.direction, mean)
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees()
+        })
+        .fold(0.0, f64::max);
+    if spread < MIN_SPREAD_DEG {
+        return Err(CalibrationError::OneDirection {
+            count: lights.len(),
+            spread,
+        });
+    }
+    Ok(())
 }
 
 /// At least 3 images, all one size; their (width, height).
@@ -392,34 +589,64 @@ fn check_circle(c: &Circle, w: usize, h: usize) -> Result<(), CalibrationError> 
     Ok(())
 }
 
-/// The value at and above which a pixel counts as clipped: within 0.5 % of full scale
-/// of the brightest value in the set.
+/// The value at and above which a pixel counts as clipped: within 1 % of full scale of
+/// the brightest value in the set (JPEG's ringing leaves a clipped core a little below
+/// full scale).
 fn clip_level(planes: &[Array2<u16>]) -> u16 {
     let top = planes
         .iter()
         .map(|p| p.iter().copied().max().unwrap_or(0))
         .max()
         .unwrap_or(0);
-    top.saturating_sub(327)
+    top.saturating_sub(655)
 }
 
 /// Files that name the lights of a sphere folder: the seed's table (only its names are
 /// read) or a plain list.
 pub const NAMES_FILE: &str = "names.txt";
 
-/// Read a sphere folder: every image file in it, in name order, and the light names from
-/// its `light_directions.csv` / `.json` or `names.txt` (one per image, same order), if any.
-pub fn load_dir(dir: &Path) -> Result<(Vec<SphereImage>, Option<Vec<String>>), CalibrationError> {
+/// A sphere folder as read: the sphere images (one per light, in name order), the light
+/// names, and the ambient image (the ball with the rig's lights off), if any.
+#[derive(Debug, Clone)]
+pub struct SphereFolder {
+    pub images: Vec<SphereImage>,
+    pub names: Option<Vec<String>>,
+    pub ambient: Option<SphereImage>,
+}
+
+/// Whether an image file is the ambient image: its stem is `ambient` or `ref`
+/// (any case), as light-dome software names it.
+pub fn is_ambient(name: &str) -> bool {
+    let stem = name.rsplit_once('.').map_or(name, |(s, _)| s);
+    stem.eq_ignore_ascii_case("ambient") || stem.eq_ignore_ascii_case("ref")
+}
+
+/// Read a sphere folder: every image file in it, in name order, but the ambient image
+/// (`ambient.*` or `ref.*`), and the light names from its `light_directions.csv` /
+/// `.json` or `names.txt` (one per image, same order), if any.
+pub fn load_dir(dir: &Path) -> Result<SphereFolder, CalibrationError> {
     let mut files = Vec::new();
+    let mut ambient_file = None;
     for entry in std::fs::read_dir(dir).map_err(|e| InputError::io(dir, e))? {
         let entry = entry.map_err(|e| InputError::io(dir, e))?;
         let name = entry.file_name().to_string_lossy().into_owned();
         if entry.path().is_file() && layout::is_image(&name) {
-            files.push(name);
+            if is_ambient(&name) {
+                if let Some(first) = ambient_file.replace(name.clone()) {
+                    return Err(CalibrationError::Names(format!(
+                        "{} holds two ambient images, {first} and {name}: keep one",
+                        dir.display()
+                    )));
+                }
+            } else {
+                files.push(name);
+            }
         }
     }
     files.sort();
-    let images = read_images(dir, &files)?;
+    files.extend(ambient_file.iter().cloned());
+    let mut images = read_images(dir, &files)?;
+    let ambient = ambient_file.and_then(|_| images.pop());
     let read = |name: &str| {
         let p = dir.join(name);
         std::fs::read(&p).map_err(|e| InputError::io(&p, e))
@@ -458,7 +685,11 @@ pub fn load_dir(dir: &Path) -> Result<(Vec<SphereImage>, Option<Vec<String>>), C
             images.len()
         )));
     }
-    Ok((images, names))
+    Ok(SphereFolder {
+        images,
+        names,
+        ambient,
+    })
 }
 
 fn read_images(dir: &Path, files: &[String]) -> Result<Vec<SphereImage>, CalibrationError> {
@@ -488,7 +719,7 @@ fn read_images(dir: &Path, files: &[String]) -> Result<Vec<SphereImage>, Calibra
 
 /// Read the images of a folder (every image file, in name order), e.g. a matte sphere's.
 pub fn load_images(dir: &Path) -> Result<Vec<SphereImage>, CalibrationError> {
-    load_dir(dir).map(|(images, _)| images)
+    load_dir(dir).map(|f| f.images)
 }
 
 /// Read a sphere mask (non-zero = sphere).

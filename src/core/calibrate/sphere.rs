@@ -45,21 +45,7 @@ pub struct OutlineFit {
     pub rms: f64,
 }
 
-/// The per-pixel median of the planes, as fractions of full scale.
-pub fn median_image(planes: &[Array2<u16>]) -> Array2<f32> {
-    let (h, w) = planes[0].dim();
-    let mut out = Array2::zeros((h, w));
-    let mut v = Vec::with_capacity(planes.len());
-    for ((r, c), o) in out.indexed_iter_mut() {
-        v.clear();
-        v.extend(planes.iter().map(|p| p[[r, c]]));
-        let k = v.len() / 2;
-        *o = *v.select_nth_unstable(k).1 as f32 / 65535.0;
-    }
-    out
-}
-
-/// Fit the sphere's outline in `image` (e.g. [`median_image`]); the error says why none
+/// Fit the sphere's outline in `image` (e.g. the environment, the per-pixel median of the set); the error says why none
 /// was found.
 pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
     let smooth = gaussian(image, 1.0);

@@ -1,0 +1,89 @@
+//! What the ball shows in every image: the environment each light's highlight is judged
+//! against.
+//!
+//! A light is what its own image has and the others lack. Room lights, windows, the
+//! camera, fixtures and the mirrored object stay put from image to image, so the
+//! per-pixel median of the set keeps them and drops each highlight (every highlight is in
+//! one image only). An ambient image (the ball with the rig's lights off) adds what the
+//! median may miss; the environment is the brighter of the two at each pixel.
+//!
+//! Residuals (image less environment) then hold the lights, and also whatever the lights
+//! themselves make brighter (an object beside the ball, a reflection that wanders a
+//! little). The recurrence map counts, per pixel, in how many images the residual is
+//! significant: a light's blob is where few other images have one.
+
+use ndarray::{Array2, Zip};
+use rayon::prelude::*;
+
+use super::Circle;
+
+/// The sphere's pixels: its bounding box in the image, and which pixels of it are on the
+/// ball (half a pixel inside the outline, so the backdrop's edge never counts).
+#[derive(Debug, Clone, Copy)]
+pub struct Disc {
+    pub r0: usize,
+    pub r1: usize,
+    pub c0: usize,
+    pub c1: usize,
+    circle: Circle,
+}
+
+impl Disc {
+    pub fn new(circle: &Circle, (h, w): (usize, usize)) -> Self {
+        Self {
+            r0: (circle.cy - circle.r).floor().max(0.0) as usize,
+            r1: ((circle.cy + circle.r).ceil().max(0.0) as usize).min(h - 1),
+            c0: (circle.cx - circle.r).floor().max(0.0) as usize,
+            c1: ((circle.cx + circle.r).ceil().max(0.0) as usize).min(w - 1),
+            circle: *circle,
+        }
+    }
+
+    pub fn contains(&self, r: usize, c: usize) -> bool {
+        (c as f64 - self.circle.cx).hypot(r as f64 - self.circle.cy) <= self.circle.r - 0.5
+    }
+
+    /// Every pixel on the ball, row by row.
+    pub fn pixels(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        (self.r0..=self.r1)
+            .flat_map(move |r| (self.c0..=self.c1).map(move |c| (r, c)))
+            .filter(|&(r, c)| self.contains(r, c))
+    }
+}
+
+/// The environment: per pixel, the median of the set, raised to the ambient image where
+/// that is brighter.
+pub fn estimate(planes: &[Array2<u16>], ambient: Option<&Array2<u16>>) -> Array2<u16> {
+    let (h, w) = planes[0].dim();
+    let mut env = Array2::zeros((h, w));
+    env.axis_iter_mut(ndarray::Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(r, mut row)| {
+            let mut v = Vec::with_capacity(planes.len());
+            for (c, o) in row.iter_mut().enumerate() {
+                v.clear();
+                v.extend(planes.iter().map(|p| p[[r, c]]));
+                let k = v.len() / 2;
+                *o = *v.select_nth_unstable(k).1;
+            }
+        });
+    if let Some(a) = ambient {
+        Zip::from(&mut env)
+            .and(a)
+            .for_each(|e, &a| *e = (*e).max(a));
+    }
+    env
+}
+
+/// Per pixel, in how many of the images the residual is significant (each image's
+/// significant pixels, as from [`super::highlight::significant`]).
+pub fn recurrence(dim: (usize, usize), significant: &[Vec<(usize, usize)>]) -> Array2<u16> {
+    let mut count = Array2::<u16>::zeros(dim);
+    for pixels in significant {
+        for &p in pixels {
+            count[p] = count[p].saturating_add(1);
+        }
+    }
+    count
+}
