@@ -13,7 +13,7 @@ mod transport;
 mod write;
 
 pub use brdf::Specular;
-pub use chrome::{ChromeSet, matte_intensities};
+pub use chrome::{ChromeSet, RoomLight, matte_intensities};
 pub use render::{Rendered, render, render_rgb};
 pub use scene::Scene;
 pub use sensor::Exposure;
