@@ -104,15 +104,15 @@ fn check(name: &str, dir: &Path, auto_mean: f64, given_mean: f64) {
     );
 }
 
-// The target, mean ≤ 0.6° with the outline found automatically, is not met: the
-// fitted outline lies 3–6 px from the authors' hand-fitted circle on these dim, blurred
-// rims, and that alone moves every light by about 1°. The bounds below are today's
-// figures, so that a change that makes them worse fails.
+// The target is a mean of 0.6° at most and a max of 2°, with the outline found
+// automatically. psbox meets it. harvard does not (0.90°): its fitted outline lies 2 px
+// from the authors' hand-fitted circle, and their rule is pulled by a room light (below).
+// Its bound is today's figure, so that a change that makes it worse fails.
 
 #[test]
 fn real_psbox_ball_12_lights_within_2_degrees() {
     let dir = seed::real!("chrome/psbox-probe1");
-    check("psbox-probe1", &dir, 1.55, 0.40);
+    check("psbox-probe1", &dir, 0.60, 0.40);
 }
 
 #[test]
@@ -122,5 +122,5 @@ fn real_harvard_ball_with_a_room_light_20_lights_within_2_degrees() {
     // rule takes its pixels into their median, which pulls their lights about 0.7° towards
     // it; the finder does not, so the given-circle bound is 0.7°, not 0.6°.
     let dir = seed::real!("chrome/harvard-cat-probe1");
-    check("harvard-cat-probe1", &dir, 1.10, 0.70);
+    check("harvard-cat-probe1", &dir, 0.95, 0.70);
 }

@@ -78,7 +78,10 @@ pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
         coverage: 0.0,
         rms: 0.0,
     };
-    for window in [4.0, 3.0, 2.0, 2.0] {
+    // Windows from wide to narrow: a real ball's rim can be a ramp several pixels wide
+    // (defocus, JPEG), and a rough circle a few pixels off must still see all of it.
+    let wide = (0.03 * rough.r).max(4.0);
+    for window in [wide, (0.5 * wide).max(4.0), 4.0, 3.0, 2.0, 2.0] {
         fit = refine(&smooth, fit.circle, window, threshold)
             .ok_or("the outline could not be traced to sub-pixel accuracy")?;
     }
