@@ -1579,3 +1579,62 @@ async fn a_benchmark_layout_archive_reconstructs_in_the_projects_frame() {
     );
     s.stop().await;
 }
+
+/// A `lights` part in the relighting tools' `.lp` format (y up, names with paths), known
+/// by its file name or, as a text part, by its first line: the same job as the CSV's,
+/// artifact for artifact; a bad one refused at once, naming its line.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_lp_lights_part_runs_the_job_of_its_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let set = repo_root().join("res/bump");
+    let csv = std::fs::read_to_string(set.join("light_directions.csv")).unwrap();
+    let rows: Vec<(String, [f64; 3])> = (csv.lines())
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').map(str::trim).collect();
+            let v = [1, 2, 3].map(|k| f[k].parse::<f64>().unwrap());
+            (format!("./jpeg-exports/{}", f[0]), v)
+        })
+        .collect();
+    let lp = photostereo::core::lights::lp::format(&rows).replace('\n', "\r\n");
+    let images = || {
+        let mut form = Form::new();
+        for img in images_of(&set) {
+            form = form.part("images", file_part(&img));
+        }
+        form
+    };
+    let mut results = Vec::new();
+    for form in [
+        folder_form(&set),
+        images().part("lights", Part::text(lp.clone()).file_name("bump.lp")),
+        images().text("lights", lp.clone()),
+    ] {
+        let job = s.submit(form).await;
+        let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+        results.push(artifacts_without_timings(&s, &job).await);
+    }
+    for other in &results[1..] {
+        assert_eq!(results[0], *other, "the .lp job's artifacts differ");
+    }
+
+    let bad = lp.replacen("-0.2", "left", 1);
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(images().part("lights", Part::text(bad).file_name("bump.lp")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["bump.lp line 3", "\"left\""]).await;
+    // Named .lp, its first line is the count or the table is refused as an .lp.
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(images().part("lights", Part::text(csv).file_name("bump.lp")))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["bump.lp line 1", "number of lights"]).await;
+    s.stop().await;
+}

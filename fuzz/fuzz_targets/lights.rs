@@ -1,6 +1,6 @@
-//! The light-table parser (CSV or JSON) on arbitrary bytes: it never panics, and what it
-//! accepts is a usable table (unit, finite directions; positive, finite intensities;
-//! unique names; at least 3 rows).
+//! The light-table parser (CSV, JSON or .lp) on arbitrary bytes: it never panics, and
+//! what it accepts is a usable table (unit, finite directions; positive, finite
+//! intensities; unique names; at least 3 rows).
 
 #![no_main]
 

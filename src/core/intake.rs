@@ -87,9 +87,9 @@ pub enum DirMask<'a> {
 }
 
 /// Load a folder in one of the layouts [`layout`] reads (the seed's
-/// `light_directions.csv` / `.json`, or the benchmark's `light_directions.txt` +
-/// `filenames.txt`): the images its table names. Image files it does not name are
-/// ignored and listed in the set's notes.
+/// `light_directions.csv` / `.json`, an `.lp` file, or the benchmark's
+/// `light_directions.txt` + `filenames.txt`): the images its table names. Image files it
+/// does not name are ignored and listed in the set's notes.
 pub fn load_dir(dir: &Path, mask: DirMask<'_>, limits: &Limits) -> Result<ImageSet, InputError> {
     let found = dir_files(dir, mask)?;
     let mut set = load(found.lights, &found.files, found.mask.as_ref(), limits)?;

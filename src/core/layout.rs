@@ -3,6 +3,8 @@
 //! HTTP archive upload alike; it sees names and bytes only, never paths.
 //!
 //! - The seed's layout: `light_directions.csv` (or `.json`) naming the images.
+//! - An `.lp` file of the relighting tools (RTIBuilder, RelightLab), any name: the count,
+//!   then `name x y z` rows with **y up**, read as (x, −y, z) ([`lights::lp`]).
 //! - The field's benchmark layout: `light_directions.txt`, one `x y z` row per image,
 //!   whitespace separated, in a frame with x right, **y up**, z towards the camera; an
 //!   optional `light_intensities.txt`, one `r g b` row per image; `filenames.txt`, the
@@ -23,7 +25,7 @@ pub const SEED_JSON: &str = "light_directions.json";
 pub const BENCH_DIRECTIONS: &str = "light_directions.txt";
 pub const BENCH_INTENSITIES: &str = "light_intensities.txt";
 pub const BENCH_NAMES: &str = "filenames.txt";
-/// Every file [`read_table`] may read.
+/// Every file [`read_table`] may read, besides an `.lp` file ([`is_table_file`]).
 pub const TABLE_FILES: [&str; 5] = [
     SEED_CSV,
     SEED_JSON,
@@ -41,7 +43,8 @@ pub const IMAGE_EXTENSIONS: [&str; 7] = ["png", "bmp", "jpg", "jpeg", "tif", "ti
 const NOTE_NAMES: usize = 20;
 
 /// The layouts, by their file names, for the error when a folder matches none.
-pub const ACCEPTED: &str = "the seed layout (light_directions.csv or light_directions.json naming the images) \
+pub const ACCEPTED: &str = "the seed layout (light_directions.csv or light_directions.json naming the images), \
+     an .lp file (the relighting tools' table: the count, then `name x y z` rows, y up) \
      or the benchmark layout (light_directions.txt with filenames.txt, optional light_intensities.txt and mask.png; \
      filenames.txt may be left out when the images are numbered 1..N)";
 
@@ -62,6 +65,12 @@ pub fn is_image(name: &str) -> bool {
         .is_some_and(|(_, ext)| IMAGE_EXTENSIONS.contains(&ext.to_ascii_lowercase().as_str()))
 }
 
+/// Whether [`read_table`] may read a file of this name: one of [`TABLE_FILES`] or an
+/// `.lp` file.
+pub fn is_table_file(name: &str) -> bool {
+    TABLE_FILES.contains(&name) || lights::lp::is_lp_name(name)
+}
+
 /// Read the table of the folder whose files are `names` (top level only), with `read`
 /// giving a file's bytes by name. `place` names the folder in errors.
 pub fn read_table(
@@ -71,13 +80,34 @@ pub fn read_table(
 ) -> Result<Table, InputError> {
     let has = |n: &str| names.iter().any(|m| m == n);
     let mut notes = Vec::new();
-    let lights = if let Some(seed) = [SEED_CSV, SEED_JSON].into_iter().find(|n| has(n)) {
-        if has(BENCH_DIRECTIONS) {
-            notes.push(format!(
-                "{BENCH_DIRECTIONS} not read: {seed} is the light table"
-            ));
+    let lp_files: Vec<&str> = (names.iter().map(String::as_str))
+        .filter(|n| lights::lp::is_lp_name(n))
+        .collect();
+    // The other tables a folder holds, each noted as not read.
+    let mut not_read = |table: &str, others: &[&str]| {
+        for other in others {
+            notes.push(format!("{other} not read: {table} is the light table"));
         }
+    };
+    let lights = if let Some(seed) = [SEED_CSV, SEED_JSON].into_iter().find(|n| has(n)) {
+        let mut others = lp_files.clone();
+        if has(BENCH_DIRECTIONS) {
+            others.push(BENCH_DIRECTIONS);
+        }
+        not_read(seed, &others);
         lights::parse_bytes(&read(seed)?)?
+    } else if let Some(&lp) = lp_files.first() {
+        if lp_files.len() > 1 {
+            return Err(InputError::Lights(format!(
+                "{place} holds {} .lp files ({}): keep only the light table's",
+                lp_files.len(),
+                lp_files.join(", ")
+            )));
+        }
+        if has(BENCH_DIRECTIONS) {
+            not_read(lp, &[BENCH_DIRECTIONS]);
+        }
+        lights::lp::parse_bytes(lp, &read(lp)?)?
     } else if has(BENCH_DIRECTIONS) {
         let directions = rows(BENCH_DIRECTIONS, &read(BENCH_DIRECTIONS)?)?;
         let intensities = if has(BENCH_INTENSITIES) {
@@ -385,5 +415,79 @@ mod tests {
         ] {
             assert!(e.contains(layout), "{e}");
         }
+        assert!(e.contains(".lp"), "{e}");
+    }
+
+    const LP: &str =
+        "3\r\n./jpeg-exports/a.png 0.1 0.2 1\r\nb.png -0.3 0.1 1\r\nc.png 0 -0.4 1\r\n";
+
+    #[test]
+    fn an_lp_file_is_the_table_after_the_seeds_and_before_the_benchmarks() {
+        let t = table(&[("rti.lp", LP)], &["a.png", "b.png", "c.png", "d.png"]).unwrap();
+        let from_txt = table(
+            &[
+                (BENCH_DIRECTIONS, DIRS),
+                (BENCH_NAMES, "a.png\nb.png\nc.png"),
+            ],
+            &[],
+        )
+        .unwrap();
+        // The same y-up frame as the benchmark's rows.
+        assert_eq!(t.lights, from_txt.lights);
+        assert_eq!(t.notes.len(), 1, "{:?}", t.notes);
+        assert!(t.notes[0].contains("d.png"), "{:?}", t.notes);
+
+        let csv = "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1\n";
+        let t = table(
+            &[(SEED_CSV, csv), ("rti.lp", LP), (BENCH_DIRECTIONS, DIRS)],
+            &[],
+        )
+        .unwrap();
+        assert_eq!(t.lights, lights::parse(csv).unwrap());
+        assert!(
+            t.notes
+                .iter()
+                .any(|n| n == "rti.lp not read: light_directions.csv is the light table"),
+            "{:?}",
+            t.notes
+        );
+        assert!(
+            t.notes
+                .iter()
+                .any(|n| n.starts_with("light_directions.txt not read")),
+            "{:?}",
+            t.notes
+        );
+
+        let t = table(
+            &[
+                ("RTI.LP", LP),
+                (BENCH_DIRECTIONS, DIRS),
+                (BENCH_NAMES, "x\ny\nz"),
+            ],
+            &[],
+        )
+        .unwrap();
+        assert_eq!(t.lights[0].name, "a.png");
+        assert!(
+            t.notes
+                .iter()
+                .any(|n| n == "light_directions.txt not read: RTI.LP is the light table"),
+            "{:?}",
+            t.notes
+        );
+        assert!(is_table_file("RTI.LP") && is_table_file(SEED_CSV) && !is_table_file("a.png"));
+
+        let e = table(&[("a.lp", LP), ("b.lp", LP)], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("2 .lp files (a.lp, b.lp)"), "{e}");
+        let e = table(&[("rti.lp", "3\na.png 0 0 1\nb.png 1 0 1\n")], &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("rti.lp line 1") && e.contains("3 lights but 2 rows"),
+            "{e}"
+        );
     }
 }

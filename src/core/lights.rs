@@ -1,7 +1,9 @@
 //! The light table: `file name, x, y, z`, `file name, x, y, z, intensity` or
 //! `file name, x, y, z, r, g, b` per row (the seed's CSV), or the same as JSON with
-//! `"intensity": 0.8` or `"intensity": [r, g, b]`. Vectors are normalised here; the
-//! intensity (default 1) is kept apart.
+//! `"intensity": 0.8` or `"intensity": [r, g, b]`, or the relighting tools' `.lp` ([`lp`]).
+//! Vectors are normalised here; the intensity (default 1) is kept apart.
+
+pub mod lp;
 
 use serde::{Deserialize, Serialize};
 
@@ -42,11 +44,14 @@ impl Light {
 /// Longest light table accepted (rows); far above any real rig, it bounds parsing work.
 pub const MAX_ROWS: usize = 10_000;
 
-/// Parse a light table, CSV or JSON (detected by a leading `[` or `{`).
+/// Parse a light table: JSON (detected by a leading `[` or `{`), `.lp` (a first line
+/// that is a whole number, [`lp::is_lp`]) or CSV.
 pub fn parse(text: &str) -> Result<Vec<Light>, InputError> {
     let trimmed = text.trim_start_matches('\u{feff}').trim_start();
     let lights = if trimmed.starts_with('[') || trimmed.starts_with('{') {
         parse_json(trimmed)?
+    } else if lp::is_lp(text) {
+        return lp::parse(".lp", text);
     } else {
         parse_csv(trimmed)?
     };

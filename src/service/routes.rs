@@ -133,8 +133,9 @@ pub struct JobUpload {
     /// light table uses for it.
     #[schema(value_type = Vec<ImageFile>, required = false)]
     images: Option<Vec<Vec<u8>>>,
-    /// The light table: CSV rows `name, x, y, z[, intensity]`, or JSON
-    /// `[{"name", "direction": [x, y, z], "intensity"?}]` (text or file part).
+    /// The light table: CSV rows `name, x, y, z[, intensity]`, JSON
+    /// `[{"name", "direction": [x, y, z], "intensity"?}]`, or an `.lp` file (the count,
+    /// then `name x y z` rows, y up) (text or file part).
     #[schema(value_type = String, required = false)]
     lights: Option<String>,
     /// Instead of `lights`: the id of a calibration (`POST /v1/calibrations`) whose lights

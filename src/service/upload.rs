@@ -177,6 +177,8 @@ pub struct Received {
 struct Parts {
     images: Vec<StoredImage>,
     lights: Option<Vec<u8>>,
+    /// The `lights` part's file name, when it has one.
+    lights_file: Option<String>,
     mask: Option<StoredImage>,
     options: Option<Options>,
     /// The mask mode the options part names, if it names one.
@@ -253,6 +255,7 @@ pub async fn receive(
                     return Err(both_forms());
                 }
                 once(&parts.lights, "lights")?;
+                parts.lights_file = field.file_name().map(str::to_string);
                 parts.lights = Some(
                     read_small(&mut field, MAX_LIGHTS_BYTES, "lights", tap, config, hash).await?,
                 );
@@ -403,7 +406,7 @@ pub async fn receive(
         (None, Some(id)) => calibrations(id.clone()).await?,
         (None, None) => {
             return Err(ApiError::bad_request(
-                "missing the lights part (the light table, CSV `name, x, y, z[, intensity]` or JSON), a calibration part or an archive part",
+                "missing the lights part (the light table: CSV `name, x, y, z[, intensity]`, JSON or .lp), a calibration part or an archive part",
             ));
         }
     };
@@ -412,7 +415,13 @@ pub async fn receive(
             "no images parts: send each image as a file part named images (curl -F images=@im1.png), or an archive part",
         ));
     }
-    let lights = lights::parse_bytes(&table)?;
+    // A part named `*.lp` is read as one, so that its errors are the .lp table's; the job
+    // reads the stored table back with `lights::parse_bytes`, which knows an .lp table
+    // by its first line, as `lp::parse_bytes` requires it.
+    let lights = match parts.lights_file.as_deref() {
+        Some(file) if lights::lp::is_lp_name(file) => lights::lp::parse_bytes(file, &table)?,
+        _ => lights::parse_bytes(&table)?,
+    };
     if let Some(id) = &calibration {
         check_calibration_names(id, &lights, &parts.images)?;
     }
@@ -976,10 +985,12 @@ fn extract_archive(
     };
     // The table files first: they say which entries are wanted.
     let mut texts: HashMap<&str, Vec<u8>> = HashMap::new();
-    for name in layout::TABLE_FILES {
-        let Some(&i) = by_name.get(name) else {
-            continue;
-        };
+    let mut tables: Vec<(&str, usize)> = (by_name.iter())
+        .filter(|(n, _)| layout::is_table_file(n))
+        .map(|(n, &i)| (n.as_str(), i))
+        .collect();
+    tables.sort();
+    for (name, i) in tables {
         let mut entry = zip.by_index(i).map_err(|e| zip_error(name, e))?;
         if entry.size() > budget {
             return Err(over_budget());
@@ -1172,6 +1183,36 @@ mod tests {
             ("set/other.png", b"not named: skipped"),
         ]);
         assert_eq!(extract(&nested, &limits()).unwrap(), ["a.png", "b.png"]);
+    }
+
+    #[test]
+    fn an_archive_may_bring_an_lp_table() {
+        let p = png(4, 4);
+        let lp = b"3\r\n./jpeg-exports/a.png 0 0 1\r\nC:\\rti\\b.png 1 0 1\r\nc.png 0 1 1\r\n";
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.zip");
+        let zip = zip_of(&[
+            ("set/a.png", &p),
+            ("set/b.png", &p),
+            ("set/c.png", &p),
+            ("set/rti.lp", lp),
+        ]);
+        std::fs::write(&path, zip).unwrap();
+        let u = extract_archive(&path, dir.path(), &limits(), true).unwrap();
+        let names: Vec<&str> = u.images.iter().map(|i| i.name.as_str()).collect();
+        assert_eq!(names, ["a.png", "b.png", "c.png"]);
+        // Stored in the project's frame: y up in the file is −y here.
+        let stored = lights::parse_bytes(&u.table).unwrap();
+        assert!(
+            (stored[2].direction[1] + 0.5f64.sqrt()).abs() < 1e-15,
+            "{stored:?}"
+        );
+        let e = extract(
+            &zip_of(&[("a.png", &p), ("x.lp", lp), ("y.lp", lp)]),
+            &limits(),
+        )
+        .unwrap_err();
+        assert!(e.detail().contains("2 .lp files"), "{e}");
     }
 
     #[test]
