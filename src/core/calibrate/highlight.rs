@@ -5,8 +5,8 @@
 //!    image has and the others lack. Its significant pixels (above the noise and a quarter
 //!    of its peak) form blobs (pixels within 2 of each other join, so a clipped core split
 //!    by JPEG ringing stays one).
-//! 2. The light is the brightest blob: of the blobs whose peak is clipped or within 20 %
-//!    of the brightest value on the ball (a light outshines what it lights), the one with the most residual light, counted where few other
+//! 2. The light is the brightest blob: of the blobs whose peak is clipped or whose rise
+//!    over the environment is within 20 % of the largest, the one with the most residual light, counted where few other
 //!    images have a residual too (a reflection of the room that the lights brighten
 //!    recurs from image to image; a light does not). A runner-up nearly as strong makes
 //!    the image ambiguous.
@@ -69,6 +69,7 @@ pub struct Highlight {
 }
 
 /// What every image of a set is judged against.
+#[derive(Clone, Copy)]
 pub struct Context<'a> {
     pub circle: &'a Circle,
     pub camera: &'a Camera,
@@ -77,7 +78,14 @@ pub struct Context<'a> {
     pub count: usize,
     /// At and above: a clipped pixel (the `clipped` flag, and a clipped blob's core).
     pub clip: u16,
+    /// The set's typical rise of a highlight over the environment (the median of the
+    /// images' largest residuals): a blob far below it is something a light brightens.
+    pub typical_rise: f64,
 }
+
+/// An unclipped blob rising less than this share of the set's typical highlight is not a
+/// light (a light outshines what it lights).
+const MIN_RISE: f64 = 0.3;
 
 fn residual(plane: &Array2<u16>, env: &Array2<u16>, p: (usize, usize)) -> f64 {
     plane[p].saturating_sub(env[p]) as f64
@@ -110,14 +118,23 @@ fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String>
     Ok((6.0 * noise).max(0.01 * 65535.0).max(0.25 * peak))
 }
 
-/// The pixels of `plane` whose residual is significant, or why none are.
-pub fn significant(plane: &Array2<u16>, ctx: &Context) -> Result<Vec<(usize, usize)>, String> {
+/// The pixels of `plane` whose residual is significant, and its largest residual; or why
+/// none are.
+pub fn significant(
+    plane: &Array2<u16>,
+    ctx: &Context,
+) -> Result<(Vec<(usize, usize)>, f64), String> {
     let disc = Disc::new(ctx.circle, plane.dim());
     let floor = floor(plane, ctx, &disc)?;
-    Ok(disc
+    let pixels: Vec<(usize, usize)> = disc
         .pixels()
         .filter(|&p| residual(plane, ctx.env, p) >= floor)
-        .collect())
+        .collect();
+    let peak = pixels
+        .iter()
+        .map(|&p| residual(plane, ctx.env, p))
+        .fold(0.0, f64::max);
+    Ok((pixels, peak))
 }
 
 /// A blob of significant residual.
@@ -167,18 +184,20 @@ pub fn find(
             }
         })
         .collect();
-    // A light outshines whatever it lights: its blob reaches (near) the brightest value
-    // on the ball, or clips.
-    let ball_top = disc.pixels().map(|p| plane[p]).max().unwrap_or(0) as f64;
+    // A light outshines whatever it lights: its blob's rise over the environment is (near)
+    // the image's largest, or it clips.
+    let top = blobs.iter().map(|b| b.peak_residual).fold(0.0, f64::max);
     let mut contenders: Vec<&Blob> = blobs
         .iter()
-        .filter(|b| b.peak >= ctx.clip || b.peak as f64 >= 0.8 * ball_top)
+        .filter(|b| b.peak >= ctx.clip || b.peak_residual >= 0.8 * top)
         .collect();
+    contenders.retain(|b| b.peak >= ctx.clip || b.peak_residual >= MIN_RISE * ctx.typical_rise);
     if contenders.is_empty() {
-        return Err(
-            "no highlight: what this image adds to the others is dimmer than what the ball shows in all of them (a lit object, not a light); is the light behind the ball or hidden?"
-                .into(),
-        );
+        return Err(format!(
+            "no highlight: what this image adds to the others rises {:.3} of full scale over them, far less than the other images' highlights ({:.3}): a lit object, not a light; is the light behind the ball or hidden?",
+            top / 65535.0,
+            ctx.typical_rise / 65535.0
+        ));
     }
     contenders.sort_by(|a, b| b.score.total_cmp(&a.score));
     let Some(&best) = contenders.first() else {

@@ -148,9 +148,9 @@ pub enum CalibrationError {
         left_out: String,
     },
     #[error(
-        "the {count} images are alike: none has a highlight the others lack (one light photographed {count} times, or the rig's lights did not change between the shots)"
+        "the {count} images are alike: only {differing} have a highlight the others lack (one light photographed again and again, or the rig's lights did not change between the shots)"
     )]
-    AllAlike { count: usize },
+    AllAlike { differing: usize, count: usize },
     #[error(
         "all {count} lights come out within {spread:.1}° of each other although the images differ: the highlight found is not the rig's light but something the ball shows in every image; add an ambient image of the ball with the rig's lights off (ambient.png) or give --circle"
     )]
@@ -243,6 +243,7 @@ pub fn calibrate(
                 env: &env,
                 count: planes.len(),
                 clip,
+                typical_rise: 0.0,
             };
             find_highlights(&planes, &ctx)
         })
@@ -466,20 +467,29 @@ fn find_highlights(
     ctx: &highlight::Context,
 ) -> Result<Vec<Result<Highlight, String>>, CalibrationError> {
     use rayon::prelude::*;
-    let significant: Vec<Result<Vec<(usize, usize)>, String>> = planes
+    let significant: Vec<Result<(Vec<(usize, usize)>, f64), String>> = planes
         .par_iter()
         .map(|p| highlight::significant(p, ctx))
         .collect();
-    if significant.iter().all(|s| s.is_err()) {
+    let differing = significant.iter().filter(|s| s.is_ok()).count();
+    if differing < 3 || 2 * differing < planes.len() {
         return Err(CalibrationError::AllAlike {
+            differing,
             count: planes.len(),
         });
     }
-    let lists: Vec<Vec<(usize, usize)>> = significant.into_iter().flatten().collect();
+    let (lists, mut rises): (Vec<Vec<(usize, usize)>>, Vec<f64>) =
+        significant.into_iter().flatten().unzip();
     let recurrence = environment::recurrence(planes[0].dim(), &lists);
+    let mid = rises.len() / 2;
+    let typical_rise = *rises.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let ctx = highlight::Context {
+        typical_rise,
+        ..*ctx
+    };
     Ok(planes
         .par_iter()
-        .map(|p| highlight::find(p, ctx, &recurrence))
+        .map(|p| highlight::find(p, &ctx, &recurrence))
         .collect())
 }
 
