@@ -129,7 +129,8 @@ struct CalibrateArgs {
     /// (only the names are read); without one, rows are named by the image files.
     dir: PathBuf,
     /// Where to write the light table (`name, x, y, z[, intensity]`; x = column right,
-    /// y = row down, z towards the camera).
+    /// y = row down, z towards the camera); a name ending in `.lp` writes the `.lp` file
+    /// of RTIBuilder and RelightLab instead (count, then `name x y z`, y up).
     #[arg(long, short)]
     out: PathBuf,
     /// The sphere's circle in pixels, as cx,cy,r (0-based, pixel centres at integers: the
@@ -255,7 +256,17 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
             );
         }
     }
-    write(&args.out, cal.table().as_bytes())?;
+    let is_lp = args
+        .out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("lp"));
+    if is_lp && cal.lights.iter().any(|l| l.intensity.is_some()) {
+        eprintln!(
+            "note: a .lp table has no intensity column; the matte sphere's intensities are left out"
+        );
+    }
+    let table = if is_lp { cal.lp_table() } else { cal.table() };
+    write(&args.out, table.as_bytes())?;
     if let (Some(path), Some(table)) = (&args.positions, cal.positions_table(args.ball_diameter)) {
         write(path, table.as_bytes())?;
     }

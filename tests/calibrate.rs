@@ -256,7 +256,8 @@ fn normals(dir: &Path, table: Option<&str>) -> ndarray::Array3<f32> {
 fn calibrated_lights_reconstruct_within_half_a_degree_of_the_true_lights() {
     let chrome = ChromeSet::standard(8, 71);
     let (_dir, cal) = run(&chrome, &auto());
-    let table = cal.unwrap().table();
+    let cal = cal.unwrap();
+    let table = cal.table();
     let object = tempfile::tempdir().unwrap();
     let capture = synth::Capture {
         noise_sigma: 0.002,
@@ -291,6 +292,16 @@ fn calibrated_lights_reconstruct_within_half_a_degree_of_the_true_lights() {
     assert!(
         mean < 0.5 && p99 < 0.5,
         "mean {mean}°, 99th percentile {p99}°"
+    );
+    // The same calibration written as a .lp file (y up) and read back as the light table
+    // gives the same normals.
+    let from_lp = normals(object.path(), Some(&cal.lp_table()));
+    let worst = (0..b.len())
+        .map(|i| (b.as_slice().unwrap()[i] - from_lp.as_slice().unwrap()[i]).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        worst < 1e-5,
+        ".lp round trip moved a normal component by {worst}"
     );
 }
 

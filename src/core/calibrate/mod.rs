@@ -354,6 +354,16 @@ impl Calibration {
         Ok(())
     }
 
+    /// The light table as a `.lp` file (RTIBuilder, RelightLab: y up; no intensities).
+    pub fn lp_table(&self) -> String {
+        let rows: Vec<(String, [f64; 3])> = self
+            .lights
+            .iter()
+            .map(|l| (l.name.clone(), l.highlight.direction))
+            .collect();
+        super::lights::lp::format(&rows)
+    }
+
     /// The light table in the seed's format: `name, x, y, z` or `name, x, y, z, intensity`.
     pub fn table(&self) -> String {
         let mut out = String::new();
