@@ -118,12 +118,15 @@ fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String>
     Ok((6.0 * noise).max(0.01 * 65535.0).max(0.25 * peak))
 }
 
+/// An image's significant residual: its pixels and its largest value.
+pub struct Significant {
+    pub pixels: Vec<(usize, usize)>,
+    pub peak: f64,
+}
+
 /// The pixels of `plane` whose residual is significant, and its largest residual; or why
 /// none are.
-pub fn significant(
-    plane: &Array2<u16>,
-    ctx: &Context,
-) -> Result<(Vec<(usize, usize)>, f64), String> {
+pub fn significant(plane: &Array2<u16>, ctx: &Context) -> Result<Significant, String> {
     let disc = Disc::new(ctx.circle, plane.dim());
     let floor = floor(plane, ctx, &disc)?;
     let pixels: Vec<(usize, usize)> = disc
@@ -134,7 +137,7 @@ pub fn significant(
         .iter()
         .map(|&p| residual(plane, ctx.env, p))
         .fold(0.0, f64::max);
-    Ok((pixels, peak))
+    Ok(Significant { pixels, peak })
 }
 
 /// A blob of significant residual.

@@ -477,7 +477,7 @@ fn find_highlights(
     ctx: &highlight::Context,
 ) -> Result<Vec<Result<Highlight, String>>, CalibrationError> {
     use rayon::prelude::*;
-    let significant: Vec<Result<(Vec<(usize, usize)>, f64), String>> = planes
+    let significant: Vec<Result<highlight::Significant, String>> = planes
         .par_iter()
         .map(|p| highlight::significant(p, ctx))
         .collect();
@@ -488,8 +488,11 @@ fn find_highlights(
             count: planes.len(),
         });
     }
-    let (lists, mut rises): (Vec<Vec<(usize, usize)>>, Vec<f64>) =
-        significant.into_iter().flatten().unzip();
+    let (lists, mut rises): (Vec<Vec<(usize, usize)>>, Vec<f64>) = significant
+        .into_iter()
+        .flatten()
+        .map(|s| (s.pixels, s.peak))
+        .unzip();
     let recurrence = environment::recurrence(planes[0].dim(), &lists);
     let mid = rises.len() / 2;
     let typical_rise = *rises.select_nth_unstable_by(mid, f64::total_cmp).1;
