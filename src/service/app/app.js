@@ -534,9 +534,13 @@ async function loadCalibrations() {
     for (const c of list) {
       const o = document.createElement("option");
       o.value = c.id;
-      // e.g. "2025-11-25 19:34 · 12 lights (5d1c2f0a)"
+      // e.g. "2025-11-25 19:34 · 12 lights, least confidence 0.78 (5d1c2f0a)"
       const when = c.created_at.slice(0, 16).replace("T", " ");
-      o.textContent = `${when} · ${c.lights.length} lights (${c.id.slice(0, 8)})`;
+      const confidences = c.lights
+        .map((l) => l.highlight && l.highlight.confidence)
+        .filter((v) => typeof v === "number");
+      const least = confidences.length ? `, least confidence ${Math.min(...confidences).toFixed(2)}` : "";
+      o.textContent = `${when} · ${c.lights.length} lights${least} (${c.id.slice(0, 8)})`;
       select.append(o);
     }
     $("calibration-field").hidden = false;
