@@ -53,7 +53,7 @@ impl Disc {
 
 /// The environment: per pixel, the median of the set, raised to the ambient image where
 /// that is brighter.
-pub fn estimate(planes: &[Array2<u16>], ambient: Option<&Array2<u16>>) -> Array2<u16> {
+pub fn estimate(planes: &[&Array2<u16>], ambient: Option<&Array2<u16>>) -> Array2<u16> {
     let (h, w) = planes[0].dim();
     let mut env = Array2::zeros((h, w));
     env.axis_iter_mut(ndarray::Axis(0))

@@ -192,7 +192,7 @@ pub fn calibrate(
             images.len()
         )));
     }
-    let planes: Vec<Array2<u16>> = images.iter().map(|i| i.plane.clone()).collect();
+    let planes: Vec<&Array2<u16>> = images.iter().map(|i| &i.plane).collect();
     let env = environment::estimate(&planes, ambient.map(|a| &a.plane));
     let (circle, outline) = match &settings.circle {
         CircleSource::Fit => {
@@ -303,7 +303,7 @@ pub fn calibrate(
     }
     check_spread(&lights)?;
     let mut max_image = planes[0].clone();
-    for p in &planes[1..] {
+    for p in planes[1..].iter().copied() {
         max_image.zip_mut_with(p, |m, &v| *m = (*m).max(v));
     }
     Ok(Calibration {
@@ -329,7 +329,7 @@ impl Calibration {
             )));
         }
         let (w, h) = check_images(matte)?;
-        let planes: Vec<Array2<u16>> = matte.iter().map(|i| i.plane.clone()).collect();
+        let planes: Vec<&Array2<u16>> = matte.iter().map(|i| &i.plane).collect();
         let fit = fit_outline(&environment::estimate(&planes, None).mapv(|v| v as f32 / 65535.0))
             .map_err(|reason| CalibrationError::Matte {
             name: matte[0].name.clone(),
@@ -473,7 +473,7 @@ impl Calibration {
 /// Each image's highlight: its significant residual first, for the recurrence map, then
 /// the highlight judged against it. Images that are all alike are one error.
 fn find_highlights(
-    planes: &[Array2<u16>],
+    planes: &[&Array2<u16>],
     ctx: &highlight::Context,
 ) -> Result<Vec<Result<Highlight, String>>, CalibrationError> {
     use rayon::prelude::*;
@@ -615,7 +615,7 @@ fn check_circle(c: &Circle, w: usize, h: usize) -> Result<(), CalibrationError> 
 /// The value at and above which a pixel counts as clipped: within 1 % of full scale of
 /// the brightest value in the set (JPEG's ringing leaves a clipped core a little below
 /// full scale).
-fn clip_level(planes: &[Array2<u16>]) -> u16 {
+fn clip_level(planes: &[&Array2<u16>]) -> u16 {
     let top = planes
         .iter()
         .map(|p| p.iter().copied().max().unwrap_or(0))
