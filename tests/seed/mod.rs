@@ -27,11 +27,12 @@ pub fn seed_or_skip(name: &str) -> Option<PathBuf> {
     let test = thread.name().unwrap_or("a test");
     // Straight to the stderr handle: libtest captures eprintln! of passing tests, and a
     // skip nobody sees looks like a pass.
-    let _ = writeln!(
-        std::io::stderr(),
-        "SKIPPED {test}: no seed data at {} (set PHOTOSTEREO_SEED_DATA=/path/to/seed-data)",
+    // One write: the line must not interleave with another test's output.
+    let line = format!(
+        "SKIPPED {test}: no seed data at {} (set PHOTOSTEREO_SEED_DATA=/path/to/seed-data)\n",
         root.display()
     );
+    let _ = std::io::stderr().write_all(line.as_bytes());
     None
 }
 
@@ -65,11 +66,11 @@ pub fn real_or_skip(name: &str) -> Option<PathBuf> {
     );
     let thread = std::thread::current();
     let test = thread.name().unwrap_or("a test");
-    let _ = writeln!(
-        std::io::stderr(),
-        "SKIPPED {test}: no real captures at {} (set PHOTOSTEREO_REAL_DATA=/path/to/real)",
+    let line = format!(
+        "SKIPPED {test}: no real captures at {} (set PHOTOSTEREO_REAL_DATA=/path/to/real)\n",
         root.display()
     );
+    let _ = std::io::stderr().write_all(line.as_bytes());
     None
 }
 
