@@ -11,25 +11,38 @@ pub const SEED_SETS: [&str; 3] = ["synth-images", "sphere-images", "dog-images"]
 
 /// A seed data set, or `None` (after printing the skip line) when it is missing outside CI.
 pub fn seed_or_skip(name: &str) -> Option<PathBuf> {
-    let root = std::env::var_os("PHOTOSTEREO_SEED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/seed-data"));
+    found_or_skip(
+        "PHOTOSTEREO_SEED_DATA",
+        "seed-data",
+        name,
+        "light_directions.csv",
+        "seed data",
+    )
+}
+
+/// `root/name` when it holds `marker` (root: `$env`, or `../shared/<shared>` beside the
+/// crate); otherwise fail under `CI=true`, or print the skip line and return `None`.
+fn found_or_skip(env: &str, shared: &str, name: &str, marker: &str, what: &str) -> Option<PathBuf> {
+    let root = std::env::var_os(env).map(PathBuf::from).unwrap_or_else(|| {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("../shared")
+            .join(shared)
+    });
     let dir = root.join(name);
-    if dir.join("light_directions.csv").is_file() {
+    if dir.join(marker).is_file() {
         return Some(dir);
     }
     assert!(
         std::env::var("CI").as_deref() != Ok("true"),
-        "seed data missing: {} (CI=true needs it; set PHOTOSTEREO_SEED_DATA=/path/to/seed-data)",
+        "{what} missing: {} (CI=true needs it; set {env}=/path/to/{shared})",
         dir.display()
     );
     let thread = std::thread::current();
     let test = thread.name().unwrap_or("a test");
-    // Straight to the stderr handle: libtest captures eprintln! of passing tests, and a
-    // skip nobody sees looks like a pass.
-    // One write: the line must not interleave with another test's output.
+    // Straight to the stderr handle, in one write: libtest captures eprintln! of passing
+    // tests, and a skip nobody sees (or split by another test's output) looks like a pass.
     let line = format!(
-        "SKIPPED {test}: no seed data at {} (set PHOTOSTEREO_SEED_DATA=/path/to/seed-data)\n",
+        "SKIPPED {test}: no {what} at {} (set {env}=/path/to/{shared})\n",
         root.display()
     );
     let _ = std::io::stderr().write_all(line.as_bytes());
@@ -52,26 +65,13 @@ pub(crate) use seed;
 /// A real capture under `../shared/real` (or `PHOTOSTEREO_REAL_DATA`), e.g.
 /// `chrome/psbox-probe1`, found and skipped exactly as the seed data is.
 pub fn real_or_skip(name: &str) -> Option<PathBuf> {
-    let root = std::env::var_os("PHOTOSTEREO_REAL_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/real"));
-    let dir = root.join(name);
-    if dir.join("NOTE.txt").is_file() {
-        return Some(dir);
-    }
-    assert!(
-        std::env::var("CI").as_deref() != Ok("true"),
-        "real captures missing: {} (CI=true needs them; set PHOTOSTEREO_REAL_DATA=/path/to/real)",
-        dir.display()
-    );
-    let thread = std::thread::current();
-    let test = thread.name().unwrap_or("a test");
-    let line = format!(
-        "SKIPPED {test}: no real captures at {} (set PHOTOSTEREO_REAL_DATA=/path/to/real)\n",
-        root.display()
-    );
-    let _ = std::io::stderr().write_all(line.as_bytes());
-    None
+    found_or_skip(
+        "PHOTOSTEREO_REAL_DATA",
+        "real",
+        name,
+        "NOTE.txt",
+        "real captures",
+    )
 }
 
 /// `real!("chrome/psbox-probe1")`: the capture's path, or return from the test (skipped).

@@ -10,6 +10,7 @@
 
 use super::Circle;
 use super::mirror::{Camera, dot, normalise};
+use super::sphere::solve3;
 
 /// A light placed from its rays.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -97,28 +98,6 @@ pub fn intersect(rays: &[([f64; 3], [f64; 3])]) -> Option<LightPosition> {
         residual: (sq.max(0.0) / rays.len() as f64).sqrt(),
         spread_deg: spread,
     })
-}
-
-/// Cramer's rule; None when singular.
-fn solve3(m: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
-    let det = |a: [[f64; 3]; 3]| {
-        a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
-            - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
-            + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0])
-    };
-    let d = det(m);
-    if d.abs() < 1e-12 {
-        return None;
-    }
-    let mut x = [0.0; 3];
-    for (k, xk) in x.iter_mut().enumerate() {
-        let mut a = m;
-        for r in 0..3 {
-            a[r][k] = b[r];
-        }
-        *xk = det(a) / d;
-    }
-    Some(x)
 }
 
 #[cfg(test)]

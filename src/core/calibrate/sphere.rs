@@ -459,7 +459,7 @@ fn geometric_fit(points: &[(f64, f64)], start: Circle, weights: &[f64]) -> Circl
 }
 
 /// Solve a 3×3 system by Cramer's rule; None when singular.
-fn solve3(m: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+pub(super) fn solve3(m: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
     let det = |a: [[f64; 3]; 3]| {
         a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
             - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
