@@ -56,6 +56,34 @@ pub struct BenchArgs {
     /// same work), as one space-separated value.
     #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
     pub sweep_options: Vec<String>,
+    /// Instead of the other measurements: health and status probes, and the server's
+    /// memory, under hostile loads, against `photostereo serve` run as a child process
+    /// with its default limits (a fresh data directory per scenario).
+    #[arg(long)]
+    pub hostile: bool,
+    /// With --hostile: the scenarios, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "quiet,idle,slowloris,slow-uploads,calibration-bomb,reshade-storm"
+    )]
+    pub scenarios: Vec<Scenario>,
+    /// With --hostile: how long each load lasts, seconds (requests it sent are answered
+    /// or given up within 120 s more).
+    #[arg(long, default_value_t = 15)]
+    pub hostile_seconds: u64,
+    /// With --hostile: connections the idle and slowloris loads open.
+    #[arg(long, default_value_t = 5000)]
+    pub hostile_connections: usize,
+    /// With --hostile: milliseconds between probes (a health and a status request, each
+    /// on a new connection).
+    #[arg(long, default_value_t = 100)]
+    pub probe_ms: u64,
+    /// With --hostile: more `serve` arguments, as one space-separated value (e.g.
+    /// `--workers 1`).
+    #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
+    pub serve_args: Vec<String>,
     /// Where to create the temporary directory [default: the system's temp dir].
     #[arg(long)]
     pub tmp_dir: Option<PathBuf>,
@@ -97,6 +125,80 @@ impl BenchArgs {
             (1..=64).contains(&self.connections),
             "--connections must be 1..=64"
         );
+        ensure!(
+            !self.scenarios.is_empty(),
+            "--scenarios needs at least one scenario"
+        );
+        ensure!(
+            (1..=600).contains(&self.hostile_seconds),
+            "--hostile-seconds must be 1..=600"
+        );
+        ensure!(
+            (1..=50_000).contains(&self.hostile_connections),
+            "--hostile-connections must be 1..=50000"
+        );
+        ensure!(
+            (10..=10_000).contains(&self.probe_ms),
+            "--probe-ms must be 10..=10000"
+        );
         Ok(())
+    }
+}
+
+/// A hostile load of `bench --hostile`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Scenario {
+    /// No load: the probes alone, for reference.
+    Quiet,
+    /// Connections that send nothing.
+    Idle,
+    /// Connections that trickle a request head, a byte a second, never ending it.
+    Slowloris,
+    /// Tenant A's 64 job uploads sent a byte at a time, while tenant B submits a job and
+    /// a calibration.
+    SlowUploads,
+    /// A calibration of 24 all-black 5792 × 5792 PNGs.
+    CalibrationBomb,
+    /// 40 re-shades (`shaded.png?light=`) at once of a finished 2048² job.
+    ReshadeStorm,
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        bench: BenchArgs,
+    }
+
+    fn parse(args: &[&str]) -> anyhow::Result<BenchArgs> {
+        let cli = Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied()))?;
+        cli.bench.check()?;
+        Ok(cli.bench)
+    }
+
+    #[test]
+    fn hostile_flags_parse_and_are_checked() {
+        let all = parse(&["--hostile"]).unwrap();
+        assert_eq!(all.scenarios.len(), 6);
+        assert_eq!((all.hostile_seconds, all.hostile_connections), (15, 5000));
+        let some = parse(&[
+            "--hostile",
+            "--scenarios",
+            "idle,reshade-storm",
+            "--serve-args",
+            "--workers 1",
+        ])
+        .unwrap();
+        assert_eq!(some.scenarios, [Scenario::Idle, Scenario::ReshadeStorm]);
+        assert_eq!(some.serve_args, ["--workers", "1"]);
+        assert!(parse(&["--hostile", "--scenarios", "flood"]).is_err());
+        assert!(parse(&["--hostile", "--hostile-seconds", "0"]).is_err());
+        assert!(parse(&["--hostile", "--probe-ms", "5"]).is_err());
+        assert!(parse(&["--hostile", "--hostile-connections", "0"]).is_err());
     }
 }

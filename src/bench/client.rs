@@ -1,5 +1,6 @@
 //! A small HTTP/1.1 client on `tokio::net::TcpStream` for the bench's own server: requests
-//! without a body over keep-alive connections, Content-Length and chunked responses.
+//! (with a body held in memory, or none) over keep-alive connections, Content-Length and
+//! chunked responses.
 //! It only talks to loopback, and every wait has a timeout.
 
 use std::net::SocketAddr;
@@ -52,14 +53,37 @@ impl Conn {
 
     /// A request without a body, and its response.
     pub(super) async fn request(&mut self, method: &str, path: &str) -> anyhow::Result<Response> {
+        self.send(method, path, &[], None, REQUEST_TIMEOUT).await
+    }
+
+    /// A request with extra headers and a body (sent with its Content-Length), and its
+    /// response, within `timeout`.
+    pub(super) async fn send(
+        &mut self,
+        method: &str,
+        path: &str,
+        headers: &[(&str, &str)],
+        body: Option<&[u8]>,
+        timeout: Duration,
+    ) -> anyhow::Result<Response> {
         let exchange = async {
-            let head = format!("{method} {path} HTTP/1.1\r\nHost: {}\r\n\r\n", self.host);
+            let mut head = format!("{method} {path} HTTP/1.1\r\nHost: {}\r\n", self.host);
+            for (name, value) in headers {
+                head.push_str(&format!("{name}: {value}\r\n"));
+            }
+            if let Some(body) = body {
+                head.push_str(&format!("Content-Length: {}\r\n", body.len()));
+            }
+            head.push_str("\r\n");
             let w = self.stream.get_mut();
             w.write_all(head.as_bytes()).await?;
+            if let Some(body) = body {
+                w.write_all(body).await?;
+            }
             w.flush().await?;
             self.read_response().await
         };
-        let r = tokio::time::timeout(REQUEST_TIMEOUT, exchange).await;
+        let r = tokio::time::timeout(timeout, exchange).await;
         match r {
             Ok(Ok(r)) => Ok(r),
             Ok(Err(e)) => {
@@ -68,7 +92,7 @@ impl Conn {
             }
             Err(_) => {
                 self.closed = true;
-                bail!("{method} {path}: no answer within {REQUEST_TIMEOUT:?}")
+                bail!("{method} {path}: no answer within {timeout:?}")
             }
         }
     }

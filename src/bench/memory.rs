@@ -1,6 +1,7 @@
-//! Memory and CPU figures from Linux: the process's own peak and current resident size
-//! (/proc/self/status, reset through /proc/self/clear_refs), a child's peak (`wait4`), and
-//! CPU time, of this process (`getrusage`) and of other process trees (/proc).
+//! Memory and CPU figures from Linux: the peak and current resident size of this process or
+//! a child (/proc/<pid>/status, reset through /proc/<pid>/clear_refs), a child's peak
+//! (`wait4`), and CPU time, of this process (`getrusage`) and of other process trees
+//! (/proc).
 
 /// The unit the bench prints memory in (10⁶ bytes).
 pub(super) const MB: f64 = 1e6;
@@ -40,12 +41,22 @@ pub(super) fn wait_with_peak(
 
 /// Reset the process's peak resident size (VmHWM) to its current size (Linux only).
 pub(super) fn reset_peak() -> bool {
-    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+    reset_peak_of("self")
+}
+
+/// [`reset_peak`] of process `pid` (`"self"` or a number; a child of this one, say).
+pub(super) fn reset_peak_of(pid: &str) -> bool {
+    std::fs::write(format!("/proc/{pid}/clear_refs"), "5").is_ok()
 }
 
 /// A `kB` field of /proc/self/status, in bytes.
 pub(super) fn status_bytes(key: &str) -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    status_bytes_of("self", key)
+}
+
+/// A `kB` field of /proc/<pid>/status, in bytes.
+pub(super) fn status_bytes_of(pid: &str, key: &str) -> Option<f64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     status.lines().find_map(|line| {
         let rest = line.strip_prefix(key)?.strip_prefix(':')?;
         let kb: f64 = rest.split_whitespace().next()?.parse().ok()?;

@@ -5,18 +5,23 @@
 //! Everything lives in a temporary directory that is removed at the end (also on errors).
 //! The HTTP side is a small HTTP/1.1 client written here on `tokio::net::TcpStream`
 //! (multipart uploads streamed from disk, keep-alive status requests); it only ever talks
-//! to the in-process server on 127.0.0.1, and every network wait has a timeout.
+//! to its own server on 127.0.0.1 (in this process, or a child process for `--hostile`),
+//! and every network wait has a timeout.
 //!
 //! The module reads downward: [`args`] holds the flags, [`sets`] renders the image sets,
 //! [`timing`] times the core jobs on them (and measures their memory through [`memory`]),
 //! [`http`] drives the in-process server with the small client in [`client`], [`sweep`]
-//! runs the light-count sweep in child processes, and [`tables`] prints what was measured; [`stats`] holds the medians and percentiles they
-//! share.
+//! runs the light-count sweep in child processes, [`hostile`] probes a `serve` child process
+//! ([`child`]) with [`probe`] under hostile loads, and [`tables`] prints what was measured;
+//! [`stats`] holds the medians and percentiles they share.
 
 mod args;
+mod child;
 mod client;
+mod hostile;
 mod http;
 mod memory;
+mod probe;
 mod sets;
 mod stats;
 mod sweep;
@@ -44,6 +49,15 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
 
     let machine = machine();
     let load_at_start = load_average();
+    if args.hostile {
+        let run = hostile::run(&args, &tmp.0)?;
+        let loads = (load_at_start.as_str(), load_average());
+        print!(
+            "{}",
+            tables::hostile_table(&args, &machine, (loads.0, &loads.1), &run)
+        );
+        return Ok(());
+    }
     if !args.light_sweep.is_empty() {
         let against = args.against.as_deref();
         let options = &args.sweep_options;
