@@ -312,51 +312,44 @@ impl Load<'_> {
         outcome
     }
 
-    /// Open [`Load::connections`] connections and hold them until the deadline, silent
-    /// or trickling a request head that never ends.
+    /// Open [`Load::connections`] connections (until the deadline) and hold each until the
+    /// deadline from the moment it opens, silent or trickling a request head that never
+    /// ends.
     async fn hold_connections(&self, trickle: bool) -> anyhow::Result<String> {
         let n = self.connections;
-        let addr = self.addr;
+        let (addr, start, deadline) = (self.addr, self.start, self.deadline);
         let opened: Vec<_> = futures_util::stream::iter(0..n)
-            .map(|_| async move {
-                tokio::time::timeout(Duration::from_secs(5), TcpStream::connect(addr)).await
+            .map(|i| async move {
+                let left = deadline.saturating_duration_since(Instant::now());
+                let wait = left.min(Duration::from_secs(5));
+                let stream = match tokio::time::timeout(wait, TcpStream::connect(addr)).await {
+                    Ok(Ok(stream)) => stream,
+                    Ok(Err(e)) => return Err(e.to_string()),
+                    Err(_) => return Err(format!("no connection within {wait:?}")),
+                };
+                let stagger = SLOWLORIS_EVERY.mul_f64(i as f64 / n as f64);
+                let held = hold(stream, trickle.then_some(stagger), start, deadline);
+                Ok(tokio::spawn(held))
             })
             .buffer_unordered(CONNECTING_AT_ONCE)
             .collect()
             .await;
-        let mut tasks = Vec::with_capacity(n);
-        let mut refused = 0;
+        let mut ends = Vec::with_capacity(n);
+        let mut failed = 0;
         let mut first_error = None;
-        for (i, c) in opened.into_iter().enumerate() {
+        for c in opened {
             match c {
-                Ok(Ok(stream)) => {
-                    let stagger = SLOWLORIS_EVERY.mul_f64(i as f64 / n as f64);
-                    let (start, deadline) = (self.start, self.deadline);
-                    tasks.push(tokio::spawn(hold(
-                        stream,
-                        trickle.then_some(stagger),
-                        start,
-                        deadline,
-                    )));
-                }
-                Ok(Err(e)) => {
-                    refused += 1;
-                    first_error.get_or_insert_with(|| e.to_string());
-                }
-                Err(_) => {
-                    refused += 1;
-                    first_error.get_or_insert_with(|| "connect timed out (5 s)".into());
+                Ok(task) => ends.push(task.await.unwrap_or(Ended::Closed(f64::NAN))),
+                Err(e) => {
+                    failed += 1;
+                    first_error.get_or_insert(e);
                 }
             }
         }
-        let mut ends = Vec::with_capacity(tasks.len());
-        for t in tasks {
-            ends.push(t.await.unwrap_or(Ended::Closed(f64::NAN)));
-        }
         if let Some(e) = first_error {
-            eprintln!("bench: {refused} connections failed, the first: {e}");
+            eprintln!("bench: {failed} connections failed, the first: {e}");
         }
-        Ok(held_summary(n, &ends, self.deadline - self.start))
+        Ok(held_summary(n, &ends, deadline - start))
     }
 
     /// Tenant A's slow uploads take the upload slots; then tenant B submits a job and a
