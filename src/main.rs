@@ -197,14 +197,18 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
         );
     }
     let camera = match args.focal_length {
-        Some(f) if f.is_finite() && f > 0.0 => {
+        Some(f) if calibrate::FOCAL_PX.contains(&f) => {
             let (h, w) = images.first().map_or((1, 1), |i| i.plane.dim());
             Camera::Perspective {
                 focal_px: f,
                 principal: [(w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0],
             }
         }
-        Some(f) => anyhow::bail!("--focal-length must be a positive number of pixels, got {f}"),
+        Some(f) => anyhow::bail!(
+            "--focal-length must be a number of pixels from {} to {:e} (leave it out for a long lens far away), got {f}",
+            calibrate::FOCAL_PX.start(),
+            calibrate::FOCAL_PX.end()
+        ),
         None => Camera::Orthographic,
     };
     let settings = Settings {

@@ -70,6 +70,33 @@ pub fn check_table(lights: &[Light]) -> Result<(), InputError> {
     Ok(())
 }
 
+/// Longest light name (bytes).
+pub const MAX_NAME_BYTES: usize = 255;
+
+/// Whether `name` can be a light's name in a CSV table and read back as itself: not
+/// empty, at most [`MAX_NAME_BYTES`], no `,` (the field separator), `#` (a comment), `"`,
+/// control characters, or space at either end. The reason, if not.
+pub fn check_name(name: &str) -> Result<(), String> {
+    if name.is_empty() {
+        return Err("a name is empty".into());
+    }
+    if name.len() > MAX_NAME_BYTES {
+        return Err(format!("a name is longer than {MAX_NAME_BYTES} bytes"));
+    }
+    if let Some(c) = name
+        .chars()
+        .find(|c| matches!(c, ',' | '#' | '"') || c.is_control())
+    {
+        return Err(format!(
+            "{name:?} contains {c:?}: a light name cannot hold a comma, #, a quote or a control character"
+        ));
+    }
+    if name.trim() != name {
+        return Err(format!("{name:?} starts or ends with a space"));
+    }
+    Ok(())
+}
+
 /// Parse the bytes of a light table, refusing text that is not UTF-8.
 pub fn parse_bytes(bytes: &[u8]) -> Result<Vec<Light>, InputError> {
     let text = std::str::from_utf8(bytes).map_err(|e| {

@@ -23,6 +23,7 @@ use uuid::Uuid;
 use crate::core::InputError;
 use crate::core::calibrate::{self, Calibration, Camera, Circle, CircleSource, Settings};
 use crate::core::intake::{self, Limits};
+use crate::core::lights;
 
 use super::AppState;
 use super::blobs::Served;
@@ -31,7 +32,7 @@ use super::download::{self, not_modified, not_modified_response};
 use super::error::ApiError;
 use super::idempotency::{self, PartHasher};
 use super::problem::Problem;
-use super::repo::{ArtifactInfo, CalibrationRecord, Remembered};
+use super::repo::{ArtifactInfo, CalibrationRecord, Remembered, RepoError, readable};
 use super::routes::{
     ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, open_submission, owned_calibration,
     request_id,
@@ -347,10 +348,14 @@ async fn accept(
         table: made.table,
         artifacts: made.files,
     };
+    // Read back through the code that serves it before it is stored: a record that could
+    // not be listed or used by a job is never committed.
+    let view = CalibrationView::from_record(record.clone())?;
+    lights::parse(&record.table)
+        .map_err(|e| ApiError::internal(format!("calibration light table: {e}")))?;
     let stored = record.clone();
     state.repo(move |r| r.insert_calibration(&stored)).await?;
     staging.keep();
-    let view = CalibrationView::from_record(record.clone())?;
     let answer = Remembered {
         body_hash,
         status: StatusCode::CREATED.as_u16(),
@@ -509,13 +514,7 @@ async fn receive(
                 upload::once(&form.names, "names")?;
                 let text =
                     text_part(&mut field, MAX_LIGHTS_BYTES, "names", tap, config, hash).await?;
-                form.names = Some(
-                    text.lines()
-                        .map(str::trim)
-                        .filter(|l| !l.is_empty())
-                        .map(String::from)
-                        .collect(),
-                );
+                form.names = Some(parse_names(&text)?);
             }
             "circle" => {
                 upload::once(&form.circle, "circle")?;
@@ -598,6 +597,20 @@ async fn text_part(
     String::from_utf8(bytes).map_err(|_| ApiError::invalid(format!("{part}: not UTF-8 text")))
 }
 
+/// One light name per line (blank lines skipped), each one a light table can hold.
+fn parse_names(text: &str) -> Result<Vec<String>, ApiError> {
+    text.lines()
+        .map(str::trim)
+        .enumerate()
+        .filter(|(_, l)| !l.is_empty())
+        .map(|(i, l)| {
+            lights::check_name(l)
+                .map(|()| l.to_string())
+                .map_err(|why| ApiError::invalid(format!("names, line {}: {why}", i + 1)))
+        })
+        .collect()
+}
+
 /// `cx,cy,r`: three finite numbers, pixels.
 fn parse_circle(text: &str) -> Result<Circle, ApiError> {
     let bad = || {
@@ -619,9 +632,11 @@ fn parse_circle(text: &str) -> Result<Circle, ApiError> {
 
 fn parse_focal_length(text: &str) -> Result<f64, ApiError> {
     match text.trim().parse::<f64>() {
-        Ok(f) if f.is_finite() && f > 0.0 => Ok(f),
+        Ok(f) if calibrate::FOCAL_PX.contains(&f) => Ok(f),
         _ => Err(ApiError::invalid(format!(
-            "focal_length must be a positive number of pixels, got {:?}",
+            "focal_length must be a number of pixels from {} to {:e} (leave it out for a long lens far away), got {:?}",
+            calibrate::FOCAL_PX.start(),
+            calibrate::FOCAL_PX.end(),
             text.trim()
         ))),
     }
@@ -827,10 +842,11 @@ pub async fn list_calibrations(
         .repo(move |r| r.list_calibrations(scope.as_deref(), limit + 1, before))
         .await?;
     let next_cursor = page_query.cut(&mut page, |r| (r.created_at, r.id));
-    let calibrations = page
-        .into_iter()
-        .map(CalibrationView::from_record)
-        .collect::<Result<_, _>>()?;
+    let calibrations = readable(
+        page.into_iter()
+            .map(|r| CalibrationView::from_record(r).map_err(|e| RepoError::new(e.to_string()))),
+        "calibration",
+    );
     let mut response = Json(CalibrationList {
         calibrations,
         next_cursor: next_cursor.clone(),
@@ -997,7 +1013,7 @@ mod tests {
             assert_eq!(parse_circle(bad).unwrap_err().status(), 422, "{bad}");
         }
         assert_eq!(parse_focal_length("2400").unwrap(), 2400.0);
-        for bad in ["0", "-1", "NaN", "x"] {
+        for bad in ["0", "-1", "NaN", "x", "inf", "1e10", "0.5"] {
             assert!(parse_focal_length(bad).is_err(), "{bad}");
         }
         assert!(parse_flag("true").unwrap());

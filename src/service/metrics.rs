@@ -170,6 +170,11 @@ impl Metrics {
                 "Images jobs took decoded ahead, during their upload.",
                 self.prefetched_images.load(Ordering::Relaxed),
             ),
+            (
+                "photostereo_unreadable_records_total",
+                "Stored records left out of listings because they could not be read (each logged).",
+                super::repo::unreadable_records(),
+            ),
         ] {
             let _ = writeln!(
                 out,

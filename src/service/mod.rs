@@ -885,6 +885,18 @@ fn lock_data_dir(dir: &std::path::Path) -> anyhow::Result<std::fs::File> {
 /// [`Caller`] goes into the request's extensions. With no keys, every caller is
 /// [`Caller::open`].
 async fn authenticate(State(state): State<AppState>, mut req: Request, next: Next) -> Response {
+    // Which of two keys would count is ambiguous between proxies and servers: refuse both.
+    if req
+        .headers()
+        .get_all(header::AUTHORIZATION)
+        .iter()
+        .nth(1)
+        .is_some()
+    {
+        let tap = upload::BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
+        tokio::spawn(async move { tap.drain(upload::LINGER).await });
+        return ApiError::bad_request("send one Authorization header, not several").into_response();
+    }
     let keys = state.keys();
     if keys.is_open() {
         req.extensions_mut().insert(Caller::open());

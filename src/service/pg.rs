@@ -21,6 +21,7 @@ use super::problem::Problem;
 use super::repo::{
     Admission, CalibrationRecord, Callback, Finish, JobRecord, JobRepo, JobStatus, Lease,
     RawCalibration, RawRecord, Reaped, Remembered, RepoError, RepoResult, decode_calibration,
+    readable,
 };
 
 /// Schema versions, applied in order; `photostereo_schema.version` is the number applied.
@@ -297,7 +298,10 @@ fn read_record(row: &Row) -> RawRecord {
 }
 
 fn records(rows: Vec<Row>) -> RepoResult<Vec<JobRecord>> {
-    rows.iter().map(|r| read_record(r).decode()).collect()
+    Ok(readable(
+        rows.iter().map(|r| read_record(r).decode()),
+        "job",
+    ))
 }
 
 fn read_calibration(row: &Row) -> RawCalibration {
@@ -1002,9 +1006,10 @@ impl JobRepo for PgRepo {
                 )
                 .await
                 .map_err(db_error)?;
-            rows.iter()
-                .map(|r| decode_calibration(read_calibration(r)))
-                .collect()
+            Ok(readable(
+                rows.iter().map(|r| decode_calibration(read_calibration(r))),
+                "calibration",
+            ))
         })
     }
 

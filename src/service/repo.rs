@@ -614,18 +614,40 @@ pub(super) fn decode_calibration(
     })
 }
 
+/// Rows of a listing that could not be decoded since the process started (see
+/// [`readable`]).
+static UNREADABLE: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// How many stored records a listing has left out because they could not be read.
+pub fn unreadable_records() -> u64 {
+    UNREADABLE.load(std::sync::atomic::Ordering::Relaxed)
+}
+
+/// The decoded rows of a listing. A row that does not decode is logged, counted
+/// ([`unreadable_records`]) and left out: one bad record never breaks a list.
+pub(super) fn readable<T>(decoded: impl IntoIterator<Item = RepoResult<T>>, what: &str) -> Vec<T> {
+    decoded
+        .into_iter()
+        .filter_map(|r| {
+            r.map_err(|e| {
+                UNREADABLE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                tracing::error!(error = %e, "a stored {what} cannot be read; left out of the list");
+            })
+            .ok()
+        })
+        .collect()
+}
+
 fn query_records(
     conn: &Connection,
     sql: &str,
     params: impl rusqlite::Params,
 ) -> RepoResult<Vec<JobRecord>> {
     let mut stmt = conn.prepare_cached(sql)?;
-    let rows = stmt.query_map(params, read_record)?;
-    let mut out = Vec::new();
-    for raw in rows {
-        out.push(raw?.decode()?);
-    }
-    Ok(out)
+    let rows = stmt
+        .query_map(params, read_record)?
+        .collect::<rusqlite::Result<Vec<_>>>()?;
+    Ok(readable(rows.into_iter().map(RawRecord::decode), "job"))
 }
 
 impl JobRepo for SqliteRepo {
@@ -1162,11 +1184,11 @@ impl JobRepo for SqliteRepo {
                 params![tenant, first, at, id, limit as i64],
                 read_calibration,
             )?;
-            let mut out = Vec::new();
-            for raw in rows {
-                out.push(decode_calibration(raw?)?);
-            }
-            Ok(out)
+            let rows = rows.collect::<rusqlite::Result<Vec<_>>>()?;
+            Ok(readable(
+                rows.into_iter().map(decode_calibration),
+                "calibration",
+            ))
         })
     }
 

@@ -438,8 +438,8 @@ pub(super) async fn open_submission(
             ),
         ));
     };
-    let since = now_ms() - idempotency::WINDOW.as_millis() as i64;
-    let earlier = match idempotency_key.clone() {
+    let mut since = now_ms() - idempotency::WINDOW.as_millis() as i64;
+    let mut earlier = match idempotency_key.clone() {
         Some(key) => {
             let tenant = caller.tenant.clone();
             state
@@ -448,6 +448,14 @@ pub(super) async fn open_submission(
         }
         None => None,
     };
+    // An answer is replayed only while what it created exists: once that is deleted (or
+    // expired) the key starts afresh, and this request's answer replaces the old one.
+    if let Some(e) = &earlier
+        && !still_exists(state, e).await?
+    {
+        since = e.created_at + 1;
+        earlier = None;
+    }
     Ok(Submission {
         request_id,
         idempotency_key,
@@ -456,6 +464,26 @@ pub(super) async fn open_submission(
         since,
         _receiving: receiving,
     })
+}
+
+/// Whether the job or calibration an earlier answer created (its `Location`) is still
+/// stored. An answer without one created nothing that could go.
+async fn still_exists(state: &AppState, earlier: &Remembered) -> Result<bool, ApiError> {
+    let Some(location) = earlier.location.as_deref() else {
+        return Ok(true);
+    };
+    let id = location
+        .rsplit('/')
+        .next()
+        .and_then(|s| Uuid::parse_str(s).ok());
+    let Some(id) = id else {
+        return Ok(true);
+    };
+    if location.starts_with("/v1/calibrations/") {
+        Ok(state.repo(move |r| r.get_calibration(id)).await?.is_some())
+    } else {
+        Ok(state.repo(move |r| r.get(id)).await?.is_some())
+    }
 }
 
 async fn accept_job(

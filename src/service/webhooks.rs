@@ -68,9 +68,26 @@ pub fn check_url(url: &str, allow: &[String]) -> Result<Target, ApiError> {
             "the host {host:?} is not on this server's webhook allow-list (--webhook-allow-host)"
         )));
     }
+    // The authority's own text: `http` drops a port it cannot read as u16 (99999 would
+    // become the default port).
+    let after_host = authority
+        .as_str()
+        .rsplit_once(']')
+        .map_or(authority.as_str(), |(_, rest)| rest);
+    let port = match after_host.rsplit_once(':') {
+        None => 80,
+        Some((_, p)) => match p.parse::<u16>() {
+            Ok(n) if n >= 1 && p.bytes().all(|b| b.is_ascii_digit()) => n,
+            _ => {
+                return Err(bad(format!(
+                    "the port {p:?} is not a port number (1 to 65535)"
+                )));
+            }
+        },
+    };
     Ok(Target {
         host,
-        port: authority.port_u16().unwrap_or(80),
+        port,
         path: uri
             .path_and_query()
             .map(|p| p.as_str().to_string())
@@ -195,17 +212,33 @@ pub async fn post(
             }
             answer.extend_from_slice(&buf[..n]);
         }
-        let line = String::from_utf8_lossy(&answer);
-        let status = line
-            .strip_prefix("HTTP/1.")
-            .and_then(|rest| rest.get(2..5))
-            .and_then(|code| code.parse::<u16>().ok())
-            .ok_or_else(|| "the receiver did not answer HTTP".to_string())?;
-        Ok(status)
+        status_code(&answer).ok_or_else(|| {
+            let end = answer
+                .iter()
+                .position(|&b| b == b'\r')
+                .unwrap_or(answer.len());
+            format!(
+                "the receiver did not answer with an HTTP/1.x status line: {:?}",
+                String::from_utf8_lossy(&answer[..end.min(80)])
+            )
+        })
     };
     tokio::time::timeout(ATTEMPT_TIMEOUT, attempt)
         .await
         .unwrap_or_else(|_| Err(format!("no answer within {} s", ATTEMPT_TIMEOUT.as_secs())))
+}
+
+/// The status of an HTTP/1.x answer: `HTTP/1.<digit> <3 digits>` followed by a space or
+/// the line's end (RFC 9112 §4), nothing looser: `HTTP/1.1 2000 OK` is no 200.
+fn status_code(answer: &[u8]) -> Option<u16> {
+    let rest = answer.strip_prefix(b"HTTP/1.")?;
+    let (minor, code, after) = (rest.first()?, rest.get(2..5)?, rest.get(5));
+    let well_formed = minor.is_ascii_digit()
+        && rest.get(1) == Some(&b' ')
+        && code.iter().all(u8::is_ascii_digit)
+        && matches!(after, Some(b' ' | b'\r'));
+    let status = std::str::from_utf8(code).ok()?.parse::<u16>().ok()?;
+    (well_formed && (100..=599).contains(&status)).then_some(status)
 }
 
 /// `--webhook-secret` values (`tenant:secret`) by tenant.
@@ -362,6 +395,48 @@ mod tests {
         );
         assert_eq!(mac[..4], [0x60, 0xe4, 0x31, 0x59]);
         assert!(signature(b"k", 5, b"{}").starts_with("v1="));
+    }
+
+    #[test]
+    fn ports_outside_1_to_65535_are_refused() {
+        let allow = vec!["127.0.0.1".to_string()];
+        for bad in ["99999", "65616", "0", "65536", "-1", "80a"] {
+            let url = format!("http://127.0.0.1:{bad}/hook");
+            if let Err(e) = check_url(&url, &allow) {
+                assert_eq!(e.status(), 422, "{url}");
+            } else {
+                panic!("{url} accepted");
+            }
+        }
+        assert_eq!(
+            check_url("http://127.0.0.1:65535/", &allow).unwrap().port,
+            65535
+        );
+        assert_eq!(check_url("http://127.0.0.1:1/", &allow).unwrap().port, 1);
+    }
+
+    #[test]
+    fn status_lines_are_read_strictly() {
+        for (line, want) in [
+            (&b"HTTP/1.1 200 OK\r\n"[..], Some(200)),
+            (b"HTTP/1.0 204\r\n", Some(204)),
+            (b"HTTP/1.1 503 Busy\r\n", Some(503)),
+            (b"HTTP/1.1 2000 OK\r\n", None),
+            (b"HTTP/1.1 20 OK\r\n", None),
+            (b"HTTP/1.1 +20 OK\r\n", None),
+            (b"HTTP/1.1 099 Low\r\n", None),
+            (b"HTTP/1.1  200 OK\r\n", None),
+            (b"HTTP/2 200 OK\r\n", None),
+            (b"HTTP/1.1 200", None),
+            (b"SIP/1.1 200 OK\r\n", None),
+        ] {
+            assert_eq!(
+                status_code(line),
+                want,
+                "{:?}",
+                String::from_utf8_lossy(line)
+            );
+        }
     }
 
     #[test]

@@ -26,7 +26,7 @@ use serde::Serialize;
 use thiserror::Error;
 
 pub use highlight::{Highlight, MAX_BEHIND_DEG};
-pub use mirror::Camera;
+pub use mirror::{Camera, FOCAL_PX};
 pub use positions::LightPosition;
 pub use sphere::{OutlineFit, circle_of_mask, fit_outline};
 
