@@ -117,6 +117,30 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_UPLOAD_TIMEOUT", default_value = "10m", value_parser = parse_duration)]
     pub upload_timeout: Duration,
 
+    /// Most HTTP connections open at once [default: 4096, or fewer when the open-files
+    /// limit, raised to its hard limit at start, leaves less room beside the files jobs
+    /// and uploads hold]. At the cap a new connection takes the place of the one idle
+    /// longest (between requests, or still sending its first request head); when every
+    /// connection has a request in flight it gets 503 with Retry-After and is closed.
+    #[arg(long, env = "PHOTOSTEREO_MAX_CONNECTIONS", value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_connections: Option<u32>,
+
+    /// Longest a request head may take to arrive, from its first byte (for a
+    /// connection's first request, from the connection's accept); the connection is closed
+    /// past it.
+    #[arg(long, env = "PHOTOSTEREO_HEADER_TIMEOUT", default_value = "20s", value_parser = parse_timeout)]
+    pub header_timeout: Duration,
+
+    /// How long a connection may stay open between requests (keep-alive) before it is
+    /// closed.
+    #[arg(long, env = "PHOTOSTEREO_KEEP_ALIVE_TIMEOUT", default_value = "75s", value_parser = parse_timeout)]
+    pub keep_alive_timeout: Duration,
+
+    /// How long a client may read nothing of a response the server is writing before its
+    /// connection is closed.
+    #[arg(long, env = "PHOTOSTEREO_SEND_TIMEOUT", default_value = "60s", value_parser = parse_timeout)]
+    pub send_timeout: Duration,
+
     /// Refuse new jobs with 507 while the data directory's file system has less free
     /// space than this.
     #[arg(long, env = "PHOTOSTEREO_MIN_FREE_DISK", default_value = "1GiB", value_parser = parse_size)]
@@ -228,6 +252,11 @@ pub struct Config {
     pub max_uploads: usize,
     pub upload_timeout: Duration,
     pub min_free_disk: u64,
+    /// HTTP connections open at once; None: from the open-files limit.
+    pub max_connections: Option<usize>,
+    pub header_timeout: Duration,
+    pub keep_alive_timeout: Duration,
+    pub send_timeout: Duration,
     /// `--api-key` values (`tenant:secret` or a bare secret).
     pub api_keys: Vec<String>,
     pub api_keys_file: Option<PathBuf>,
@@ -282,6 +311,10 @@ impl Config {
             max_uploads: 64,
             upload_timeout: Duration::from_secs(10 * 60),
             min_free_disk: 1 << 30,
+            max_connections: None,
+            header_timeout: Duration::from_secs(20),
+            keep_alive_timeout: Duration::from_secs(75),
+            send_timeout: Duration::from_secs(60),
             api_keys: Vec::new(),
             api_keys_file: None,
             tenant_max_jobs: 32,
@@ -317,6 +350,15 @@ fn parse_lease(s: &str) -> Result<Duration, String> {
     Ok(d)
 }
 
+/// A connection timeout: more than zero.
+fn parse_timeout(s: &str) -> Result<Duration, String> {
+    let d = parse_duration(s)?;
+    if d.is_zero() {
+        return Err(format!("{s}: a timeout is more than zero"));
+    }
+    Ok(d)
+}
+
 fn default_workers() -> usize {
     std::thread::available_parallelism()
         .map(|n| n.get())
@@ -345,6 +387,10 @@ impl From<&ServeArgs> for Config {
         c.max_uploads = a.max_uploads as usize;
         c.upload_timeout = a.upload_timeout;
         c.min_free_disk = a.min_free_disk;
+        c.max_connections = a.max_connections.map(|n| n as usize);
+        c.header_timeout = a.header_timeout;
+        c.keep_alive_timeout = a.keep_alive_timeout;
+        c.send_timeout = a.send_timeout;
         c.api_keys = a
             .api_keys
             .iter()
@@ -403,6 +449,10 @@ mod tests {
         assert_eq!(c.queue_length, d.queue_length);
         assert_eq!(c.max_parts, d.max_parts);
         assert_eq!(c.max_images, d.max_images);
+        assert_eq!(c.max_connections, d.max_connections);
+        assert_eq!(c.header_timeout, d.header_timeout);
+        assert_eq!(c.keep_alive_timeout, d.keep_alive_timeout);
+        assert_eq!(c.send_timeout, d.send_timeout);
         assert_eq!(c.tenant_max_jobs, d.tenant_max_jobs);
         assert_eq!(
             c.tenant_submissions_per_minute,
@@ -444,6 +494,12 @@ mod tests {
         assert_eq!(Config::from(&old.serve).max_input_bytes, 1 << 20);
         assert!(Cli::try_parse_from(["x", "--retention", "soon"]).is_err());
         assert!(Cli::try_parse_from(["x", "--job-lease", "500ms"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--header-timeout", "0"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--max-connections", "0"]).is_err());
+        let conns = ["x", "--max-connections", "10", "--keep-alive-timeout", "2s"];
+        let conns = Config::from(&Cli::try_parse_from(conns).unwrap().serve);
+        assert_eq!(conns.max_connections, Some(10));
+        assert_eq!(conns.keep_alive_timeout, Duration::from_secs(2));
         let db = ["x", "--database-url", "postgres://u@127.0.0.1/p"];
         assert!(
             Cli::try_parse_from(db).is_err(),

@@ -2,8 +2,8 @@
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use super::repo::JobStatus;
@@ -29,6 +29,23 @@ pub struct Metrics {
     pub prefetched_images: AtomicU64,
     /// (tenant, limit) → submissions refused with 429.
     quota_refusals: Mutex<BTreeMap<(String, &'static str), u64>>,
+    /// The HTTP server's connections (kept by `connections`).
+    pub connections: Arc<ConnectionCounters>,
+}
+
+/// What the accept loop and its connections count.
+#[derive(Default)]
+pub struct ConnectionCounters {
+    pub open: AtomicU64,
+    pub limit: AtomicU64,
+    pub accepted: AtomicU64,
+    /// Idle connections closed to make room for a new one.
+    pub evicted: AtomicU64,
+    /// Connections answered 503 at the cap, every open one having a request in flight.
+    pub refused: AtomicU64,
+    pub header_timeouts: AtomicU64,
+    pub keep_alive_timeouts: AtomicU64,
+    pub send_timeouts: AtomicU64,
 }
 
 /// Gauges read at scrape time.
@@ -181,6 +198,7 @@ impl Metrics {
                 "# HELP {name} {help}\n# TYPE {name} counter\n{name} {v}"
             );
         }
+        self.render_connections(&mut out);
 
         let _ = writeln!(
             out,
@@ -229,5 +247,62 @@ impl Metrics {
             );
         }
         out
+    }
+
+    fn render_connections(&self, out: &mut String) {
+        let c = &*self.connections;
+        let read = |n: &AtomicU64| n.load(Ordering::Relaxed);
+        for (name, kind, help, v) in [
+            (
+                "photostereo_connections_open",
+                "gauge",
+                "HTTP connections open now.",
+                read(&c.open),
+            ),
+            (
+                "photostereo_connections_max",
+                "gauge",
+                "Most HTTP connections open at once (--max-connections).",
+                read(&c.limit),
+            ),
+            (
+                "photostereo_connections_accepted_total",
+                "counter",
+                "HTTP connections accepted and served.",
+                read(&c.accepted),
+            ),
+            (
+                "photostereo_connections_evicted_total",
+                "counter",
+                "Idle HTTP connections closed to make room for a new one at the cap.",
+                read(&c.evicted),
+            ),
+            (
+                "photostereo_connections_refused_total",
+                "counter",
+                "HTTP connections answered 503 at the cap, every open one busy.",
+                read(&c.refused),
+            ),
+        ] {
+            let _ = writeln!(
+                out,
+                "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {v}"
+            );
+        }
+        let _ = writeln!(
+            out,
+            "# HELP photostereo_connections_timed_out_total HTTP connections closed by a timeout.\n# TYPE photostereo_connections_timed_out_total counter"
+        );
+        for (timeout, n) in [
+            ("header", &c.header_timeouts),
+            ("keep_alive", &c.keep_alive_timeouts),
+            ("send", &c.send_timeouts),
+        ] {
+            let _ = writeln!(
+                out,
+                "photostereo_connections_timed_out_total{{timeout=\"{timeout}\"}} {}",
+                read(n)
+            );
+        }
     }
 }

@@ -11,6 +11,7 @@
 //!   or [`s3`]: an S3-compatible object store).
 //! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
 //! - [`config`]: [`ServeArgs`] (flags + environment) and [`Config`].
+//! - [`connections`]: the accept loop, the connection cap and timeouts.
 //!
 //! [`router`] is what tests call; [`serve`] is `photostereo serve`.
 
@@ -18,6 +19,7 @@ mod app;
 pub mod blobs;
 mod calibrations;
 pub mod config;
+mod connections;
 mod download;
 pub mod error;
 mod events;
@@ -962,38 +964,32 @@ async fn track_http(State(state): State<AppState>, req: Request, next: Next) -> 
 }
 
 /// Serve `state` on `listener` until `shutdown` completes, then stop gracefully: no new
-/// connections, in-flight requests finish, running jobs get the shutdown grace.
+/// connections, idle ones closed, in-flight requests finish, running jobs get the
+/// shutdown grace.
 ///
-/// Connections get the shutdown grace too: one still open then (a client that never
-/// finishes sending its request head, say) is abandoned rather than waited for.
+/// Connections get the shutdown grace too: one still open then (a request that never
+/// finishes, say) is abandoned rather than waited for.
 pub async fn serve_with(
     listener: TcpListener,
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
-    let app = router(state.clone());
+    let config = &state.inner.config;
+    let limits = connections::Limits::resolve(config);
     let stopping = state.clone();
-    let (signalled, on_signal) = tokio::sync::oneshot::channel::<()>();
-    let server = axum::serve(listener, app).with_graceful_shutdown(async move {
-        shutdown.await;
-        tracing::info!("shutting down: finishing requests and running jobs");
-        stopping.begin_shutdown();
-        let _ = signalled.send(());
-    });
-    let grace = state.inner.config.shutdown_grace;
-    let deadline = async move {
-        match on_signal.await {
-            Ok(()) => tokio::time::sleep(grace).await,
-            Err(_) => std::future::pending().await,
-        }
-    };
-    tokio::select! {
-        served = std::future::IntoFuture::into_future(server) => served.context("serving HTTP")?,
-        () = deadline => tracing::warn!(
-            grace = %util::format_duration(grace),
-            "connections still open after the shutdown grace are dropped"
-        ),
-    }
+    connections::serve(
+        listener,
+        router(state.clone()),
+        limits,
+        state.inner.metrics.connections.clone(),
+        shutdown,
+        move || {
+            tracing::info!("shutting down: finishing requests and running jobs");
+            stopping.begin_shutdown();
+        },
+        config.shutdown_grace,
+    )
+    .await;
     state.shutdown().await;
     Ok(())
 }
@@ -1006,6 +1002,7 @@ pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
             "--max-job-pixels (PHOTOSTEREO_MAX_JOB_PIXELS) is deprecated and has no effect: jobs read their images in bands; --max-input-bytes and --max-pixels bound a job"
         );
     }
+    let open_files = connections::raise_open_files_limit();
     let config = Config::from(&args);
     let listener = TcpListener::bind(&args.listen)
         .await
@@ -1019,6 +1016,7 @@ pub async fn serve(args: ServeArgs) -> anyhow::Result<()> {
         workers = state.config().workers,
         queue_length = state.config().queue_length,
         api_keys = state.keys().count(),
+        open_files_limit = open_files,
         "photostereo serving; API docs at /docs"
     );
     serve_with(listener, state, shutdown_signal()).await

@@ -29,7 +29,27 @@ impl BinServer {
 
     /// [`start`](Self::start) with environment variables set for the server.
     pub fn start_with_env(data_dir: &Path, extra: &[&str], env: &[(&str, String)]) -> Self {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_photostereo"))
+        Self::launch(data_dir, extra, env, None)
+    }
+
+    /// [`start`](Self::start) with the server's open-files limit (soft and hard) at
+    /// `files`, as under `ulimit -n files`.
+    pub fn start_with_file_limit(data_dir: &Path, extra: &[&str], files: u64) -> Self {
+        Self::launch(data_dir, extra, &[], Some(files))
+    }
+
+    fn launch(
+        data_dir: &Path,
+        extra: &[&str],
+        env: &[(&str, String)],
+        file_limit: Option<u64>,
+    ) -> Self {
+        // PHOTOSTEREO_TEST_BINARY runs the tests against another build (an older one, to
+        // see a test fail without the change it covers).
+        let binary = std::env::var_os("PHOTOSTEREO_TEST_BINARY")
+            .unwrap_or_else(|| env!("CARGO_BIN_EXE_photostereo").into());
+        let mut command = Command::new(binary);
+        command
             .args(["serve", "--listen", "127.0.0.1:0", "--log-format", "json"])
             .arg("--data-dir")
             .arg(data_dir)
@@ -39,9 +59,25 @@ impl BinServer {
             .env("RUST_LOG", "info")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("start photostereo serve");
+            .stderr(Stdio::inherit());
+        if let Some(files) = file_limit {
+            use std::os::unix::process::CommandExt;
+            let limit = libc::rlimit {
+                rlim_cur: files,
+                rlim_max: files,
+            };
+            // SAFETY: setrlimit is async-signal-safe and reads a struct the closure owns.
+            unsafe {
+                command.pre_exec(move || {
+                    if libc::setrlimit(libc::RLIMIT_NOFILE, &limit) == 0 {
+                        Ok(())
+                    } else {
+                        Err(std::io::Error::last_os_error())
+                    }
+                });
+            }
+        }
+        let mut child = command.spawn().expect("start photostereo serve");
         let stdout = child.stdout.take().unwrap();
         let logs = Arc::new(Mutex::new(Vec::new()));
         let (tx, rx) = std::sync::mpsc::channel::<String>();
