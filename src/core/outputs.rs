@@ -431,46 +431,116 @@ pub fn write_pictures(
     Ok(written.into_iter().flatten().collect())
 }
 
-/// Re-shade a finished job's outputs (`albedo.png`, `normal.png` in `dir`) under `light`
-/// and encode the picture as a 16-bit PNG. The 16-bit normals are within 2⁻¹⁶ of the
-/// float ones, so the picture matches `shaded.png` to a unit or two in its last bit.
+/// `shaded.png` under another light, from a job's stored `albedo.png` and 16-bit
+/// `normal.png` in `dir`: both read a row at a time in step, each row shaded and encoded
+/// as it is read, so a re-shade holds a few rows and the encoded picture (given
+/// [`shaded_png_capacity`] up front), whatever the job's size.
 pub fn shaded_png_from_dir(dir: &Path, light: [f64; 3]) -> Result<Vec<u8>, InputError> {
     super::lights::check_direction(light)?;
-    let read = |name: &str| {
-        image::open(dir.join(name))
-            .map_err(|e| InputError::io(dir.join(name), format!("cannot re-shade: {e}")))
-    };
-    let albedo = read("albedo.png")?.to_luma32f();
-    let normal = read("normal.png")?.to_rgb32f();
-    if albedo.dimensions() != normal.dimensions() {
+    let mut albedo = PictureRows::open(dir, "albedo.png", 1)?;
+    let mut normal = PictureRows::open(dir, "normal.png", 3)?;
+    if albedo.size != normal.size {
         return Err(InputError::io(
             dir,
             "albedo.png and normal.png differ in size",
         ));
     }
-    let (w, h) = albedo.dimensions();
-    let a = Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
-        albedo.get_pixel(c as u32, r as u32).0[0]
-    });
-    // normal.png holds (n + 1) / 2 in the OpenGL frame (y up): back to unit normals in the
-    // seed frame. Off the mask it is 0, but so is the albedo, and with it the shading.
-    let mut n = Array3::<f32>::zeros((h as usize, w as usize, 3));
-    Zip::indexed(n.lanes_mut(Axis(2))).par_for_each(|(r, c), mut n| {
-        let v = normal
-            .get_pixel(c as u32, r as u32)
-            .0
-            .map(|v| 2.0 * v - 1.0);
-        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-        if len > 0.0 {
-            n.assign(&ndarray::arr1(&[v[0] / len, -v[1] / len, v[2] / len]));
+    let (cols, rows) = albedo.size;
+    let mut out = Vec::with_capacity(shaded_png_capacity(cols as u64, rows as u64));
+    let shading = render::Shading::new(light);
+    let mut failed = None;
+    png16_rows_to::<1>(&mut out, (rows, cols), |_, mut samples| {
+        let read = albedo.next().and_then(|a| Ok((a, normal.next()?)));
+        let (a, n) = match read {
+            Ok(rows) if failed.is_none() => rows,
+            Ok(_) => return,
+            Err(e) => {
+                failed.get_or_insert(e);
+                return;
+            }
+        };
+        for (c, s) in samples.column_mut(0).iter_mut().enumerate() {
+            // normal.png holds (n + 1) / 2 in the OpenGL frame (y up): back to a unit
+            // normal in the seed frame. Off the mask it is 0, but so is the albedo, and
+            // with it the shading.
+            let v = [0, 1, 2].map(|k| 2.0 * n[3 * c + k] - 1.0);
+            let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            let unit = if len > 0.0 {
+                [v[0] / len, -v[1] / len, v[2] / len]
+            } else {
+                [0.0; 3]
+            };
+            *s = unit16(shading.at(a[c], ndarray::aview1(&unit))).to_be_bytes();
         }
-    });
-    // Every pixel is drawn: off the mask the albedo, and so the shading, is zero.
-    let everywhere = Array2::from_elem(a.dim(), true);
-    let mut out = Vec::new();
-    shaded_to(&mut out, &a, &n, &everywhere, light)
-        .expect("encoding a PNG into memory cannot fail");
-    Ok(out)
+    })
+    .expect("encoding a PNG into memory cannot fail");
+    match failed {
+        Some(e) => Err(e),
+        None => Ok(out),
+    }
+}
+
+/// What a re-shaded `width × height` picture is given room for up front, so that its
+/// buffer never grows by copying: the raw rows (a filter byte and 2 bytes a pixel) and
+/// deflate's framing should they not compress.
+pub fn shaded_png_capacity(width: u64, height: u64) -> usize {
+    let raw = height.saturating_mul(1 + 2 * width);
+    usize::try_from(raw + raw / 64 + 4096).unwrap_or(usize::MAX)
+}
+
+/// A job's stored picture read a row at a time, as values in [0, 1] (8- or 16-bit,
+/// `channels` per pixel, not interlaced: what the job wrote).
+struct PictureRows {
+    path: std::path::PathBuf,
+    reader: png::Reader<std::io::BufReader<std::fs::File>>,
+    sixteen: bool,
+    /// (width, height).
+    size: (usize, usize),
+    row: Vec<f32>,
+}
+
+impl PictureRows {
+    fn open(dir: &Path, name: &str, channels: usize) -> Result<Self, InputError> {
+        let path = dir.join(name);
+        let bad = |why: String| InputError::io(&path, format!("cannot re-shade: {why}"));
+        let file = std::fs::File::open(&path).map_err(|e| bad(e.to_string()))?;
+        let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+        decoder.set_transformations(png::Transformations::EXPAND);
+        let reader = decoder.read_info().map_err(|e| bad(e.to_string()))?;
+        let (color, depth) = reader.output_color_type();
+        let info = reader.info();
+        if info.interlaced || color.samples() != channels {
+            return Err(bad(format!(
+                "{name} is not the picture a job writes ({color:?}, interlaced: {})",
+                info.interlaced
+            )));
+        }
+        let size = (info.width as usize, info.height as usize);
+        Ok(Self {
+            sixteen: depth == png::BitDepth::Sixteen,
+            row: Vec::with_capacity(size.0 * channels),
+            size,
+            reader,
+            path,
+        })
+    }
+
+    /// The next row's values.
+    fn next(&mut self) -> Result<&[f32], InputError> {
+        let row = match self.reader.next_row() {
+            Ok(Some(row)) => row.data(),
+            Ok(None) => return Err(InputError::io(&self.path, "cannot re-shade: rows missing")),
+            Err(e) => return Err(InputError::io(&self.path, format!("cannot re-shade: {e}"))),
+        };
+        self.row.clear();
+        if self.sixteen {
+            let values = row.chunks_exact(2);
+            (self.row).extend(values.map(|b| u16::from_be_bytes([b[0], b[1]]) as f32 / 65535.0));
+        } else {
+            self.row.extend(row.iter().map(|&b| b as f32 / 255.0));
+        }
+        Ok(&self.row)
+    }
 }
 
 /// Decode an encoded artifact's pixels, for tests and tools.

@@ -39,7 +39,7 @@ use super::lights::Light;
 
 /// What one band may hold over all images together (raw rows, planes, colour): the
 /// bound on the images' memory, whatever their number.
-const BAND_BYTES: usize = 32 << 20;
+pub const BAND_BYTES: usize = 32 << 20;
 
 /// [`intake::load_dir`], streamed: the folder's set as a [`Stack`], spilled to `scratch`.
 pub fn open_dir(

@@ -254,8 +254,9 @@ impl CalibrationView {
 ///
 /// One image of a mirror ball per light; the sphere's outline is fitted to the images
 /// unless a `circle` or `mask` is given. The calibration runs within the request and the
-/// answer is 201 with the result. Give its id as a job's `calibration` part to
-/// reconstruct with its lights.
+/// answer is 201 with the result: at most `--workers` are computed at once (one tenant at
+/// most `--tenant-max-calibrations`), each within the memory budget; the others wait.
+/// Give its id as a job's `calibration` part to reconstruct with its lights.
 #[utoipa::path(
     post,
     path = "/v1/calibrations",
@@ -275,7 +276,7 @@ impl CalibrationView {
         (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "The tenant's submissions per minute (shared with jobs) are used up; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
-        (status = 503, description = "The most uploads at once are under way, or the service is stopping", body = Problem, content_type = "application/problem+json",
+        (status = 503, description = "The most uploads at once are under way, or the tenant's share of them, or the service is stopping", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 507, description = "Not enough free disk space", body = Problem, content_type = "application/problem+json"),
     ),
@@ -333,10 +334,12 @@ async fn accept(
         return idempotency::replay(earlier, &body_hash);
     }
 
-    let computing = state.calibration_permit().await?;
+    // The slot and the memory move into the blocking task: a client that goes away does
+    // not free them while the work goes on.
+    let computing = state.calibration_slot(&caller.tenant).await;
     let (dir, limits) = (staging.path().to_path_buf(), config.limits());
-    let made = tokio::task::spawn_blocking(move || compute(&dir, form, &limits)).await??;
-    drop(computing);
+    let made = tokio::task::spawn_blocking(move || computing.run(|| compute(&dir, form, &limits)))
+        .await??;
     staging.commit().await?;
 
     let record = CalibrationRecord {

@@ -218,8 +218,33 @@ pub struct ServeArgs {
     #[arg(long, env = "PHOTOSTEREO_DECODE_AHEAD", value_parser = clap::value_parser!(u32).range(0..=1024))]
     pub decode_ahead: Option<u32>,
 
-    /// Test hook: a pause at the start of every stage, so that tests of the real binary
-    /// (a kill in the middle of a job) find jobs running.
+    /// Memory that jobs, calibrations and re-shades may hold together, counted by their
+    /// estimated peaks (a job: about 60 bytes per pixel of one image plus a band): a job
+    /// that does not fit waits in the queue, a calibration within its request, and a
+    /// re-shade is answered 503 with Retry-After [default: three quarters of the
+    /// machine's memory, or of the cgroup's memory limit when lower].
+    #[arg(long, env = "PHOTOSTEREO_MEMORY_BUDGET", value_parser = parse_size)]
+    pub memory_budget: Option<u64>,
+
+    /// Uploads (job and calibration bodies) one tenant may be sending at once; past it,
+    /// that tenant gets 503 with Retry-After while the other tenants keep the rest of the
+    /// --max-uploads slots [default: half of --max-uploads, rounded up].
+    #[arg(long, env = "PHOTOSTEREO_TENANT_MAX_UPLOADS", value_parser = clap::value_parser!(u32).range(1..=4096))]
+    pub tenant_max_uploads: Option<u32>,
+
+    /// Calibrations one tenant may compute at once, of the --workers calibration slots;
+    /// its next ones wait for one of its own to end [default: half of --workers, rounded
+    /// up].
+    #[arg(long, env = "PHOTOSTEREO_TENANT_MAX_CALIBRATIONS", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub tenant_max_calibrations: Option<u32>,
+
+    /// Re-shades (`shaded.png?light=`) computed at once; past it, 503 with Retry-After
+    /// [default: the number of CPU cores].
+    #[arg(long, env = "PHOTOSTEREO_MAX_RESHADES", value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub max_reshades: Option<u32>,
+
+    /// Test hook: a pause at the start of every stage, and before a calibration is
+    /// computed (holding its slot), so that tests of the real binary find work running.
     #[arg(long, env = "PHOTOSTEREO_TEST_STAGE_DELAY", hide = true, default_value = "0", value_parser = parse_duration)]
     pub stage_delay: Duration,
 
@@ -274,9 +299,18 @@ pub struct Config {
     pub shutdown_grace: Duration,
     /// Uploads scanned ahead of their job at once.
     pub decode_ahead: usize,
+    /// The memory budget (bytes) jobs, calibrations and re-shades reserve from.
+    pub memory_budget: u64,
+    /// Upload slots one tenant may hold; None: half of `max_uploads`, rounded up.
+    pub tenant_max_uploads: Option<usize>,
+    /// Calibration slots one tenant may hold; None: half of `workers`, rounded up.
+    pub tenant_max_calibrations: Option<usize>,
+    /// Re-shades at once.
+    pub max_reshades: usize,
     /// How often expired jobs are looked for.
     pub sweep_interval: Duration,
-    /// Test hook: a pause at the start of every stage (cancellable), to make jobs last.
+    /// Test hook: a pause at the start of every stage (cancellable), to make jobs last,
+    /// and before a calibration is computed.
     pub stage_delay: Duration,
     /// How often a job's event stream reads the job's record.
     pub event_interval: Duration,
@@ -326,6 +360,10 @@ impl Config {
             webhook_first_retry: Duration::from_secs(1),
             shutdown_grace: Duration::from_secs(30),
             decode_ahead: workers,
+            memory_budget: super::budget::default_budget(),
+            tenant_max_uploads: None,
+            tenant_max_calibrations: None,
+            max_reshades: workers,
             sweep_interval: Duration::from_secs(60),
             stage_delay: Duration::ZERO,
             event_interval: Duration::from_millis(250),
@@ -338,6 +376,20 @@ impl Config {
             max_pixels_per_image: self.max_pixels,
             max_images: self.max_images,
         }
+    }
+
+    /// The upload slots one tenant may hold.
+    pub fn tenant_upload_share(&self) -> usize {
+        (self.tenant_max_uploads)
+            .unwrap_or(self.max_uploads.div_ceil(2))
+            .clamp(1, self.max_uploads.max(1))
+    }
+
+    /// The calibration slots one tenant may hold.
+    pub fn tenant_calibration_share(&self) -> usize {
+        (self.tenant_max_calibrations)
+            .unwrap_or(self.workers.div_ceil(2))
+            .clamp(1, self.workers.max(1))
     }
 }
 
@@ -412,6 +464,10 @@ impl From<&ServeArgs> for Config {
         c.shutdown_grace = a.shutdown_grace;
         c.decode_ahead = a.decode_ahead.map(|n| n as usize).unwrap_or(c.workers);
         c.stage_delay = a.stage_delay;
+        c.memory_budget = a.memory_budget.unwrap_or(c.memory_budget);
+        c.tenant_max_uploads = a.tenant_max_uploads.map(|n| n as usize);
+        c.tenant_max_calibrations = a.tenant_max_calibrations.map(|n| n as usize);
+        c.max_reshades = a.max_reshades.map_or(default_workers(), |n| n as usize);
         c.sweep_interval =
             (a.retention / 10).clamp(Duration::from_secs(1), Duration::from_secs(600));
         c

@@ -26,6 +26,7 @@ use std::time::{Duration, Instant};
 use uuid::Uuid;
 
 use crate::core::RunError;
+use crate::core::bands::Stack;
 use crate::core::error::panic_message;
 use crate::core::intake::NamedFile;
 use crate::core::lights;
@@ -38,6 +39,7 @@ use crate::core::{InputError, Options};
 
 use super::Inner;
 use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest, is_unavailable};
+use super::budget::{self, Reservation, Use};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
@@ -248,17 +250,32 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
     let pool = &inner.workers;
     while !pool.is_closed() {
         let seen = pool.rung();
+        if let Ok(0) = inner.repo.queued() {
+            pool.wait_for_ring(seen, POLL);
+            continue;
+        }
+        // Room in the memory budget for the largest job a worker may claim, before it
+        // claims one: until it fits, the job stays queued.
+        let worst = budget::job_worst_bytes(&inner.config);
+        let closed = || pool.is_closed();
+        let Some(mut memory) = inner.budget.reserve_blocking(Use::Job, worst, closed) else {
+            continue;
+        };
         // Busy from the claim on, so that a shutdown waits for a job claimed meanwhile.
         pool.busy.fetch_add(1, Ordering::SeqCst);
         let claimed = inner
             .repo
             .claim(&inner.owner, inner.config.job_lease, now_ms());
         if let Ok(Some(lease)) = claimed {
-            process(&inner, lease);
+            process(&inner, lease, &mut memory);
         }
         pool.busy.fetch_sub(1, Ordering::SeqCst);
+        if let Ok(Some(_)) = claimed {
+            crate::core::heap::release_free_heap();
+        }
+        drop(memory);
         match claimed {
-            Ok(Some(_)) => crate::core::heap::release_free_heap(),
+            Ok(Some(_)) => {}
             Ok(None) => pool.wait_for_ring(seen, POLL),
             Err(e) => {
                 tracing::warn!(error = %e, "cannot claim a job; trying again");
@@ -319,7 +336,7 @@ impl From<ApiError> for Stop {
     }
 }
 
-fn process(inner: &Inner, lease: Lease) {
+fn process(inner: &Inner, lease: Lease, memory: &mut Reservation) {
     let id = lease.id;
     // Registered before anything else, so that a DELETE or a heartbeat finds it.
     let ctl = inner.workers.register(lease);
@@ -344,7 +361,7 @@ fn process(inner: &Inner, lease: Lease) {
         timed_out: AtomicBool::new(false),
     };
     let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| {
-        execute(inner, id, &attempt, &mut clock)
+        execute(inner, id, &attempt, &mut clock, memory)
     }))
     .unwrap_or_else(|panic| {
         let what = panic_message(&*panic);
@@ -546,6 +563,7 @@ fn execute(
     id: Uuid,
     attempt: &str,
     clock: &mut StageClock<'_>,
+    memory: &mut Reservation,
 ) -> Result<(serde_json::Value, Vec<ArtifactInfo>), Stop> {
     let record = inner
         .repo
@@ -579,6 +597,9 @@ fn execute(
     let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
     let set = open_inputs(inner, scanned, lights, &input, &manifest, clock)?;
     let set = set.noted(manifest.notes.clone());
+    // The images' size is known now: keep the job's own estimate of the budget.
+    let info = set.info();
+    memory.shrink_to(budget::job_peak_bytes((info.width * info.height) as u64));
 
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
     let report = pipeline::run(set, &options, &out, clock);

@@ -17,6 +17,7 @@
 
 mod app;
 pub mod blobs;
+mod budget;
 mod calibrations;
 pub mod config;
 mod connections;
@@ -35,6 +36,7 @@ mod quota;
 pub mod repo;
 pub mod routes;
 pub mod s3;
+mod slots;
 pub mod tenants;
 mod upload;
 mod util;
@@ -71,10 +73,12 @@ pub use problem::Problem;
 pub use upload::{parse_options, unpack_archive};
 
 use blobs::{BlobStore, LocalStore};
+use budget::{Budget, Reservation};
 use jobs::Workers;
 use metrics::{Metrics, Snapshot};
 use prefetch::{Prefetch, Prefetcher};
 use repo::{JobRepo, JobStatus, RepoResult, SqliteRepo};
+use slots::{Busy, Slot, Slots};
 use tenants::{Caller, Keyring};
 use util::now_ms;
 
@@ -110,11 +114,18 @@ pub(crate) struct Inner {
     keys: std::sync::RwLock<Arc<Keyring>>,
     shutting_down: AtomicBool,
     stop: watch::Sender<bool>,
-    /// One permit per upload being received (`max_uploads`).
-    uploads: Arc<tokio::sync::Semaphore>,
-    /// One permit per calibration being computed (`workers`): each holds its images
-    /// decoded, as a running job does.
-    calibrating: Arc<tokio::sync::Semaphore>,
+    /// One slot per upload being received (`max_uploads`, a share per tenant).
+    uploads: Arc<Slots>,
+    /// One slot per calibration being computed (`workers`, a share per tenant), held
+    /// until its work ends even when its client has gone.
+    calibrating: Arc<Slots>,
+    /// One slot per re-shade being computed (`max_reshades`).
+    reshading: Arc<Slots>,
+    /// What jobs, calibrations and re-shades reserve (`memory_budget`).
+    budget: Arc<Budget>,
+    /// Calibrations whose computation runs now, and the most at once.
+    calibrations_computing: std::sync::atomic::AtomicUsize,
+    calibrations_computing_max: std::sync::atomic::AtomicUsize,
     /// The data directory's lock file, held (flock) while this server uses it, so that a
     /// second server cannot run the same jobs or tidy away the first one's uploads.
     data_lock: std::sync::Mutex<Option<std::fs::File>>,
@@ -173,8 +184,14 @@ impl AppState {
             )?),
         };
         let (stop, _) = watch::channel(false);
-        let config_uploads = config.max_uploads.max(1);
-        let config_workers = config.workers.max(1);
+        anyhow::ensure!(
+            config.memory_budget >= 64 << 20,
+            "--memory-budget must be at least 64MiB"
+        );
+        let uploads = Slots::new(config.max_uploads, config.tenant_upload_share());
+        let calibrating = Slots::new(config.workers, config.tenant_calibration_share());
+        let reshading = Slots::new(config.max_reshades, config.max_reshades);
+        let budget = Budget::new(config.memory_budget);
         let submissions = quota::SubmissionRate::new(config.tenant_submissions_per_minute);
         let inner = Arc::new(Inner {
             workers: Workers::default(),
@@ -191,8 +208,12 @@ impl AppState {
             runtime: tokio::runtime::Handle::current(),
             shutting_down: AtomicBool::new(false),
             stop,
-            uploads: Arc::new(tokio::sync::Semaphore::new(config_uploads)),
-            calibrating: Arc::new(tokio::sync::Semaphore::new(config_workers)),
+            uploads,
+            calibrating,
+            reshading,
+            budget,
+            calibrations_computing: Default::default(),
+            calibrations_computing_max: Default::default(),
             data_lock: std::sync::Mutex::new(Some(data_lock)),
         });
         let requeued = recover(&inner)?;
@@ -334,21 +355,71 @@ impl AppState {
         tracing::info!("stopped");
     }
 
-    /// A permit to receive one upload, or `None` when `max_uploads` are under way.
-    pub(crate) fn try_upload_permit(&self) -> Option<tokio::sync::OwnedSemaphorePermit> {
-        self.inner.uploads.clone().try_acquire_owned().ok()
+    /// A slot to receive one upload for `tenant`, or 503 when `max_uploads` are under
+    /// way or the tenant holds its share of them.
+    pub(crate) fn upload_slot(&self, tenant: &str) -> Result<Slot, ApiError> {
+        let uploads = &self.inner.uploads;
+        uploads.try_take(tenant).map_err(|busy| {
+            let detail = match busy {
+                Busy::Full => format!(
+                    "{} uploads are being received already (the limit); retry later",
+                    uploads.total()
+                ),
+                Busy::TenantShare => format!(
+                    "tenant {tenant} is sending {} uploads already (its share of the {} upload slots); retry later",
+                    uploads.per_tenant(),
+                    uploads.total()
+                ),
+            };
+            ApiError::unavailable(config::RETRY_AFTER_SECS, detail)
+        })
     }
 
-    /// A permit to compute one calibration, waited for.
-    pub(crate) async fn calibration_permit(
+    /// A slot and the memory to compute one calibration for `tenant`, waited for (a
+    /// tenant holding its share waits for one of its own to end).
+    pub(crate) async fn calibration_slot(&self, tenant: &str) -> Computing {
+        let slot = self.inner.calibrating.take(tenant).await;
+        let peak = budget::calibration_peak_bytes(&self.inner.config);
+        let memory = self
+            .inner
+            .budget
+            .reserve(budget::Use::Calibration, peak)
+            .await;
+        Computing {
+            inner: self.inner.clone(),
+            _slot: slot,
+            _memory: memory,
+        }
+    }
+
+    /// A slot and the memory to re-shade a `width × height` job now, or 503.
+    pub(crate) fn reshade_slot(
         &self,
-    ) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
-        self.inner
-            .calibrating
-            .clone()
-            .acquire_owned()
-            .await
-            .map_err(|e| ApiError::internal(format!("calibration permits: {e}")))
+        tenant: &str,
+        width: u64,
+        height: u64,
+    ) -> Result<(Slot, Reservation), ApiError> {
+        let slot = self.inner.reshading.try_take(tenant).map_err(|_| {
+            ApiError::unavailable(
+                1,
+                format!(
+                    "{} re-shades are being computed already (the limit); retry later",
+                    self.inner.reshading.total()
+                ),
+            )
+        })?;
+        let bytes = budget::reshade_peak_bytes(width, height);
+        let memory = (self.inner.budget)
+            .try_reserve(budget::Use::Reshade, bytes)
+            .ok_or_else(|| {
+                ApiError::unavailable(
+                    1,
+                    format!(
+                        "the memory budget has no room for a re-shade of {width}×{height} now ({bytes} bytes); retry later"
+                    ),
+                )
+            })?;
+        Ok((slot, memory))
     }
 
     pub(crate) fn count_submitted(&self) {
@@ -513,6 +584,22 @@ impl AppState {
         if self.is_shutting_down() {
             problems.push("the service is shutting down".to_string());
         }
+        let uploads = &self.inner.uploads;
+        if uploads.taken() >= uploads.total() {
+            problems.push(format!(
+                "every upload slot is taken ({} uploads being received)",
+                uploads.total()
+            ));
+        }
+        let budget = &self.inner.budget;
+        let job = budget::job_worst_bytes(&self.inner.config).min(budget.limit());
+        if budget.free() < job {
+            problems.push(format!(
+                "the memory budget has no room for another job ({} of {} bytes free, a job may need {job})",
+                budget.free(),
+                budget.limit()
+            ));
+        }
         if let Err(e) = self.repo(|r| r.ping()).await {
             problems.push(format!("the job database does not answer ({})", e.detail()));
         }
@@ -535,7 +622,7 @@ impl AppState {
             .iter()
             .find(|(s, _)| *s == JobStatus::Queued)
             .map_or(0, |(_, n)| *n as usize);
-        Ok(self.inner.metrics.render(&Snapshot {
+        let mut text = self.inner.metrics.render(&Snapshot {
             jobs_by_status: counts,
             jobs_by_tenant: by_tenant,
             queue_depth: queued,
@@ -545,7 +632,135 @@ impl AppState {
             workers: self.inner.config.workers,
             free_disk_bytes: free,
             prefetch_sets: self.inner.prefetch.held(),
-        }))
+        });
+        self.inner.budget.render(&mut text);
+        self.render_slots(&mut text);
+        Ok(text)
+    }
+
+    /// The slot gauges and refusals (uploads, calibrations, re-shades).
+    fn render_slots(&self, out: &mut String) {
+        use std::fmt::Write as _;
+        let inner = &self.inner;
+        let computing = inner.calibrations_computing.load(Ordering::SeqCst);
+        let most = inner.calibrations_computing_max.load(Ordering::SeqCst);
+        let gauges = [
+            (
+                "photostereo_upload_slots",
+                "Uploads that may be received at once.",
+                inner.uploads.total(),
+            ),
+            (
+                "photostereo_upload_slots_per_tenant",
+                "Upload slots one tenant may hold.",
+                inner.uploads.per_tenant(),
+            ),
+            (
+                "photostereo_uploads_receiving",
+                "Uploads being received now.",
+                inner.uploads.taken(),
+            ),
+            (
+                "photostereo_calibration_slots_taken",
+                "Calibration slots held now (until each calibration's work ends).",
+                inner.calibrating.taken(),
+            ),
+            (
+                "photostereo_calibrations_waiting",
+                "Calibrations waiting for a slot or for memory.",
+                inner.calibrating.waiting(),
+            ),
+            (
+                "photostereo_calibrations_computing",
+                "Calibrations computing now.",
+                computing,
+            ),
+            (
+                "photostereo_calibrations_computing_max",
+                "Most calibrations ever computing at once since start.",
+                most,
+            ),
+            (
+                "photostereo_reshade_slots",
+                "Re-shades that may be computed at once.",
+                inner.reshading.total(),
+            ),
+            (
+                "photostereo_reshades_running",
+                "Re-shades being computed now.",
+                inner.reshading.taken(),
+            ),
+        ];
+        for (name, help, v) in gauges {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
+        }
+        let name = "photostereo_slot_refusals_total";
+        let _ = writeln!(
+            out,
+            "# HELP {name} Requests refused (503) for want of a slot: every slot taken, or the tenant's share.\n# TYPE {name} counter"
+        );
+        for (what, slots) in [("upload", &inner.uploads), ("reshade", &inner.reshading)] {
+            let (full, share) = slots.refusals();
+            let _ = writeln!(out, "{name}{{slots=\"{what}\",reason=\"full\"}} {full}");
+            let _ = writeln!(
+                out,
+                "{name}{{slots=\"{what}\",reason=\"tenant_share\"}} {share}"
+            );
+        }
+    }
+}
+
+/// A calibration's slot and memory, held by its computation (moved into the blocking
+/// task, so a client that goes away does not free them while the work goes on).
+pub(crate) struct Computing {
+    inner: Arc<Inner>,
+    _slot: Slot,
+    _memory: Reservation,
+}
+
+impl Computing {
+    /// Run the calibration's computation `f` on this thread (a blocking one); the slot and
+    /// the memory are given back when it ends.
+    pub(crate) fn run<T>(self, f: impl FnOnce() -> T) -> T {
+        let counted = CountedWork::start(
+            &self.inner.calibrations_computing,
+            &self.inner.calibrations_computing_max,
+        );
+        let delay = self.inner.config.stage_delay;
+        if !delay.is_zero() {
+            std::thread::sleep(delay);
+        }
+        let out = f();
+        drop(counted);
+        out
+    }
+}
+
+impl Drop for Computing {
+    /// The work has ended (or panicked): its freed memory goes back to the kernel before
+    /// the slot and the reservation do.
+    fn drop(&mut self) {
+        crate::core::heap::release_free_heap();
+    }
+}
+
+/// One unit of work counted in a gauge (and its most at once) while it runs.
+struct CountedWork<'a>(&'a std::sync::atomic::AtomicUsize);
+
+impl<'a> CountedWork<'a> {
+    fn start(
+        now: &'a std::sync::atomic::AtomicUsize,
+        most: &std::sync::atomic::AtomicUsize,
+    ) -> Self {
+        let n = now.fetch_add(1, Ordering::SeqCst) + 1;
+        most.fetch_max(n, Ordering::SeqCst);
+        Self(now)
+    }
+}
+
+impl Drop for CountedWork<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
     }
 }
 

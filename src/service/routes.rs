@@ -3,7 +3,7 @@
 use std::collections::BTreeMap;
 
 use axum::Json;
-use axum::body::Body;
+use axum::body::{Body, Bytes};
 use axum::extract::{FromRequest, FromRequestParts, Multipart, Path, Query, Request, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -353,7 +353,7 @@ pub(super) fn request_id(headers: &HeaderMap) -> &str {
         (status = 422, description = "Invalid light table, options, names, sizes or archive layout; a callback_url off the allow-list or not http://, or for a tenant without a webhook secret; an Idempotency-Key already used for a different request", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "A quota of the caller's tenant is reached (the detail names it): jobs queued or running at once, submissions per minute, or stored bytes; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
-        (status = 503, description = "The queue is full, the most uploads at once are under way, or the service is stopping: retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
+        (status = 503, description = "The queue is full, the most uploads at once (or the tenant's share of them) are under way, or the service is stopping: retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 507, description = "Not enough free disk space", body = Problem, content_type = "application/problem+json"),
     ),
@@ -376,7 +376,8 @@ pub async fn create_job(
 }
 
 /// What every multipart submission (a job, a calibration) starts with, checked before its
-/// body is read; `_receiving` holds one of the `max_uploads` upload slots until dropped.
+/// body is read; `_receiving` holds one of the `max_uploads` upload slots (of the
+/// tenant's share) until dropped.
 pub(super) struct Submission {
     pub request_id: String,
     pub idempotency_key: Option<String>,
@@ -387,11 +388,12 @@ pub(super) struct Submission {
     pub earlier: Option<Remembered>,
     /// The start of the idempotency window, for remembering this request's answer.
     pub since: i64,
-    pub _receiving: tokio::sync::OwnedSemaphorePermit,
+    pub _receiving: super::slots::Slot,
 }
 
 /// Refuse a submission the service cannot take now (shutting down, a declared body over
-/// the limit, not a multipart body, too little disk, every upload slot taken), and look up
+/// the limit, not a multipart body, too little disk, every upload slot or the tenant's
+/// share of them taken), and look up
 /// an earlier answer to its `Idempotency-Key` in `scope`.
 pub(super) async fn open_submission(
     state: &AppState,
@@ -429,15 +431,7 @@ pub(super) async fn open_submission(
             ))
         })?;
     state.check_free_disk().await?;
-    let Some(receiving) = state.try_upload_permit() else {
-        return Err(ApiError::unavailable(
-            super::config::RETRY_AFTER_SECS,
-            format!(
-                "{} uploads are being received already (the limit); retry later",
-                config.max_uploads
-            ),
-        ));
-    };
+    let receiving = state.upload_slot(&caller.tenant)?;
     let mut since = now_ms() - idempotency::WINDOW.as_millis() as i64;
     let mut earlier = match idempotency_key.clone() {
         Some(key) => {
@@ -828,7 +822,8 @@ pub async fn delete_job(
 ///
 /// Stored artifacts carry a strong ETag and may be cached for good (`immutable`);
 /// `If-None-Match` gets 304. `shaded.png?light=x,y,z` re-shades the object under another
-/// light on request.
+/// light on request: at most `--max-reshades` at once, each within the memory budget,
+/// else 503 with Retry-After.
 #[utoipa::path(
     get,
     path = "/v1/jobs/{id}/artifacts/{name}",
@@ -866,7 +861,8 @@ pub async fn delete_job(
         (status = 409, description = "The job has not succeeded (queued, running, failed or cancelled)", body = Problem, content_type = "application/problem+json"),
         (status = 416, description = "No byte of the artifact is in the Range (Content-Range: bytes */length)", body = Problem, content_type = "application/problem+json"),
         (status = 422, description = "Invalid `light`", body = Problem, content_type = "application/problem+json"),
-        (status = 503, description = "The storage for job files does not answer (Retry-After)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "The storage for job files does not answer; or, re-shading, `--max-reshades` re-shades are being computed or the memory budget has no room for this one (Retry-After)", body = Problem, content_type = "application/problem+json",
+            headers(("Retry-After" = u64, description = "Seconds to wait"))),
     ),
     security((), ("bearer" = []))
 )]
@@ -911,18 +907,7 @@ pub async fn get_artifact(
                 missing.join(" or ")
             )));
         }
-        let store = state.inner.store.clone();
-        let needed: Vec<_> = job
-            .artifacts
-            .iter()
-            .filter(|a| a.name == "albedo.png" || a.name == "normal.png")
-            .cloned()
-            .collect();
-        let png = tokio::task::spawn_blocking(move || {
-            let local = store.local_artifacts(id, &needed.iter().collect::<Vec<_>>())?;
-            Ok::<_, ApiError>(outputs::shaded_png_from_dir(local.dir(), light)?)
-        })
-        .await??;
+        let png = reshade(&state, &caller, &job, light).await?;
         let etag = strong_etag(crc32fast::hash(&png), png.len() as u64);
         if not_modified(&headers, &etag) {
             return Ok(not_modified_response(&etag, RESHADED));
@@ -946,6 +931,75 @@ pub async fn get_artifact(
     }
     let file = Served::Artifact { job: id, info };
     download::stored(&state, file, &headers, content_type, IMMUTABLE).await
+}
+
+/// A succeeded job's `shaded.png` under `light`, within a re-shade slot and the memory
+/// budget (503 + Retry-After when either is used up). The picture's bytes keep the
+/// reservation until they are freed (the response sent), and then the allocator's free
+/// memory goes back to the kernel.
+async fn reshade(
+    state: &AppState,
+    caller: &Caller,
+    job: &JobRecord,
+    light: [f64; 3],
+) -> Result<Bytes, ApiError> {
+    let side = |key: &str| job.result.as_ref().and_then(|r| r[key].as_u64());
+    let (width, height) = match (side("width"), side("height")) {
+        (Some(w), Some(h)) => (w, h),
+        // Not recorded: the largest picture a job may have.
+        _ => (state.config().max_pixels, 1),
+    };
+    let (slot, memory) = state.reshade_slot(&caller.tenant, width, height)?;
+    let store = state.inner.store.clone();
+    let id = job.id;
+    let needed: Vec<_> = job
+        .artifacts
+        .iter()
+        .filter(|a| a.name == "albedo.png" || a.name == "normal.png")
+        .cloned()
+        .collect();
+    let png = tokio::task::spawn_blocking(move || {
+        let _computing = slot;
+        let local = store.local_artifacts(id, &needed.iter().collect::<Vec<_>>())?;
+        let png = outputs::shaded_png_from_dir(local.dir(), light);
+        if png.is_err() {
+            crate::core::heap::release_free_heap();
+        }
+        Ok::<_, ApiError>(png?)
+    })
+    .await??;
+    Ok(Bytes::from_owner(Reshaded {
+        png,
+        _memory: Some(memory),
+    }))
+}
+
+/// A re-shaded picture and its reservation: when the bytes are freed, the allocator's
+/// free memory is handed back (off the async threads) and then the reservation.
+struct Reshaded {
+    png: Vec<u8>,
+    _memory: Option<super::budget::Reservation>,
+}
+
+impl AsRef<[u8]> for Reshaded {
+    fn as_ref(&self) -> &[u8] {
+        &self.png
+    }
+}
+
+impl Drop for Reshaded {
+    fn drop(&mut self) {
+        drop(std::mem::take(&mut self.png));
+        let memory = self._memory.take();
+        let release = move || {
+            crate::core::heap::release_free_heap();
+            drop(memory);
+        };
+        match tokio::runtime::Handle::try_current() {
+            Ok(rt) => drop(rt.spawn_blocking(release)),
+            Err(_) => release(),
+        }
+    }
 }
 
 /// `x,y,z`: three finite numbers, not all zero.
@@ -987,15 +1041,16 @@ pub async fn healthz() -> Json<Health> {
     })
 }
 
-/// Readiness: the job database answers, the data directory is writable and the service is
-/// not shutting down.
+/// Readiness: the job database answers, the data directory is writable, the service is
+/// not shutting down, and it is not saturated: an upload slot is free and the memory
+/// budget has room for another job.
 #[utoipa::path(
     get,
     path = "/readyz",
     tag = "operations",
     responses(
         (status = 200, description = "Ready", body = Health),
-        (status = 503, description = "Not ready (the detail says why)", body = Problem, content_type = "application/problem+json"),
+        (status = 503, description = "Not ready, or saturated (the detail says why)", body = Problem, content_type = "application/problem+json"),
     )
 )]
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<Health>, ApiError> {
