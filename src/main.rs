@@ -168,12 +168,9 @@ struct CalibrateArgs {
 }
 
 fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
-    use photostereo::core::calibrate::{self, Camera, Circle, CircleSource, Settings};
-    let calibrate::SphereFolder {
-        images,
-        names,
-        ambient,
-    } = calibrate::load_dir(&args.dir)?;
+    use photostereo::core::calibrate::{self, Camera, Circle, CircleSource, Settings, Source};
+    let folder = calibrate::load_dir(&args.dir)?;
+    let (images, names) = (&folder.images, &folder.names);
     let circles: Vec<Circle> = args
         .circle
         .iter()
@@ -198,7 +195,11 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
     }
     let camera = match args.focal_length {
         Some(f) if calibrate::FOCAL_PX.contains(&f) => {
-            let (h, w) = images.first().map_or((1, 1), |i| i.plane.dim());
+            let (w, h) = if images.count() > 0 {
+                images.size(0)?
+            } else {
+                (1, 1)
+            };
             Camera::Perspective {
                 focal_px: f,
                 principal: [(w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0],
@@ -215,13 +216,16 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
         circle,
         camera,
         skip_bad: args.skip_bad,
+        budget: Default::default(),
+        scratch: None,
     };
-    if let Some(a) = &ambient {
-        eprintln!("ambient image: {}", a.name);
+    if let Some(a) = folder.ambient_source() {
+        eprintln!("ambient image: {}", a.name(0));
     }
-    let mut cal = calibrate::calibrate(&images, names.as_deref(), ambient.as_ref(), &settings)?;
+    let mut cal =
+        calibrate::calibrate(images, names.as_deref(), folder.ambient_source(), &settings)?;
     if let Some(matte) = &args.matte {
-        cal.fit_intensities(&calibrate::load_images(matte)?)?;
+        cal.fit_intensities(&calibrate::load_images(matte)?, &settings)?;
     }
     let c = cal.circle;
     match &cal.outline {

@@ -21,6 +21,8 @@ fn auto() -> Settings {
         circle: CircleSource::Fit,
         camera: calibrate::Camera::Orthographic,
         skip_bad: false,
+        budget: Default::default(),
+        scratch: None,
     }
 }
 
@@ -32,7 +34,7 @@ fn run(
     let dir = tempfile::tempdir().unwrap();
     set.write(dir.path(), None).unwrap();
     let f = calibrate::load_dir(dir.path()).unwrap();
-    let result = calibrate::calibrate(&f.images, f.names.as_deref(), f.ambient.as_ref(), settings);
+    let result = calibrate::calibrate(&f.images, f.names.as_deref(), f.ambient_source(), settings);
     (dir, result)
 }
 
@@ -127,12 +129,17 @@ fn a_given_circle_or_mask_overrides_the_fit() {
 fn images_of(set: &ChromeSet) -> (tempfile::TempDir, Vec<SphereImage>) {
     let dir = tempfile::tempdir().unwrap();
     set.write(dir.path(), None).unwrap();
-    let images = calibrate::load_dir(dir.path()).unwrap().images;
+    let images = calibrate::load_dir(dir.path())
+        .unwrap()
+        .images
+        .decode_all()
+        .unwrap();
     (dir, images)
 }
 
 fn error_of(images: &[SphereImage], settings: &Settings) -> String {
-    calibrate::calibrate(images, None, None, settings)
+    let images = images.to_vec();
+    calibrate::calibrate(&images, None, None, settings)
         .unwrap_err()
         .to_string()
 }
@@ -180,7 +187,7 @@ fn bad_images_are_errors_naming_them_and_skip_bad_leaves_them_out() {
     assert!(!cal.table().contains("ball03.png"));
 
     // Too few usable images, too few images, different sizes, a circle off the image.
-    let e = calibrate::calibrate(&images[1..4], None, None, &skip)
+    let e = calibrate::calibrate(&images[1..4].to_vec(), None, None, &skip)
         .unwrap_err()
         .to_string();
     assert!(e.contains("only 2 of 3") && e.contains("ball03.png"), "{e}");
@@ -222,7 +229,7 @@ fn matte_sphere_gives_relative_intensities_within_2_percent() {
     let f = calibrate::load_dir(dir.path()).unwrap();
     let mut cal = calibrate::calibrate(&f.images, f.names.as_deref(), None, &auto()).unwrap();
     let matte = calibrate::load_images(&dir.path().join("matte")).unwrap();
-    cal.fit_intensities(&matte).unwrap();
+    cal.fit_intensities(&matte, &auto()).unwrap();
     let mean = k.iter().sum::<f64>() / k.len() as f64;
     let worst = cal
         .lights
@@ -427,5 +434,35 @@ fn two_balls_under_near_leds_place_each_light_within_2_percent_of_its_distance()
         assert_eq!(cal.lights.len(), set.lights.len());
         assert!(worst < 0.02, "{distance}: {worst}");
         assert!(dir_err < 1.0, "{distance}: {dir_err}°");
+    }
+}
+
+#[test]
+fn a_small_memory_budget_downscales_and_spills_with_the_same_accuracy() {
+    // 1 MiB for the copies: the outline is fitted on 2× downscaled images and refined at
+    // full resolution; 64 KiB for the windows: they are spilled and read back by bands.
+    let small = Settings {
+        budget: calibrate::Budget {
+            coarse_bytes: 1 << 20,
+            crop_bytes: 64 << 10,
+        },
+        ..auto()
+    };
+    for (name, set) in [
+        ("8-bit", ChromeSet::standard(8, 41)),
+        ("filling, 16-bit", ChromeSet::filling(16, 47)),
+        ("real room", ChromeSet::real_room(8, 71)),
+    ] {
+        let (_dir, cal) = run(&set, &small);
+        let cal = cal.unwrap();
+        let (mean, max, centre, radius) = errors(&set, &cal);
+        eprintln!(
+            "{name}, small budget: direction error mean {mean:.3}° max {max:.3}°; circle centre off by {centre:.3} px, radius by {radius:.3} px"
+        );
+        assert!(mean < 0.3 && max < 1.0, "{name}: mean {mean}°, max {max}°");
+        assert!(
+            centre < 0.3 && radius < 0.3,
+            "{name}: {centre} / {radius} px"
+        );
     }
 }

@@ -35,13 +35,10 @@ pub fn job_worst_bytes(config: &Config) -> u64 {
     job_peak_bytes(config.max_pixels)
 }
 
-/// A calibration's documented peak, reserved while it computes.
-///
-/// Placeholder: it stands in for the bound the calibration core documents, and is to be
-/// connected to that core's own figure. Until then it is a job's worst case (images at
-/// `--max-pixels`), which a calibration whose images are read one at a time stays under.
+/// A calibration's documented peak, reserved while it computes: the core's bound for
+/// images of up to `--max-pixels`, whatever their number.
 pub fn calibration_peak_bytes(config: &Config) -> u64 {
-    job_worst_bytes(config)
+    crate::core::calibrate::peak_bytes(config.max_pixels)
 }
 
 /// A re-shade of a `width × height` job: the encoded picture, held whole for its ETag

@@ -21,8 +21,10 @@ use utoipa::ToSchema;
 use uuid::Uuid;
 
 use crate::core::InputError;
-use crate::core::calibrate::{self, Calibration, Camera, Circle, CircleSource, Settings};
-use crate::core::intake::{self, Limits};
+use crate::core::calibrate::{
+    self, Budget, Calibration, Camera, Circle, CircleSource, ImageFiles, Settings, Source,
+};
+use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
 
 use super::AppState;
@@ -662,30 +664,27 @@ struct Made {
     files: Vec<ArtifactInfo>,
 }
 
-/// Decode the stored images, calibrate, and replace the uploads in `dir` with the
-/// calibration's files. Blocking.
+/// Calibrate from the stored images (read from their files a few at a time, within
+/// `calibrate::peak_bytes(max_pixels)`, spilling to `dir` when needed), and replace the
+/// uploads in `dir` with the calibration's files. Blocking.
 fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
-    let decode = |images: &[Stored]| -> Result<Vec<calibrate::SphereImage>, ApiError> {
-        use rayon::prelude::*;
-        images
-            .par_iter()
-            .map(|s| {
-                let path = dir.join(&s.file);
-                let bytes = std::fs::read(&path)?;
-                std::fs::remove_file(&path)?;
-                let plane = intake::to_luma16(intake::decode(&s.name, &bytes, limits)?);
-                Ok(calibrate::SphereImage {
+    let files = |images: &[Stored]| {
+        ImageFiles::new(
+            images
+                .iter()
+                .map(|s| NamedFile {
                     name: s.name.clone(),
-                    plane,
+                    path: dir.join(&s.file),
                 })
-            })
-            .collect::<Result<Vec<_>, ApiError>>()
+                .collect(),
+            *limits,
+        )
     };
-    let images = decode(&form.images)?;
+    let images = files(&form.images);
     let (circle, source) = match (form.circle, &form.mask) {
         (Some(c), _) => (CircleSource::Given(c), "given"),
         (None, Some(m)) => {
-            let mask = decode(std::slice::from_ref(m))?.remove(0);
+            let mask = files(std::slice::from_ref(m)).decode_all()?.remove(0);
             (
                 CircleSource::Mask {
                     name: mask.name,
@@ -696,7 +695,10 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
         }
         (None, None) => (CircleSource::Fit, "fitted"),
     };
-    let (h, w) = images[0].plane.dim();
+    let (w, h) = (
+        form.images[0].width as usize,
+        form.images[0].height as usize,
+    );
     let camera = match form.focal_length {
         Some(f) => Camera::Perspective {
             focal_px: f,
@@ -708,16 +710,28 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
         circle,
         camera,
         skip_bad: form.skip_bad.unwrap_or(false),
+        budget: Budget::default(),
+        scratch: Some(dir.to_path_buf()),
     };
-    let ambient = match &form.ambient {
-        Some(a) => Some(decode(std::slice::from_ref(a))?.remove(0)),
-        None => None,
-    };
-    let mut cal =
-        calibrate::calibrate(&images, form.names.as_deref(), ambient.as_ref(), &settings)?;
-    drop(images);
+    let ambient = form
+        .ambient
+        .as_ref()
+        .map(|a| files(std::slice::from_ref(a)));
+    let mut cal = calibrate::calibrate(
+        &images,
+        form.names.as_deref(),
+        ambient.as_ref().map(|a| a as &dyn Source),
+        &settings,
+    )?;
     if !form.matte.is_empty() {
-        cal.fit_intensities(&decode(&form.matte)?)?;
+        cal.fit_intensities(&files(&form.matte), &settings)?;
+    }
+    let uploads = (form.images.iter())
+        .chain(&form.matte)
+        .chain(&form.mask)
+        .chain(&form.ambient);
+    for s in uploads {
+        std::fs::remove_file(dir.join(&s.file))?;
     }
     let table = cal.table();
     let mut files = Vec::new();

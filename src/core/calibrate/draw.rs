@@ -29,13 +29,13 @@ fn confidence_colour(c: f64) -> Rgb<u8> {
     }
 }
 
-/// The overlay: `max` (gamma 1/2 so the dim sphere shows), the circle, and each
-/// highlight ringed in its confidence's colour, labelled with its number and its
-/// confidence in percent.
-pub fn overlay(max: &Array2<u16>, circles: &[Circle], marks: &[Mark]) -> RgbImage {
+/// The overlay: `max` (the images' maximum, already at gamma 1/2 so the dim sphere
+/// shows), the circle, and each highlight ringed in its confidence's colour, labelled
+/// with its number and its confidence in percent.
+pub fn overlay(max: &Array2<u8>, circles: &[Circle], marks: &[Mark]) -> RgbImage {
     let (h, w) = max.dim();
     let mut img = RgbImage::from_fn(w as u32, h as u32, |x, y| {
-        let v = ((max[[y as usize, x as usize]] as f64 / 65535.0).sqrt() * 255.0) as u8;
+        let v = max[[y as usize, x as usize]];
         Rgb([v, v, v])
     });
     for circle in circles {

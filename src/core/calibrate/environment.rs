@@ -75,15 +75,3 @@ pub fn estimate(planes: &[&Array2<u16>], ambient: Option<&Array2<u16>>) -> Array
     }
     env
 }
-
-/// Per pixel, in how many of the images the residual is significant (each image's
-/// significant pixels, as from [`super::highlight::significant`]).
-pub fn recurrence(dim: (usize, usize), significant: &[Vec<(usize, usize)>]) -> Array2<u16> {
-    let mut count = Array2::<u16>::zeros(dim);
-    for pixels in significant {
-        for &p in pixels {
-            count[p] = count[p].saturating_add(1);
-        }
-    }
-    count
-}

@@ -94,20 +94,23 @@ fn residual(plane: &Array2<u16>, env: &Array2<u16>, p: (usize, usize)) -> f64 {
 /// The residual's significance threshold in one image: above its noise and a quarter of
 /// its peak on the ball; an error when nothing on the ball stands out.
 fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String> {
-    let mut diffs = Vec::new();
+    // The median neighbour difference by counting (no copy of the disc's pixels).
+    let mut diffs = vec![0u32; 1 << 16];
+    let mut count = 0usize;
     let mut peak = 0.0f64;
     let mut n = 0usize;
     for (r, c) in disc.pixels() {
         n += 1;
         peak = peak.max(residual(plane, ctx.env, (r, c)));
         if c > disc.c0 && disc.contains(r, c - 1) {
-            diffs.push(plane[[r, c]].abs_diff(plane[[r, c - 1]]));
+            diffs[plane[[r, c]].abs_diff(plane[[r, c - 1]]) as usize] += 1;
+            count += 1;
         }
     }
     if n < 20 {
         return Err("the sphere covers almost no pixels of the image".into());
     }
-    let noise = 1.4826 * median_u16(&mut diffs) as f64 / std::f64::consts::SQRT_2;
+    let noise = 1.4826 * median_of_counts(&diffs, count) as f64 / std::f64::consts::SQRT_2;
     let least = (10.0 * noise).max(0.02 * 65535.0);
     if peak < least {
         return Err(format!(
@@ -118,35 +121,56 @@ fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String>
     Ok((6.0 * noise).max(0.01 * 65535.0).max(0.25 * peak))
 }
 
-/// An image's significant residual: its pixels and its largest value.
+/// An image's significant residual: the level it starts at and its largest value.
 pub struct Significant {
-    pub pixels: Vec<(usize, usize)>,
+    floor: f64,
     pub peak: f64,
 }
 
-/// The pixels of `plane` whose residual is significant, and its largest residual; or why
-/// none are.
+/// The level above which `plane`'s residual is significant, and its largest residual;
+/// or why nothing is.
 pub fn significant(plane: &Array2<u16>, ctx: &Context) -> Result<Significant, String> {
     let disc = Disc::new(ctx.circle, plane.dim());
     let floor = floor(plane, ctx, &disc)?;
-    let pixels: Vec<(usize, usize)> = disc
+    let peak = disc
         .pixels()
-        .filter(|&p| residual(plane, ctx.env, p) >= floor)
-        .collect();
-    let peak = pixels
-        .iter()
-        .map(|&p| residual(plane, ctx.env, p))
+        .map(|p| residual(plane, ctx.env, p))
+        .filter(|&e| e >= floor)
         .fold(0.0, f64::max);
-    Ok(Significant { pixels, peak })
+    Ok(Significant { floor, peak })
+}
+
+/// Count `plane`'s significant pixels in `recurrence` (see [`super::environment`]).
+pub fn add_recurrence(
+    plane: &Array2<u16>,
+    ctx: &Context,
+    sig: &Significant,
+    recurrence: &mut Array2<u16>,
+) {
+    let disc = Disc::new(ctx.circle, plane.dim());
+    for p in disc.pixels() {
+        if residual(plane, ctx.env, p) >= sig.floor {
+            recurrence[p] = recurrence[p].saturating_add(1);
+        }
+    }
+}
+
+/// A pixel (row, column) of a core, kept compact: a core may be most of the ball.
+type Pixel = (u32, u32);
+
+fn pixel((r, c): (usize, usize)) -> Pixel {
+    (r as u32, c as u32)
 }
 
 /// A blob of significant residual.
 struct Blob {
-    pixels: Vec<(usize, usize)>,
+    /// Its label in the disc's label map.
+    label: u32,
     /// Brightest image value in it.
     peak: u16,
-    /// Its largest residual.
+    /// Its largest residual, and the last pixel (row-major) that has it.
     peak_residual: f64,
+    top: (usize, usize),
     /// Residual light, each pixel weighted by how seldom other images have one there.
     score: f64,
     centre: (f64, f64),
@@ -163,30 +187,39 @@ pub fn find(
     let floor = floor(plane, ctx, &disc)?;
     let keep = |p: (usize, usize)| disc.contains(p.0, p.1) && residual(plane, ctx.env, p) >= floor;
     let others = (ctx.count.max(2) - 1) as f64;
-    let blobs: Vec<Blob> = groups(&disc, &keep)
-        .into_iter()
-        .map(|pixels| {
-            let (mut peak, mut peak_residual, mut score) = (0u16, 0.0f64, 0.0);
-            let (mut sx, mut sy) = (0.0, 0.0);
-            for &p in &pixels {
-                let e = residual(plane, ctx.env, p);
-                peak = peak.max(plane[p]);
-                peak_residual = peak_residual.max(e);
-                let unique = 1.0 - (recurrence[p].max(1) - 1) as f64 / others;
-                score += e * unique * unique;
-                sx += p.1 as f64;
-                sy += p.0 as f64;
-            }
-            let n = pixels.len() as f64;
-            Blob {
-                pixels,
-                peak,
-                peak_residual,
-                score,
-                centre: (sx / n, sy / n),
-            }
+    let labels = Labels::of(&disc, &keep);
+    let mut blobs: Vec<Blob> = (1..=labels.count as u32)
+        .map(|label| Blob {
+            label,
+            peak: 0,
+            peak_residual: 0.0,
+            top: (0, 0),
+            score: 0.0,
+            centre: (0.0, 0.0),
         })
         .collect();
+    let mut sizes = vec![0usize; labels.count];
+    for p in disc.pixels() {
+        let l = labels.at(p);
+        if l == 0 {
+            continue;
+        }
+        let b = &mut blobs[l as usize - 1];
+        let e = residual(plane, ctx.env, p);
+        b.peak = b.peak.max(plane[p]);
+        if e >= b.peak_residual {
+            b.peak_residual = e;
+            b.top = p;
+        }
+        let unique = 1.0 - (recurrence[p].max(1) - 1) as f64 / others;
+        b.score += e * unique * unique;
+        b.centre.0 += p.1 as f64;
+        b.centre.1 += p.0 as f64;
+        sizes[l as usize - 1] += 1;
+    }
+    for (b, &n) in blobs.iter_mut().zip(&sizes) {
+        b.centre = (b.centre.0 / n as f64, b.centre.1 / n as f64);
+    }
     // A light outshines whatever it lights: its blob's rise over the environment is (near)
     // the image's largest, or it clips.
     let top = blobs.iter().map(|b| b.peak_residual).fold(0.0, f64::max);
@@ -220,7 +253,7 @@ pub fn find(
             best.centre.0, best.centre.1, b.centre.0, b.centre.1
         ));
     }
-    let core = core_of(plane, ctx, best);
+    let core = core_of(plane, ctx, &labels, best);
     let hl = measure(plane, ctx, &core, best.peak)?;
     let dominance = best.score / (best.score + second);
     let own = hl.own;
@@ -254,33 +287,38 @@ pub fn find(
 /// most of its sub-pixel position (on a large core their share is small, and the glare
 /// beside a real highlight would bias them). Not clipped: the pixels down to a tenth of
 /// the peak, joined to it.
-fn core_of(plane: &Array2<u16>, ctx: &Context, blob: &Blob) -> Vec<(usize, usize)> {
+fn core_of(plane: &Array2<u16>, ctx: &Context, labels: &Labels, blob: &Blob) -> Vec<Pixel> {
     let disc = Disc::new(ctx.circle, plane.dim());
-    let light =
-        |g: &Vec<(usize, usize)>| -> f64 { g.iter().map(|&p| residual(plane, ctx.env, p)).sum() };
     if blob.peak < ctx.clip {
         let tenth = 0.1 * blob.peak_residual;
-        let top = *blob
-            .pixels
-            .iter()
-            .max_by(|&&a, &&b| residual(plane, ctx.env, a).total_cmp(&residual(plane, ctx.env, b)))
-            .expect("a blob has pixels");
         let keep = |p: (usize, usize)| residual(plane, ctx.env, p) >= tenth;
-        return groups(&disc, &keep)
-            .into_iter()
-            .find(|g| g.contains(&top))
-            .unwrap_or_default();
+        return Labels::group_of(&disc, &keep, blob.top);
     }
-    let member: HashSet<(usize, usize)> = blob.pixels.iter().copied().collect();
-    let keep = |p: (usize, usize)| member.contains(&p) && plane[p] >= ctx.clip;
-    let mut core = groups(&disc, &keep)
-        .into_iter()
-        .max_by(|a, b| light(a).total_cmp(&light(b)))
-        .unwrap_or_default();
+    let keep = |p: (usize, usize)| labels.at(p) == blob.label && plane[p] >= ctx.clip;
+    let clipped = Labels::of(&disc, &keep);
+    let mut light = vec![0.0f64; clipped.count];
+    for p in disc.pixels() {
+        let l = clipped.at(p);
+        if l > 0 {
+            light[l as usize - 1] += residual(plane, ctx.env, p);
+        }
+    }
+    // The last of equally bright groups, as `max_by` picks.
+    let best = light
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map_or(0, |(i, _)| i as u32 + 1);
+    let mut core: Vec<Pixel> = (disc.pixels())
+        .filter(|&p| clipped.at(p) == best)
+        .map(pixel)
+        .collect();
+    drop(clipped);
     if core.len() < SMALL_CORE {
-        let inner: HashSet<(usize, usize)> = core.iter().copied().collect();
+        let inner: HashSet<Pixel> = core.iter().copied().collect();
         let mut edge = HashSet::new();
         for &(r, c) in &core {
+            let (r, c) = (r as usize, c as usize);
             for (dr, dc) in [
                 (-1, 0),
                 (1, 0),
@@ -299,9 +337,9 @@ fn core_of(plane: &Array2<u16>, ctx: &Context, blob: &Blob) -> Vec<(usize, usize
                 if p.0 < plane.dim().0
                     && p.1 < plane.dim().1
                     && disc.contains(p.0, p.1)
-                    && !inner.contains(&p)
+                    && !inner.contains(&pixel(p))
                 {
-                    edge.insert(p);
+                    edge.insert(pixel(p));
                 }
             }
         }
@@ -320,12 +358,13 @@ struct Measured {
 fn measure(
     plane: &Array2<u16>,
     ctx: &Context,
-    core: &[(usize, usize)],
+    core: &[Pixel],
     peak: u16,
 ) -> Result<Measured, String> {
     let circle = ctx.circle;
     let (mut sum, mut sx, mut sy, mut sw, mut total) = ([0.0; 3], 0.0, 0.0, 0.0, 0.0);
     for &(r, c) in core {
+        let (r, c) = (r as usize, c as usize);
         let Some(d) = ctx.camera.light_at(circle, c as f64, r as f64) else {
             continue;
         };
@@ -363,7 +402,7 @@ fn measure(
 /// Elongation and equivalent angular radius of a set of pixels in direction space: the
 /// mirror map stretches an image blob along the outline and squeezes it towards the rim
 /// by 1/n_z each way.
-fn shape(pixels: &[(usize, usize)], circle: &Circle, (mx, my): (f64, f64)) -> (f64, f64) {
+fn shape(pixels: &[Pixel], circle: &Circle, (mx, my): (f64, f64)) -> (f64, f64) {
     let n = pixels.len().max(1) as f64;
     // Image covariance, each pixel a unit square (variance 1/12 per axis).
     let (mut cxx, mut cyy, mut cxy) = (1.0 / 12.0, 1.0 / 12.0, 0.0);
@@ -394,20 +433,75 @@ fn shape(pixels: &[(usize, usize)], circle: &Circle, (mx, my): (f64, f64)) -> (f
 }
 
 /// Groups of the disc's pixels that `keep` accepts, pixels within [`JOIN`] of each other
-/// joined.
-fn groups(disc: &Disc, keep: &dyn Fn((usize, usize)) -> bool) -> Vec<Vec<(usize, usize)>> {
-    let (rows, cols) = (disc.r1 - disc.r0 + 1, disc.c1 - disc.c0 + 1);
-    let mut seen = Array2::from_elem((rows, cols), false);
-    let mut out = Vec::new();
-    for (r, c) in disc.pixels() {
-        if seen[[r - disc.r0, c - disc.c0]] || !keep((r, c)) {
-            continue;
+/// joined: a label per pixel of the disc's box (0: in no group; g: the g-th group found
+/// in row-major order), 4 bytes a pixel whatever the groups.
+struct Labels {
+    map: Array2<u32>,
+    r0: usize,
+    c0: usize,
+    count: usize,
+}
+
+impl Labels {
+    fn of(disc: &Disc, keep: &dyn Fn((usize, usize)) -> bool) -> Self {
+        let mut labels = Self {
+            map: Array2::zeros((disc.r1 - disc.r0 + 1, disc.c1 - disc.c0 + 1)),
+            r0: disc.r0,
+            c0: disc.c0,
+            count: 0,
+        };
+        let mut stack = Vec::new();
+        for p in disc.pixels() {
+            if labels.at(p) != 0 || !keep(p) {
+                continue;
+            }
+            labels.count += 1;
+            let label = labels.count as u32;
+            labels.flood(disc, keep, p, label, &mut stack, &mut |_| {});
         }
+        labels
+    }
+
+    /// The group of `keep`'s pixels holding `start`.
+    fn group_of(
+        disc: &Disc,
+        keep: &dyn Fn((usize, usize)) -> bool,
+        start: (usize, usize),
+    ) -> Vec<Pixel> {
+        let mut labels = Self {
+            map: Array2::zeros((disc.r1 - disc.r0 + 1, disc.c1 - disc.c0 + 1)),
+            r0: disc.r0,
+            c0: disc.c0,
+            count: 1,
+        };
         let mut group = Vec::new();
-        let mut stack = vec![(r, c)];
-        seen[[r - disc.r0, c - disc.c0]] = true;
+        if keep(start) {
+            labels.flood(disc, keep, start, 1, &mut Vec::new(), &mut |p| {
+                group.push(pixel(p))
+            });
+        }
+        group
+    }
+
+    fn at(&self, (r, c): (usize, usize)) -> u32 {
+        self.map[[r - self.r0, c - self.c0]]
+    }
+
+    /// Label everything joined to `start` that `keep` accepts and is unlabelled (within
+    /// the disc's box: `keep` says whether the disc itself bounds it).
+    fn flood(
+        &mut self,
+        disc: &Disc,
+        keep: &dyn Fn((usize, usize)) -> bool,
+        start: (usize, usize),
+        label: u32,
+        stack: &mut Vec<(u32, u32)>,
+        each: &mut dyn FnMut((usize, usize)),
+    ) {
+        self.map[[start.0 - self.r0, start.1 - self.c0]] = label;
+        stack.push((start.0 as u32, start.1 as u32));
         while let Some((y, x)) = stack.pop() {
-            group.push((y, x));
+            each((y as usize, x as usize));
             for dy in -JOIN..=JOIN {
                 for dx in -JOIN..=JOIN {
                     let (ny, nx) = (y as isize + dy, x as isize + dx);
@@ -419,23 +513,27 @@ fn groups(disc: &Disc, keep: &dyn Fn((usize, usize)) -> bool) -> Vec<Vec<(usize,
                         continue;
                     }
                     let p = (ny as usize, nx as usize);
-                    let s = &mut seen[[p.0 - disc.r0, p.1 - disc.c0]];
-                    if !*s && keep(p) {
-                        *s = true;
-                        stack.push(p);
+                    let s = &mut self.map[[p.0 - self.r0, p.1 - self.c0]];
+                    if *s == 0 && keep(p) {
+                        *s = label;
+                        stack.push((p.0 as u32, p.1 as u32));
                     }
                 }
             }
         }
-        out.push(group);
     }
-    out
 }
 
-fn median_u16(v: &mut [u16]) -> u16 {
-    if v.is_empty() {
-        return 0;
+/// The median of values counted in `counts` (`total` of them), as `select_nth_unstable`
+/// at `total / 2` gives it.
+fn median_of_counts(counts: &[u32], total: usize) -> u16 {
+    let k = total / 2;
+    let mut seen = 0usize;
+    for (v, &n) in counts.iter().enumerate() {
+        seen += n as usize;
+        if seen > k {
+            return v as u16;
+        }
     }
-    let k = v.len() / 2;
-    *v.select_nth_unstable(k).1
+    0
 }

@@ -17,9 +17,11 @@ mod highlight;
 mod matte;
 mod mirror;
 mod positions;
+mod reading;
+mod source;
 mod sphere;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use ndarray::Array2;
 use serde::Serialize;
@@ -28,7 +30,11 @@ use thiserror::Error;
 pub use highlight::{Highlight, MAX_BEHIND_DEG};
 pub use mirror::{Camera, FOCAL_PX};
 pub use positions::LightPosition;
+pub use reading::{COARSE_BYTES, CROP_BYTES, FIT_PIXELS, READERS, peak_bytes};
+pub use source::{ImageFiles, Source};
 pub use sphere::{OutlineFit, circle_of_mask, fit_outline};
+
+use reading::{Pass, Plan, Window, Windows};
 
 use super::InputError;
 use super::intake::{self, Limits};
@@ -73,6 +79,30 @@ pub struct Settings {
     pub camera: Camera,
     /// Leave out images without a usable highlight (reported) instead of failing.
     pub skip_bad: bool,
+    /// What the images may hold in memory (see [`reading`]): the defaults, unless a test
+    /// wants the downscaled and spilled paths on small images.
+    pub budget: Budget,
+    /// Where images' windows are spilled when they do not fit [`Budget::crop_bytes`]
+    /// (unlinked files; default: the system's temporary directory).
+    pub scratch: Option<PathBuf>,
+}
+
+/// The memory budgets of a calibration (defaults [`COARSE_BYTES`], [`CROP_BYTES`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Budget {
+    /// The downscaled copies of the whole set.
+    pub coarse_bytes: usize,
+    /// The balls' windows of the whole set in memory; past it, spilled.
+    pub crop_bytes: usize,
+}
+
+impl Default for Budget {
+    fn default() -> Self {
+        Self {
+            coarse_bytes: COARSE_BYTES,
+            crop_bytes: CROP_BYTES,
+        }
+    }
 }
 
 /// Lights that all come out within this angle of their mean direction are one light, or a
@@ -117,7 +147,8 @@ pub struct Calibration {
     pub outline: Option<OutlineFit>,
     pub lights: Vec<CalibratedLight>,
     pub skipped: Vec<Skipped>,
-    pub max_image: Array2<u16>,
+    /// Per pixel, the brightest of the images as the overlay shows it (gamma ½, 8 bits).
+    pub max_image: Array2<u8>,
 }
 
 #[derive(Debug, Error)]
@@ -163,48 +194,45 @@ pub enum CalibrationError {
 
 /// Calibrate from the sphere images (one per light, in light order). `names` are the
 /// light table's names, one per image (default: the image names); `ambient` is the ball
-/// with the rig's lights off, when there is one.
+/// with the rig's lights off (a source of one image), when there is one.
+///
+/// The images are read a few at a time, twice at most (see [`reading`]): the outline is
+/// fitted on the per-pixel median of downscaled copies and refined at full resolution on
+/// the median of the ball's window, and each highlight is found in its own image's
+/// window, so the memory held is [`peak_bytes`] whatever the number of images.
 pub fn calibrate(
-    images: &[SphereImage],
+    images: &dyn Source,
     names: Option<&[String]>,
-    ambient: Option<&SphereImage>,
+    ambient: Option<&dyn Source>,
     settings: &Settings,
 ) -> Result<Calibration, CalibrationError> {
     let (w, h) = check_images(images)?;
-    if let Some(a) = ambient
-        && a.plane.dim() != images[0].plane.dim()
-    {
-        return Err(CalibrationError::Image {
-            name: a.name.clone(),
-            reason: format!(
-                "the ambient image is {}×{} but the sphere images are {w}×{h}",
-                a.plane.dim().1,
-                a.plane.dim().0
-            ),
-        });
+    let dim = (w, h);
+    if let Some(a) = ambient {
+        let (aw, ah) = a.size(0)?;
+        if a.count() != 1 || (aw, ah) != dim {
+            return Err(CalibrationError::Image {
+                name: a.name(0).to_string(),
+                reason: format!("the ambient image is {aw}×{ah} but the sphere images are {w}×{h}"),
+            });
+        }
     }
     if let Some(n) = names
-        && n.len() != images.len()
+        && n.len() != images.count()
     {
         return Err(CalibrationError::Names(format!(
             "{} names for {} sphere images",
             n.len(),
-            images.len()
+            images.count()
         )));
     }
-    let planes: Vec<&Array2<u16>> = images.iter().map(|i| &i.plane).collect();
-    let env = environment::estimate(&planes, ambient.map(|a| &a.plane));
-    let (circle, outline) = match &settings.circle {
-        CircleSource::Fit => {
-            let fit = fit_outline(&env.mapv(|v| v as f32 / 65535.0))
-                .map_err(CalibrationError::NoSphere)?;
-            (fit.circle, Some(fit))
-        }
-        CircleSource::Given(c) => (*c, None),
+    let given = match &settings.circle {
+        CircleSource::Fit => None,
+        CircleSource::Given(c) => Some(vec![*c]),
         CircleSource::Balls(cs) if cs.is_empty() => {
             return Err(CalibrationError::NoSphere("no circle given".into()));
         }
-        CircleSource::Balls(cs) => (cs[0], None),
+        CircleSource::Balls(cs) => Some(cs.clone()),
         CircleSource::Mask { name, mask } => {
             if mask.dim() != (h, w) {
                 return Err(CalibrationError::Mask {
@@ -220,37 +248,118 @@ pub fn calibrate(
                 name: name.clone(),
                 reason,
             })?;
-            (c, None)
+            Some(vec![c])
         }
     };
-    let more_circles = match &settings.circle {
-        CircleSource::Balls(cs) => cs[1..].to_vec(),
-        _ => Vec::new(),
+    let scratch = settings.scratch.clone().unwrap_or_else(std::env::temp_dir);
+    let (circles, outline, pass, env) = match given {
+        Some(circles) => {
+            for c in &circles {
+                check_circle(c, w, h)?;
+            }
+            let windows: Vec<Window> = circles
+                .iter()
+                .map(|c| Window::around(c, 0.0, dim))
+                .collect();
+            let plan = Plan {
+                factor: None,
+                windows: &windows,
+                overlay: true,
+                scratch: &scratch,
+                crop_bytes: settings.budget.crop_bytes,
+            };
+            (circles, None, reading::read_all(images, dim, &plan)?, None)
+        }
+        None => {
+            let found = locate(images, ambient, dim, &settings.budget, &scratch)
+                .map_err(|e| e.into_error(CalibrationError::NoSphere))?;
+            (
+                vec![found.fit.circle],
+                Some(found.fit),
+                found.pass,
+                Some(found.env),
+            )
+        }
     };
-    let circles: Vec<Circle> = std::iter::once(circle)
-        .chain(more_circles.iter().copied())
-        .collect();
-    for c in &circles {
-        check_circle(c, w, h)?;
-    }
-    let clip = clip_level(&planes);
+    let more_circles = circles[1..].to_vec();
+    let circle = circles[0];
+    let clip = pass
+        .maxima
+        .iter()
+        .copied()
+        .max()
+        .unwrap_or(0)
+        .saturating_sub(655);
+    let ambient_windows = match ambient {
+        Some(a) => {
+            let windows: Vec<Window> = pass.windows.iter().map(|ws| ws.window()).collect();
+            let plan = Plan {
+                factor: None,
+                windows: &windows,
+                overlay: false,
+                scratch: &scratch,
+                crop_bytes: usize::MAX,
+            };
+            let read = reading::read_all(a, dim, &plan)?;
+            read.windows
+                .iter()
+                .map(|ws| ws.image(0).map(|p| Some(p.into_owned())))
+                .collect::<Result<Vec<_>, _>>()?
+        }
+        None => vec![None; circles.len()],
+    };
+    let mut env = env;
     let per_ball: Vec<Vec<Result<Highlight, String>>> = circles
         .iter()
-        .map(|c| {
+        .zip(&pass.windows)
+        .zip(&ambient_windows)
+        .map(|((c, windows), amb)| {
+            let win = windows.window();
+            let env = match env.take() {
+                Some(e) => e,
+                None => windows.median(amb.as_ref())?,
+            };
+            let local = win.local(c);
+            let camera = match settings.camera {
+                Camera::Perspective {
+                    focal_px,
+                    principal,
+                } => Camera::Perspective {
+                    focal_px,
+                    principal: [principal[0] - win.c0 as f64, principal[1] - win.r0 as f64],
+                },
+                Camera::Orthographic => Camera::Orthographic,
+            };
             let ctx = highlight::Context {
-                circle: c,
-                camera: &settings.camera,
+                circle: &local,
+                camera: &camera,
                 env: &env,
-                count: planes.len(),
+                count: images.count(),
                 clip,
                 typical_rise: 0.0,
             };
-            find_highlights(&planes, &ctx)
+            let found = find_highlights(windows, &ctx)?;
+            Ok(found
+                .into_iter()
+                .map(|r| {
+                    r.map(|hl| Highlight {
+                        x: hl.x + win.c0 as f64,
+                        y: hl.y + win.r0 as f64,
+                        ..hl
+                    })
+                })
+                .collect())
         })
-        .collect::<Result<_, _>>()?;
+        .collect::<Result<_, CalibrationError>>()?;
+    let Pass {
+        overlay, windows, ..
+    } = pass;
+    drop(windows);
+    let max_image = overlay.unwrap_or_default();
     let mut lights = Vec::new();
     let mut skipped = Vec::new();
-    for (i, img) in images.iter().enumerate() {
+    for i in 0..images.count() {
+        let image = images.name(i);
         let found: Result<Vec<Highlight>, String> = per_ball
             .iter()
             .enumerate()
@@ -270,8 +379,8 @@ pub fn calibrate(
                 let position = place(&settings.camera, &circles, &highlight, &hls);
                 lights.push(CalibratedLight {
                     index: i,
-                    image: img.name.clone(),
-                    name: names.map_or_else(|| img.name.clone(), |n| n[i].clone()),
+                    image: image.to_string(),
+                    name: names.map_or_else(|| image.to_string(), |n| n[i].clone()),
                     highlight,
                     more: hls,
                     position,
@@ -279,12 +388,12 @@ pub fn calibrate(
                 });
             }
             Err(reason) if settings.skip_bad => skipped.push(Skipped {
-                image: img.name.clone(),
+                image: image.to_string(),
                 reason,
             }),
             Err(reason) => {
                 return Err(CalibrationError::Image {
-                    name: img.name.clone(),
+                    name: image.to_string(),
                     reason,
                 });
             }
@@ -297,15 +406,11 @@ pub fn calibrate(
             .collect();
         return Err(CalibrationError::TooFewUsable {
             usable: lights.len(),
-            count: images.len(),
+            count: images.count(),
             left_out: left_out.join("; "),
         });
     }
     check_spread(&lights)?;
-    let mut max_image = planes[0].clone();
-    for p in planes[1..].iter().copied() {
-        max_image.zip_mut_with(p, |m, &v| *m = (*m).max(v));
-    }
     Ok(Calibration {
         circle,
         more_circles,
@@ -319,37 +424,53 @@ pub fn calibrate(
 
 impl Calibration {
     /// Fit each light's relative intensity from a matte sphere's images, one per sphere
-    /// image in the same order (the matte sphere's outline is fitted to its own images).
-    pub fn fit_intensities(&mut self, matte: &[SphereImage]) -> Result<(), CalibrationError> {
+    /// image in the same order (the matte sphere's outline is fitted to its own images,
+    /// read as the chrome sphere's are).
+    pub fn fit_intensities(
+        &mut self,
+        matte: &dyn Source,
+        settings: &Settings,
+    ) -> Result<(), CalibrationError> {
         let count = self.lights.len() + self.skipped.len();
-        if matte.len() != count {
+        if matte.count() != count {
             return Err(CalibrationError::Names(format!(
                 "{} matte sphere images for {count} chrome sphere images",
-                matte.len()
+                matte.count()
             )));
         }
         let (w, h) = check_images(matte)?;
-        let planes: Vec<&Array2<u16>> = matte.iter().map(|i| &i.plane).collect();
-        let fit = fit_outline(&environment::estimate(&planes, None).mapv(|v| v as f32 / 65535.0))
-            .map_err(|reason| CalibrationError::Matte {
-            name: matte[0].name.clone(),
-            reason: format!("no sphere outline found: {reason}"),
+        let scratch = settings.scratch.clone().unwrap_or_else(std::env::temp_dir);
+        let found = locate(matte, None, (w, h), &settings.budget, &scratch).map_err(|e| {
+            e.into_error(|reason| CalibrationError::Matte {
+                name: matte.name(0).to_string(),
+                reason: format!("no sphere outline found: {reason}"),
+            })
         })?;
-        check_circle(&fit.circle, w, h)?;
-        let used: Vec<Array2<u16>> = self
-            .lights
+        let circle = found.fit.circle;
+        check_circle(&circle, w, h)?;
+        let clip = found
+            .pass
+            .maxima
             .iter()
-            .map(|l| planes[l.index].clone())
-            .collect();
-        let directions: Vec<[f64; 3]> = self.lights.iter().map(|l| l.highlight.direction).collect();
-        let k = matte::intensities(&used, &directions, &fit.circle, clip_level(&planes)).map_err(
-            |(i, reason)| CalibrationError::Matte {
-                name: matte[self.lights[i].index].name.clone(),
-                reason,
-            },
-        )?;
-        for (l, k) in self.lights.iter_mut().zip(k) {
-            l.intensity = Some(k);
+            .copied()
+            .max()
+            .unwrap_or(0)
+            .saturating_sub(655);
+        let windows = &found.pass.windows[0];
+        let local = windows.window().local(&circle);
+        let raw = reading::bounded(self.lights.len(), |i| {
+            let l = &self.lights[i];
+            let plane = windows.image(l.index)?;
+            matte::intensity(&plane, l.highlight.direction, &local, clip).map_err(|reason| {
+                CalibrationError::Matte {
+                    name: matte.name(l.index).to_string(),
+                    reason,
+                }
+            })
+        })?;
+        let mean = raw.iter().sum::<f64>() / raw.len() as f64;
+        for (l, k) in self.lights.iter_mut().zip(raw) {
+            l.intensity = Some(k / mean);
         }
         Ok(())
     }
@@ -470,40 +591,183 @@ impl Calibration {
     }
 }
 
-/// Each image's highlight: its significant residual first, for the recurrence map, then
-/// the highlight judged against it. Images that are all alike are one error.
-fn find_highlights(
-    planes: &[&Array2<u16>],
-    ctx: &highlight::Context,
-) -> Result<Vec<Result<Highlight, String>>, CalibrationError> {
-    use rayon::prelude::*;
-    let significant: Vec<Result<highlight::Significant, String>> = planes
-        .par_iter()
-        .map(|p| highlight::significant(p, ctx))
-        .collect();
-    let differing = significant.iter().filter(|s| s.is_ok()).count();
-    if differing < 3 || 2 * differing < planes.len() {
-        return Err(CalibrationError::AllAlike {
-            differing,
-            count: planes.len(),
+/// Where the ball is, fitted to the images: the outline, the pass that read its window of
+/// every image, and the environment over that window.
+struct Located {
+    fit: OutlineFit,
+    pass: Pass,
+    env: Array2<u16>,
+}
+
+/// Why [`locate`] found no ball (a reason for the caller's error), or another error.
+enum LocateError {
+    NoOutline(String),
+    Other(CalibrationError),
+}
+
+impl LocateError {
+    fn into_error(self, no_outline: impl FnOnce(String) -> CalibrationError) -> CalibrationError {
+        match self {
+            Self::NoOutline(reason) => no_outline(reason),
+            Self::Other(e) => e,
+        }
+    }
+}
+
+impl From<CalibrationError> for LocateError {
+    fn from(e: CalibrationError) -> Self {
+        Self::Other(e)
+    }
+}
+
+/// Fit the ball's outline: on the per-pixel median of the images (raised to `ambient`)
+/// downscaled to fit the budget, then, when they were downscaled, refined at full
+/// resolution on the median of a second pass over the ball's window.
+fn locate(
+    images: &dyn Source,
+    ambient: Option<&dyn Source>,
+    dim: (usize, usize),
+    budget: &Budget,
+    scratch: &Path,
+) -> Result<Located, LocateError> {
+    let f = reading::coarse_factor(images.count(), dim, budget.coarse_bytes);
+    fn plan<'a>(
+        factor: Option<usize>,
+        windows: &'a [Window],
+        overlay: bool,
+        scratch: &'a Path,
+        budget: &Budget,
+    ) -> Plan<'a> {
+        Plan {
+            factor,
+            windows,
+            overlay,
+            scratch,
+            crop_bytes: budget.crop_bytes,
+        }
+    }
+    let first = reading::read_all(images, dim, &plan(Some(f), &[], true, scratch, budget))?;
+    let ambient_coarse = match ambient {
+        Some(a) => Some(
+            reading::read_all(a, dim, &plan(Some(f), &[], false, scratch, budget))?
+                .coarse
+                .remove(0),
+        ),
+        None => None,
+    };
+    let env = {
+        let refs: Vec<&Array2<u16>> = first.coarse.iter().collect();
+        environment::estimate(&refs, ambient_coarse.as_ref())
+    };
+    let rough = fit_outline(&env.mapv(|v| v as f32 / 65535.0)).map_err(LocateError::NoOutline)?;
+    let (w, h) = dim;
+    if f == 1 {
+        // The copies are the images: the ball's window is cut from them, one at a time.
+        check_circle(&rough.circle, w, h)?;
+        let win = Window::around(&rough.circle, 0.0, dim);
+        let cut = |p: &Array2<u16>| {
+            p.slice(ndarray::s![win.r0..win.r0 + win.h, win.c0..win.c0 + win.w])
+                .to_owned()
+        };
+        let env = cut(&env);
+        let windows = Windows::Memory(win, first.coarse.iter().map(cut).collect());
+        return Ok(Located {
+            fit: rough,
+            pass: Pass {
+                coarse: Vec::new(),
+                windows: vec![windows],
+                maxima: first.maxima,
+                overlay: first.overlay,
+            },
+            env,
         });
     }
-    let (lists, mut rises): (Vec<Vec<(usize, usize)>>, Vec<f64>) = significant
-        .into_iter()
-        .flatten()
-        .map(|s| (s.pixels, s.peak))
-        .unzip();
-    let recurrence = environment::recurrence(planes[0].dim(), &lists);
+    drop(env);
+    let Pass {
+        maxima, overlay, ..
+    } = first;
+    // A coarse pixel's centre is the mean of the pixels it averages.
+    let k = f as f64;
+    let up = Circle {
+        cx: rough.circle.cx * k + (k - 1.0) / 2.0,
+        cy: rough.circle.cy * k + (k - 1.0) / 2.0,
+        r: rough.circle.r * k,
+    };
+    check_circle(&up, w, h)?;
+    let win = Window::around(&up, sphere::refine_margin(up.r, 2.0 * k), dim);
+    let second = reading::read_all(images, dim, &plan(None, &[win], false, scratch, budget))?;
+    let ambient_window = match ambient {
+        Some(a) => Some(
+            reading::read_all(a, dim, &plan(None, &[win], false, scratch, budget))?.windows[0]
+                .image(0)?
+                .into_owned(),
+        ),
+        None => None,
+    };
+    let env = second.windows[0].median(ambient_window.as_ref())?;
+    drop(ambient_window);
+    let fine = sphere::refine_outline(&env, win.local(&up)).map_err(LocateError::NoOutline)?;
+    let circle = Circle {
+        cx: fine.circle.cx + win.c0 as f64,
+        cy: fine.circle.cy + win.r0 as f64,
+        r: fine.circle.r,
+    };
+    check_circle(&circle, w, h)?;
+    if !win.holds(&circle, dim) {
+        return Err(LocateError::NoOutline(format!(
+            "the outline traced at full resolution ({:.1}, {:.1}, radius {:.1}) lies far from the one found on the {f}× downscaled images",
+            circle.cx, circle.cy, circle.r
+        )));
+    }
+    // The highlights are searched within the ball's own box.
+    let Pass { windows, .. } = second;
+    Ok(Located {
+        fit: OutlineFit { circle, ..fine },
+        pass: Pass {
+            coarse: Vec::new(),
+            windows,
+            maxima,
+            overlay,
+        },
+        env,
+    })
+}
+
+/// Each image's highlight within the ball's window (`ctx` in the window's coordinates):
+/// its significant residual first, counted in the recurrence map, then the highlight
+/// judged against it. Images that are all alike are one error.
+fn find_highlights(
+    windows: &Windows,
+    ctx: &highlight::Context,
+) -> Result<Vec<Result<Highlight, String>>, CalibrationError> {
+    let n = windows.count();
+    let recurrence = std::sync::Mutex::new(Array2::<u16>::zeros(ctx.env.dim()));
+    let rises: Vec<Result<f64, String>> = reading::bounded(n, |k| {
+        let plane = windows.image(k)?;
+        Ok(highlight::significant(&plane, ctx).map(|sig| {
+            let mut counts = recurrence.lock().expect("no reader panics holding it");
+            highlight::add_recurrence(&plane, ctx, &sig, &mut counts);
+            sig.peak
+        }))
+    })?;
+    let differing = rises.iter().filter(|s| s.is_ok()).count();
+    if differing < 3 || 2 * differing < n {
+        return Err(CalibrationError::AllAlike {
+            differing,
+            count: n,
+        });
+    }
+    let mut rises: Vec<f64> = rises.into_iter().flatten().collect();
+    let recurrence = recurrence.into_inner().expect("no reader panicked");
     let mid = rises.len() / 2;
     let typical_rise = *rises.select_nth_unstable_by(mid, f64::total_cmp).1;
     let ctx = highlight::Context {
         typical_rise,
         ..*ctx
     };
-    Ok(planes
-        .par_iter()
-        .map(|p| highlight::find(p, &ctx, &recurrence))
-        .collect())
+    reading::bounded(n, |k| {
+        Ok(highlight::find(&*windows.image(k)?, &ctx, &recurrence))
+    })
 }
 
 /// A light's position from its highlights on several balls (`first` on `circles[0]`).
@@ -557,22 +821,22 @@ fn check_spread(lights: &[CalibratedLight]) -> Result<(), CalibrationError> {
 }
 
 /// At least 3 images, all one size; their (width, height).
-fn check_images(images: &[SphereImage]) -> Result<(usize, usize), CalibrationError> {
-    if images.len() < 3 {
+fn check_images(images: &dyn Source) -> Result<(usize, usize), CalibrationError> {
+    if images.count() < 3 {
         return Err(InputError::TooFewImages {
-            count: images.len(),
+            count: images.count(),
         }
         .into());
     }
-    let (h, w) = images[0].plane.dim();
-    for img in &images[1..] {
-        let (ih, iw) = img.plane.dim();
-        if (ih, iw) != (h, w) {
+    let (w, h) = images.size(0)?;
+    for k in 1..images.count() {
+        let (iw, ih) = images.size(k)?;
+        if (iw, ih) != (w, h) {
             return Err(InputError::SizeMismatch {
-                name: img.name.clone(),
+                name: images.name(k).to_string(),
                 width: iw as u32,
                 height: ih as u32,
-                first: images[0].name.clone(),
+                first: images.name(0).to_string(),
                 expected_width: w as u32,
                 expected_height: h as u32,
             }
@@ -612,29 +876,25 @@ fn check_circle(c: &Circle, w: usize, h: usize) -> Result<(), CalibrationError> 
     Ok(())
 }
 
-/// The value at and above which a pixel counts as clipped: within 1 % of full scale of
-/// the brightest value in the set (JPEG's ringing leaves a clipped core a little below
-/// full scale).
-fn clip_level(planes: &[&Array2<u16>]) -> u16 {
-    let top = planes
-        .iter()
-        .map(|p| p.iter().copied().max().unwrap_or(0))
-        .max()
-        .unwrap_or(0);
-    top.saturating_sub(655)
-}
-
 /// Files that name the lights of a sphere folder: the seed's table (only its names are
 /// read) or a plain list.
 pub const NAMES_FILE: &str = "names.txt";
 
-/// A sphere folder as read: the sphere images (one per light, in name order), the light
-/// names, and the ambient image (the ball with the rig's lights off), if any.
+/// A sphere folder as found: the sphere images (one per light, in name order, read when
+/// the calibration reads them), the light names, and the ambient image (the ball with the
+/// rig's lights off), if any.
 #[derive(Debug, Clone)]
 pub struct SphereFolder {
-    pub images: Vec<SphereImage>,
+    pub images: ImageFiles,
     pub names: Option<Vec<String>>,
-    pub ambient: Option<SphereImage>,
+    pub ambient: Option<ImageFiles>,
+}
+
+impl SphereFolder {
+    /// The ambient image as [`calibrate`] takes it.
+    pub fn ambient_source(&self) -> Option<&dyn Source> {
+        self.ambient.as_ref().map(|a| a as &dyn Source)
+    }
 }
 
 /// Whether an image file is the ambient image: its stem is `ambient` or `ref`
@@ -667,9 +927,8 @@ pub fn load_dir(dir: &Path) -> Result<SphereFolder, CalibrationError> {
         }
     }
     files.sort();
-    files.extend(ambient_file.iter().cloned());
-    let mut images = read_images(dir, &files)?;
-    let ambient = ambient_file.and_then(|_| images.pop());
+    let images = image_files(dir, &files)?;
+    let ambient = ambient_file.map(|a| ImageFiles::in_dir(dir, &[a], Limits::default()));
     let read = |name: &str| {
         let p = dir.join(name);
         std::fs::read(&p).map_err(|e| InputError::io(&p, e))
@@ -694,7 +953,7 @@ pub fn load_dir(dir: &Path) -> Result<SphereFolder, CalibrationError> {
         None
     };
     if let Some(n) = &names
-        && n.len() != images.len()
+        && n.len() != images.count()
     {
         return Err(CalibrationError::Names(format!(
             "{} in {} lists {} names but the folder has {} sphere images",
@@ -705,7 +964,7 @@ pub fn load_dir(dir: &Path) -> Result<SphereFolder, CalibrationError> {
             },
             dir.display(),
             n.len(),
-            images.len()
+            images.count()
         )));
     }
     Ok(SphereFolder {
@@ -715,8 +974,7 @@ pub fn load_dir(dir: &Path) -> Result<SphereFolder, CalibrationError> {
     })
 }
 
-fn read_images(dir: &Path, files: &[String]) -> Result<Vec<SphereImage>, CalibrationError> {
-    use rayon::prelude::*;
+fn image_files(dir: &Path, files: &[String]) -> Result<ImageFiles, CalibrationError> {
     let limits = Limits::default();
     if files.len() > limits.max_images {
         return Err(InputError::TooManyImages {
@@ -725,23 +983,11 @@ fn read_images(dir: &Path, files: &[String]) -> Result<Vec<SphereImage>, Calibra
         }
         .into());
     }
-    let images: Result<Vec<SphereImage>, InputError> = files
-        .par_iter()
-        .map(|name| {
-            let path = dir.join(name);
-            let bytes = std::fs::read(&path).map_err(|e| InputError::io(&path, e))?;
-            let plane = intake::to_luma16(intake::decode(name, &bytes, &limits)?);
-            Ok(SphereImage {
-                name: name.clone(),
-                plane,
-            })
-        })
-        .collect();
-    Ok(images?)
+    Ok(ImageFiles::in_dir(dir, files, limits))
 }
 
-/// Read the images of a folder (every image file, in name order), e.g. a matte sphere's.
-pub fn load_images(dir: &Path) -> Result<Vec<SphereImage>, CalibrationError> {
+/// The images of a folder (every image file, in name order), e.g. a matte sphere's.
+pub fn load_images(dir: &Path) -> Result<ImageFiles, CalibrationError> {
     load_dir(dir).map(|f| f.images)
 }
 

@@ -94,6 +94,109 @@ pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
     Ok(fit)
 }
 
+/// Refine a rough outline (e.g. one fitted on a downscaled image) on the full-resolution
+/// `image` (an environment, 0..=65535, around the ball): the same rounds of radial
+/// sub-pixel refinement as [`fit_outline`]'s, the edge threshold from the image's own
+/// gradients (a sample of them). Holds the smoothed image (4 bytes a pixel) and little
+/// else.
+pub fn refine_outline(image: &Array2<u16>, rough: Circle) -> Result<OutlineFit, String> {
+    let smooth = gaussian_u16(image, 1.0);
+    let threshold = sampled_threshold(&smooth);
+    let mut fit = OutlineFit {
+        circle: rough,
+        coverage: 0.0,
+        rms: 0.0,
+    };
+    let wide = (0.03 * rough.r).max(4.0);
+    for window in [wide, (0.5 * wide).max(4.0), 4.0, 3.0, 2.0, 2.0] {
+        fit = refine(&smooth, fit.circle, window, threshold)
+            .ok_or("the outline could not be traced to sub-pixel accuracy")?;
+    }
+    if fit.coverage < 0.2 {
+        return Err(format!(
+            "the outline was traced along only {:.0} % of the circle",
+            100.0 * fit.coverage
+        ));
+    }
+    Ok(fit)
+}
+
+/// How far outside its circle [`refine_outline`] may look, pixels: what the image around
+/// a rough circle off by up to `off` pixels must hold.
+pub fn refine_margin(r: f64, off: f64) -> f64 {
+    (0.03 * r).max(4.0) + off + 8.0
+}
+
+/// [`gaussian`] of `image` scaled to [0, 1], a row at a time (the horizontal pass kept
+/// for the rows the vertical pass needs), so only the result is held.
+fn gaussian_u16(image: &Array2<u16>, sigma: f64) -> Array2<f32> {
+    let radius = (3.0 * sigma).ceil() as isize;
+    let kernel: Vec<f32> = (-radius..=radius)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
+    let sum: f32 = kernel.iter().sum();
+    let kernel: Vec<f32> = kernel.iter().map(|k| k / sum).collect();
+    let (h, w) = image.dim();
+    let across = |r: usize| -> Vec<f32> {
+        (0..w)
+            .map(|c| {
+                let mut acc = 0.0;
+                for (k, &g) in kernel.iter().enumerate() {
+                    let o = k as isize - radius;
+                    let x = (c as isize + o).clamp(0, w as isize - 1) as usize;
+                    acc += g * (image[[r, x]] as f32 / 65535.0);
+                }
+                acc
+            })
+            .collect()
+    };
+    let span = 2 * radius as usize + 1;
+    let mut ring: Vec<Option<(usize, Vec<f32>)>> = vec![None; span];
+    let mut out = Array2::zeros((h, w));
+    for r in 0..h {
+        for (k, &g) in kernel.iter().enumerate() {
+            let src = (r as isize + k as isize - radius).clamp(0, h as isize - 1) as usize;
+            let slot = src % span;
+            if ring[slot].as_ref().is_none_or(|(at, _)| *at != src) {
+                ring[slot] = Some((src, across(src)));
+            }
+            let row = &ring[slot].as_ref().expect("filled above").1;
+            for (o, &v) in out.row_mut(r).iter_mut().zip(row) {
+                *o += g * v;
+            }
+        }
+    }
+    out
+}
+
+/// [`edge_points`]' threshold from the gradients of about a million pixels on a grid.
+fn sampled_threshold(smooth: &Array2<f32>) -> f32 {
+    let (h, w) = smooth.dim();
+    let step = ((h * w) as f64 / 1e6).sqrt().ceil().max(1.0) as usize;
+    let mut mags = Vec::new();
+    for r in (1..h.saturating_sub(1)).step_by(step) {
+        for c in (1..w.saturating_sub(1)).step_by(step) {
+            let p = |dr: isize, dc: isize| {
+                smooth[[(r as isize + dr) as usize, (c as isize + dc) as usize]]
+            };
+            let gx =
+                (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
+            let gy =
+                (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
+            let m = gx.hypot(gy);
+            if m > 0.0 {
+                mags.push(m);
+            }
+        }
+    }
+    if mags.is_empty() {
+        return f32::INFINITY;
+    }
+    mags.sort_unstable_by(f32::total_cmp);
+    let q = |f: f64| mags[((mags.len() - 1) as f64 * f) as usize];
+    (0.1 * q(0.99)).max(3.0 * q(0.5))
+}
+
 /// The circle of a sphere mask (true = sphere): a least-squares circle through the
 /// midpoints of the mask's boundary edges, leaving out the image border.
 pub fn circle_of_mask(mask: &Array2<bool>) -> Result<Circle, String> {
