@@ -312,7 +312,7 @@ mod tests {
         assert_eq!(b.free(), 90);
         // More than the whole budget: cut to it, so it can run alone.
         drop(c);
-        let all = b.try_reserve(Use::Calibration, 1 << 40).unwrap();
+        let _all = b.try_reserve(Use::Calibration, 1 << 40).unwrap();
         assert_eq!(b.free(), 0);
         let mut text = String::new();
         b.render(&mut text);

@@ -226,6 +226,13 @@ pub fn calibrate(
             images.count()
         )));
     }
+    if let Some(bad) = names
+        .into_iter()
+        .flatten()
+        .find_map(|n| crate::core::lights::check_name(n).err())
+    {
+        return Err(CalibrationError::Names(bad));
+    }
     let given = match &settings.circle {
         CircleSource::Fit => None,
         CircleSource::Given(c) => Some(vec![*c]),
@@ -380,7 +387,7 @@ pub fn calibrate(
                 lights.push(CalibratedLight {
                     index: i,
                     image: image.to_string(),
-                    name: names.map_or_else(|| image.to_string(), |n| n[i].clone()),
+                    name: names.map_or_else(|| light_name(image), |n| n[i].clone()),
                     highlight,
                     more: hls,
                     position,
@@ -874,6 +881,26 @@ fn check_circle(c: &Circle, w: usize, h: usize) -> Result<(), CalibrationError> 
         )));
     }
     Ok(())
+}
+
+/// An image's name as a light's: the characters a light table cannot hold become `_`.
+fn light_name(image: &str) -> String {
+    let mut name = String::new();
+    for c in image.chars() {
+        let c = if matches!(c, ',' | '#' | '"') || c.is_control() {
+            '_'
+        } else {
+            c
+        };
+        if name.len() + c.len_utf8() > crate::core::lights::MAX_NAME_BYTES {
+            break;
+        }
+        name.push(c);
+    }
+    match name.trim() {
+        "" => "light".to_string(),
+        t => t.to_string(),
+    }
 }
 
 /// Files that name the lights of a sphere folder: the seed's table (only its names are
