@@ -466,9 +466,9 @@ fn a_small_memory_budget_finds_a_ball_filling_the_frame_or_in_a_room() {
 fn small_budget_within_bounds(sets: &[(&str, ChromeSet)]) {
     let small = small_budget();
     for (name, set) in sets {
-        let (_dir, cal) = run(&set, &small);
+        let (_dir, cal) = run(set, &small);
         let cal = cal.unwrap();
-        let (mean, max, centre, radius) = errors(&set, &cal);
+        let (mean, max, centre, radius) = errors(set, &cal);
         eprintln!(
             "{name}, small budget: direction error mean {mean:.3}° max {max:.3}°; circle centre off by {centre:.3} px, radius by {radius:.3} px"
         );

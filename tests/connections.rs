@@ -8,14 +8,13 @@
 
 mod binserver;
 
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use binserver::BinServer;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-static SERIAL: Mutex<()> = Mutex::new(());
+static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 /// The server's `--api-key` (tenant:secret) and the bearer key its clients send.
 const API_KEY: &str = "tenant-a:s3cret-key";
@@ -237,7 +236,7 @@ fn peak_mb(s: &BinServer) -> u64 {
 /// silent and 1,500 trickling connections, opened in waves with probes between them.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thousands_of_idle_and_trickling_connections_leave_probes_answering() {
-    let _turn = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let _turn = SERIAL.lock().await;
     assert!(
         raise_own_file_limit() >= 12_000,
         "the test needs 12,000 descriptors"
@@ -288,7 +287,7 @@ async fn thousands_of_idle_and_trickling_connections_leave_probes_answering() {
 /// answer, and probes answer throughout.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn idle_trickling_and_kept_alive_connections_close_after_their_timeouts() {
-    let _turn = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let _turn = SERIAL.lock().await;
     raise_own_file_limit();
     let dir = tempfile::tempdir().unwrap();
     let flags = [
@@ -392,7 +391,7 @@ async fn upload_in_flight(addr: &str) -> TcpStream {
 /// one makes room for a new one; a closed one frees its place.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn past_the_cap_an_idle_connection_makes_room_and_busy_ones_get_503() {
-    let _turn = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let _turn = SERIAL.lock().await;
     let dir = tempfile::tempdir().unwrap();
     let flags = ["--max-connections", "20", "--upload-timeout", "1m"];
     let s = BinServer::start(dir.path(), &flags);
@@ -459,7 +458,7 @@ async fn past_the_cap_an_idle_connection_makes_room_and_busy_ones_get_503() {
 /// though its request is in flight.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_that_reads_nothing_is_closed_after_the_send_timeout() {
-    let _turn = SERIAL.lock().unwrap_or_else(|p| p.into_inner());
+    let _turn = SERIAL.lock().await;
     let dir = tempfile::tempdir().unwrap();
     let flags = ["--send-timeout", "2s", "--keep-alive-timeout", "1m"];
     let s = BinServer::start(dir.path(), &flags);

@@ -175,14 +175,13 @@ pub fn read_all(
     let overlay = plan
         .overlay
         .then(|| Mutex::new(Array2::<u8>::zeros((h, w))));
-    let gamma: Vec<u8> = plan
-        .overlay
-        .then(|| {
-            (0..=65535u32)
-                .map(|v| ((v as f64 / 65535.0).sqrt() * 255.0) as u8)
-                .collect()
-        })
-        .unwrap_or_default();
+    let gamma: Vec<u8> = if plan.overlay {
+        (0..=65535u32)
+            .map(|v| ((v as f64 / 65535.0).sqrt() * 255.0) as u8)
+            .collect()
+    } else {
+        Vec::new()
+    };
     let read = |k: usize| -> Result<(Array2<u16>, u16), CalibrationError> {
         let mut max = 0u16;
         let f = plan.factor.unwrap_or(0);
