@@ -10,6 +10,7 @@ mod simd;
 
 pub mod bands;
 pub mod calibrate;
+pub mod camera;
 pub mod commit;
 pub mod error;
 pub mod heap;

@@ -55,6 +55,10 @@ pub enum Integration {
     /// with the default solver (docs/benchmarks.md).
     #[default]
     RobustPoisson,
+    /// Bilateral normal integration: each edge re-weighted from the surface so far by
+    /// which side of each pixel the surface continues on; keeps depth steps sharp where
+    /// the normals say the surface breaks, and is Poisson on smooth surfaces.
+    Bilateral,
 }
 
 /// How the mesh's vertex normals are made.

@@ -19,10 +19,12 @@
 //! | `frankot-chellappa` | full periodic frame, 0 off mask | FFT projection | O(N log N) |
 //! | `poisson` | mask only (Neumann) | DCT on a full mask, else multigrid-PCG | ≈ O(N) |
 
+mod bilateral;
 mod components;
 mod fourier;
 mod multigrid;
 mod path;
+pub mod perspective;
 mod poisson;
 
 use ndarray::{Array2, Array3, Axis};
@@ -30,6 +32,7 @@ use rayon::prelude::*;
 
 use self::components::Components;
 use self::multigrid::{MaskStencil, WeightStencil};
+use self::poisson::{largest_change, solve_masked};
 use super::contiguous;
 use super::histogram::nth_nonnegative;
 use super::options::Integration;
@@ -40,9 +43,7 @@ use super::progress::{Halt, NEVER};
 /// (a surface angle of ~87°), which keeps one bad pixel from dominating the solve.
 pub const MIN_NZ: f32 = 0.05;
 
-/// Lower bound of an edge weight in [`integrate_weighted`]: zero-confidence pixels stay
-/// connected (so the answer is well defined) but barely constrain the surface.
-pub const MIN_EDGE_WEIGHT: f32 = 1e-3;
+pub use self::multigrid::MIN_EDGE_WEIGHT;
 
 /// Gradients `(p, q) = (dz/dx, dz/dy) = (−nx/nz, −ny/nz)` from normals, zero off the mask.
 ///
@@ -203,6 +204,10 @@ fn integrate_until(
             let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
             robust_poisson(&ps, &qs, &m, h, w, None, halt)
         }
+        Integration::Bilateral => {
+            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
+            bilateral_heights(&ps, &qs, &m, h, w, None, halt)
+        }
         // Without a confidence map every pixel weighs the same: plain `poisson`.
         Integration::Poisson | Integration::WeightedPoisson => {
             // Only gradients between mask pixels are read.
@@ -231,7 +236,7 @@ fn integrate_until(
     finish(z, &m, h, w)
 }
 
-/// Heights by `method`, where `weighted-poisson` and `robust-poisson` take their weights
+/// Heights by `method`, where `weighted-poisson`, `robust-poisson` and `bilateral` take their weights
 /// from `confidence` (the solver's per-pixel reliability) and every other method ignores
 /// them. The iterative solvers stop early (with meaningless heights) once `halt` says stop.
 pub fn integrate_with_confidence(
@@ -245,6 +250,7 @@ pub fn integrate_with_confidence(
     let solver: WeightedSolver = match method {
         Integration::WeightedPoisson => poisson_heights,
         Integration::RobustPoisson => robust_poisson,
+        Integration::Bilateral => bilateral_heights,
         _ => return integrate_until(p, q, mask, method, halt),
     };
     weighted_on_mask(p, q, mask, confidence, solver, halt)
@@ -285,6 +291,21 @@ fn robust_poisson(
     halt: Halt,
 ) -> Vec<f32> {
     irls(p, q, mask, h, w, weights, SETTLED, halt).0
+}
+
+/// [`bilateral::integrate`]'s heights.
+fn bilateral_heights(
+    p: &[f32],
+    q: &[f32],
+    mask: &[bool],
+    h: usize,
+    w: usize,
+    weights: Option<&[f32]>,
+    halt: Halt,
+) -> Vec<f32> {
+    let (z, rounds) = bilateral::integrate(p, q, mask, h, w, weights, halt);
+    tracing::debug!(rounds, "bilateral integration");
+    z
 }
 
 /// [`robust_poisson`], stopping once a round moves no height by more than `settled`
@@ -539,24 +560,6 @@ impl Edges<'_> {
     }
 }
 
-/// Largest `|a − b|` over the mask; NaN counts as a change past any bound.
-fn largest_change(a: &[f32], b: &[f32], mask: &[bool]) -> f32 {
-    let change = |a: f32, b: f32, m: bool| match (a - b).abs() {
-        _ if !m => 0.0,
-        d if d.is_nan() => f32::INFINITY,
-        d => d,
-    };
-    (a.par_chunks(CHUNK)
-        .zip(b.par_chunks(CHUNK))
-        .zip(mask.par_chunks(CHUNK)))
-    .map(|((a, b), m)| {
-        (a.iter().zip(b).zip(m))
-            .map(|((&a, &b), &m)| change(a, b, m))
-            .fold(0.0, f32::max)
-    })
-    .reduce(|| 0.0, f32::max)
-}
-
 /// Weighted least-squares Poisson integration: as `poisson`, but the equation on the edge
 /// between pixels `i` and `j` has weight `max((w_i + w_j)/2, MIN_EDGE_WEIGHT)` with the
 /// per-pixel weights clamped to `[0, 1]` (e.g. a confidence map; non-finite → 0). Low
@@ -622,40 +625,6 @@ fn poisson_heights(
         ),
     };
     comps.remove_means(&mut z);
-    z
-}
-
-/// The masked solve, from 0 or from `start` (a previous solution on the same mask).
-fn solve_masked<S: multigrid::Stencil>(
-    st: &S,
-    p: &[f32],
-    q: &[f32],
-    comps: &Components,
-    start: Option<Vec<f32>>,
-    halt: Halt,
-) -> Vec<f32> {
-    let mut b = poisson::rhs(st, p, q);
-    // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
-    // singular system is consistent.
-    comps.remove_means(&mut b);
-    let (z, stats) = match start {
-        None => poisson::solve_pcg(st, b, halt),
-        Some(x0) => poisson::solve_pcg_from(st, b, x0, halt),
-    };
-    if stats.rel_residual > poisson::TOL && !halt() {
-        tracing::warn!(
-            iterations = stats.iterations,
-            rel_residual = stats.rel_residual,
-            "poisson: CG stopped before reaching its tolerance"
-        );
-    } else {
-        tracing::debug!(
-            iterations = stats.iterations,
-            rel_residual = stats.rel_residual,
-            levels = stats.levels,
-            "poisson: multigrid-preconditioned CG"
-        );
-    }
     z
 }
 

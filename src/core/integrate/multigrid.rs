@@ -34,6 +34,10 @@ const WEST: u8 = 2;
 const SOUTH: u8 = 4;
 const NORTH: u8 = 8;
 
+/// Lower bound of an edge weight in [`super::integrate_weighted`]: zero-confidence pixels stay
+/// connected (so the answer is well defined) but barely constrain the surface.
+pub const MIN_EDGE_WEIGHT: f32 = 1e-3;
+
 /// Stop coarsening once a level has at most this many cells.
 const COARSEST_CELLS: usize = 256;
 /// Coarse edge weight = this × (sum of the fine edge weights it crosses).

@@ -17,6 +17,7 @@
 //!   ([`super::multigrid`]), stopping at `‖r‖ ≤ TOL ‖b‖` ([`TOL`] = 2e-4, chosen by the
 //!   height error it leaves) or [`MAX_ITER`] iterations.
 
+use super::components::Components;
 use super::fourier::transpose;
 use super::multigrid::{self, Hierarchy, Stencil};
 use crate::core::progress::Halt;
@@ -480,4 +481,56 @@ fn pcg<S: Stencil>(
             .for_each(|(x, p)| x.iter_mut().zip(p).for_each(|(x, &p)| *x += alpha * p));
     }
     (x, stats)
+}
+
+/// The masked solve, from 0 or from `start` (a previous solution on the same mask).
+pub(super) fn solve_masked<S: multigrid::Stencil>(
+    st: &S,
+    p: &[f32],
+    q: &[f32],
+    comps: &Components,
+    start: Option<Vec<f32>>,
+    halt: Halt,
+) -> Vec<f32> {
+    let mut b = rhs(st, p, q);
+    // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
+    // singular system is consistent.
+    comps.remove_means(&mut b);
+    let (z, stats) = match start {
+        None => solve_pcg(st, b, halt),
+        Some(x0) => solve_pcg_from(st, b, x0, halt),
+    };
+    if stats.rel_residual > TOL && !halt() {
+        tracing::warn!(
+            iterations = stats.iterations,
+            rel_residual = stats.rel_residual,
+            "poisson: CG stopped before reaching its tolerance"
+        );
+    } else {
+        tracing::debug!(
+            iterations = stats.iterations,
+            rel_residual = stats.rel_residual,
+            levels = stats.levels,
+            "poisson: multigrid-preconditioned CG"
+        );
+    }
+    z
+}
+
+/// Largest `|a − b|` over the mask; NaN counts as a change past any bound.
+pub(super) fn largest_change(a: &[f32], b: &[f32], mask: &[bool]) -> f32 {
+    let change = |a: f32, b: f32, m: bool| match (a - b).abs() {
+        _ if !m => 0.0,
+        d if d.is_nan() => f32::INFINITY,
+        d => d,
+    };
+    (a.par_chunks(CHUNK)
+        .zip(b.par_chunks(CHUNK))
+        .zip(mask.par_chunks(CHUNK)))
+    .map(|((a, b), m)| {
+        (a.iter().zip(b).zip(m))
+            .map(|((&a, &b), &m)| change(a, b, m))
+            .fold(0.0, f32::max)
+    })
+    .reduce(|| 0.0, f32::max)
 }
