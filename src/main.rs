@@ -10,6 +10,7 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use photostereo::core::bands::Stack;
 use photostereo::core::intake::{self, DirMask, Limits};
+use photostereo::core::normalmap::Convention;
 use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
 use photostereo::core::{Options, metrics, pipeline, stream, synth};
 use photostereo::service;
@@ -39,6 +40,9 @@ enum Command {
     /// Reconstruct a folder: images with light_directions.csv (or .json), or the benchmark
     /// layout (light_directions.txt, filenames.txt, light_intensities.txt, mask.png).
     Reconstruct(ReconstructArgs),
+    /// Integrate a normal map (PNG or EXR) into heights, or into depth under a pinhole
+    /// camera: height/depth maps, mesh, point cloud and result.json, as `reconstruct`'s.
+    Integrate(IntegrateArgs),
     /// Measure the lights from a chrome sphere: one image of a mirror ball per light in
     /// <dir> (every image file, in name order) → a light table `reconstruct` reads.
     Calibrate(CalibrateArgs),
@@ -122,6 +126,106 @@ struct ReconstructArgs {
     /// Mesh: photometric | geometric vertex normals.
     #[arg(long, value_parser = kebab::<MeshNormals>)]
     mesh_normals: Option<MeshNormals>,
+}
+
+#[derive(Args)]
+struct IntegrateArgs {
+    /// The normal map: PNG, 8- or 16-bit RGB(A), decoded as n = 2·v/max − 1; or OpenEXR,
+    /// 32-bit float, the vector itself. Black, grey (zero-length) and NaN pixels are
+    /// background; result.json counts each kind.
+    map: PathBuf,
+    /// Where to write the outputs.
+    #[arg(long, short)]
+    out: PathBuf,
+    /// A mask image (non-zero = object), intersected with the map's usable pixels; it
+    /// must have the map's size.
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// A pinhole camera: a K.txt (3 × 3) or camera.json file, or fx,fy,cx,cy in pixels.
+    /// Perspective integration (depth along the optical axis) only with this flag or
+    /// --focal-length: a K.txt or camera.json beside the map is NOT used unless named here
+    /// (the run notes it). Without a camera: orthographic heights in pixels.
+    #[arg(long)]
+    camera: Option<String>,
+    /// A pinhole camera with this focal length in pixels and its principal point at the
+    /// image centre.
+    #[arg(long, conflicts_with = "camera")]
+    focal_length: Option<f64>,
+    /// With a camera: the working distance, the median depth over the mask (metric depth
+    /// in its unit); without it depth is relative, median 1.
+    #[arg(long)]
+    distance: Option<f64>,
+    /// How the map's green channel points: opengl (y up; also the project's normal.png and
+    /// the benchmarks' x right, y up, z to the camera: aliases project, benchmark) or
+    /// directx (y down).
+    #[arg(long, value_enum, default_value_t)]
+    normal_convention: Convention,
+    /// robust-poisson (default) | bilateral | weighted-poisson | poisson |
+    /// frankot-chellappa | path
+    #[arg(long, value_parser = kebab::<Integration>)]
+    integration: Option<Integration>,
+}
+
+fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
+    use photostereo::core::camera::Pinhole;
+    use photostereo::core::normalmap::{self, Lens};
+    use photostereo::core::normals_in::{self, Settings};
+    let start = std::time::Instant::now();
+    let lens = match (&args.camera, args.focal_length) {
+        // A file when one is there, else the four numbers.
+        (Some(c), _) if Path::new(c).is_file() => Some(Lens::Pinhole(Pinhole::read(Path::new(c))?)),
+        (Some(c), _) => Some(Lens::Pinhole(Pinhole::parse(c).with_context(|| {
+            format!("--camera {c:?} is neither a file nor fx,fy,cx,cy")
+        })?)),
+        (None, Some(f)) => Some(Lens::Centred { focal_px: f }),
+        (None, None) => None,
+    };
+    let mut settings = Settings {
+        integration: args.integration.unwrap_or_default(),
+        distance: args.distance,
+        ..Settings::default()
+    };
+    if lens.is_none()
+        && let Some(note) = normals_in::unused_camera_note(&args.map)
+    {
+        eprintln!("note: {note}");
+        settings.notes.push(note);
+    }
+    let map = normalmap::read(
+        &args.map,
+        args.mask.as_deref(),
+        args.normal_convention,
+        lens,
+    )?;
+    settings.check(map.camera.as_ref())?;
+    let c = map.counts;
+    eprintln!(
+        "{}×{} {}-bit normal map: {} pixels used ({} back-facing, {} renormalised); off the mask: {} black, {} zero-length, {} NaN/infinite, {} transparent, {} outside the mask",
+        map.width,
+        map.height,
+        map.bits,
+        c.used,
+        c.back_facing,
+        c.not_unit,
+        c.black,
+        c.zero_length,
+        c.non_finite,
+        c.transparent,
+        c.outside_mask
+    );
+    let report = normals_in::run(map, &settings, &args.out)?;
+    let (what, range) = match report.output {
+        "depth" => ("depth", (report.depth_min, report.depth_max)),
+        _ => ("heights (px)", (report.height_min, report.height_max)),
+    };
+    eprintln!(
+        "{what} {:.4}..{:.4}, total {:.0} ms",
+        range.0.unwrap_or(f32::NAN),
+        range.1.unwrap_or(f32::NAN),
+        start.elapsed().as_secs_f64() * 1e3
+    );
+    println!("{}", args.out.display());
+    Ok(())
 }
 
 #[derive(Args)]
@@ -488,6 +592,7 @@ fn main() -> ExitCode {
             runtime().and_then(|rt| rt.block_on(service::healthcheck(&args.url)))
         }
         Command::Reconstruct(args) => reconstruct(args),
+        Command::Integrate(args) => integrate(args),
         Command::Calibrate(args) => calibrate(args),
         Command::Render { dir, only } => render(dir, only),
         Command::Evaluate { dir, integration } => evaluate(dir, integration),

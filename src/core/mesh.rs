@@ -6,6 +6,13 @@
 //! viewer): pixel (row, col) lands at (col, −row, height·height_scale), all times
 //! `pixel_size` when given. The albedo travels as an embedded PNG base-colour texture.
 //! The bytes depend only on the input (no hash-map order, no timestamps).
+//!
+//! Under a pinhole camera ([`Document::with_camera`]) the heights are depths along the
+//! optical axis and each vertex is its pixel's camera-frame point (`Pinhole::unproject`)
+//! with y flipped into glTF's frame: (X, −Y, Z), camera at the origin looking down −z, in
+//! the depth's unit (`height_scale` and `pixel_size` do not apply).
+//!
+//! [`write_points_ply`] writes the same surface as a point cloud, one point per mask pixel.
 
 use std::io::Write;
 
@@ -22,6 +29,7 @@ use ndarray::{Array2, ArrayView2, Axis, s};
 use rayon::prelude::*;
 use serde_json::Value;
 
+use super::camera::Pinhole;
 use super::options::{MeshNormals, MeshOptions};
 use super::reconstruction::Reconstruction;
 
@@ -90,7 +98,17 @@ pub struct Document {
 impl Document {
     /// Triangulate the height map and encode the albedo texture (in parallel).
     pub fn new(rec: &Reconstruction, opts: &MeshOptions) -> Result<Self, MeshError> {
-        let (root, bin) = document(rec, opts)?;
+        Self::with_camera(rec, opts, None)
+    }
+
+    /// [`Document::new`], or with a camera: `rec.heights` are depths and the vertices are
+    /// unprojected through it (module docs).
+    pub fn with_camera(
+        rec: &Reconstruction,
+        opts: &MeshOptions,
+        camera: Option<&Pinhole>,
+    ) -> Result<Self, MeshError> {
+        let (root, bin) = document(rec, opts, camera)?;
         Ok(Self { root, bin })
     }
 
@@ -193,6 +211,16 @@ fn sampled(mask: &Array2<bool>, step: usize) -> usize {
 
 /// Sample, triangulate and shade the height map (see the module docs for the frame).
 pub fn triangulate(rec: &Reconstruction, opts: &MeshOptions) -> Result<TriMesh, MeshError> {
+    triangulate_with(rec, opts, None)
+}
+
+/// [`triangulate`], or with a camera: `rec.heights` are depths and each vertex is its
+/// pixel's camera-frame point, y flipped (module docs).
+pub fn triangulate_with(
+    rec: &Reconstruction,
+    opts: &MeshOptions,
+    camera: Option<&Pinhole>,
+) -> Result<TriMesh, MeshError> {
     check_shapes(rec)?;
     let unit = opts.pixel_size.unwrap_or(1.0);
     if !(unit.is_finite() && unit > 0.0) {
@@ -229,11 +257,17 @@ pub fn triangulate(rec: &Reconstruction, opts: &MeshOptions) -> Result<TriMesh, 
             }
             index[gi * gw + gj] = m.positions.len() as u32;
             let (x, y) = (c as f64, r as f64);
-            m.positions.push([
-                (x * unit) as f32,
-                (-y * unit) as f32,
-                (f64::from(z) * zunit) as f32,
-            ]);
+            m.positions.push(match camera {
+                None => [
+                    (x * unit) as f32,
+                    (-y * unit) as f32,
+                    (f64::from(z) * zunit) as f32,
+                ],
+                Some(k) => {
+                    let [px, py, pz] = k.unproject(x, y, f64::from(z));
+                    [px as f32, -py as f32, pz as f32]
+                }
+            });
             m.uvs
                 .push([((x + 0.5) / w as f64) as f32, ((y + 0.5) / h as f64) as f32]);
             m.pixels.push([r as u32, c as u32]);
@@ -259,7 +293,10 @@ pub fn triangulate(rec: &Reconstruction, opts: &MeshOptions) -> Result<TriMesh, 
         MeshNormals::Photometric => {
             // A normal relief scaled by s in z has normal ∝ (s·nx, s·ny, nz); rows run
             // down, so y flips. Unusable normals fall back to the geometric ones.
-            let stretch = f64::from(opts.height_scale);
+            let stretch = match camera {
+                None => f64::from(opts.height_scale),
+                Some(_) => 1.0,
+            };
             let mut fallback: Option<Vec<[f32; 3]>> = None;
             (m.pixels.iter().enumerate())
                 .map(|(i, &[r, c])| {
@@ -355,8 +392,12 @@ fn check_shapes(rec: &Reconstruction) -> Result<(), MeshError> {
 }
 
 /// The glTF document and its binary buffer (views 4-byte aligned, length padded to 4).
-fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec<u8>), MeshError> {
-    let (mesh, texture) = rayon::join(|| triangulate(rec, opts), || albedo_png(rec));
+fn document(
+    rec: &Reconstruction,
+    opts: &MeshOptions,
+    camera: Option<&Pinhole>,
+) -> Result<(json::Root, Vec<u8>), MeshError> {
+    let (mesh, texture) = rayon::join(|| triangulate_with(rec, opts, camera), || albedo_png(rec));
     let (mesh, texture) = (mesh?, texture?);
     let mut root = json::Root {
         asset: json::Asset {
@@ -506,6 +547,51 @@ fn document(rec: &Reconstruction, opts: &MeshOptions) -> Result<(json::Root, Vec
     });
     root.scene = Some(scene);
     Ok((root, bin))
+}
+
+/// A binary little-endian PLY point cloud: one vertex per mask pixel, in row-major order,
+/// with `x, y, z, nx, ny, nz` as floats, all in the project's frame (x right, y down, z
+/// towards the camera). Without a camera the point is `(col, row, z)` with `z` the height
+/// in pixels; with one, `z` is the depth along the optical axis and the point is
+/// `camera.unproject(col, row, z)` (so its z is −depth). Normals are written as given.
+pub fn write_points_ply(
+    out: &mut dyn Write,
+    z: &Array2<f32>,
+    normals: &ndarray::Array3<f32>,
+    mask: &Array2<bool>,
+    camera: Option<&Pinhole>,
+) -> std::io::Result<()> {
+    let count = mask.iter().filter(|&&m| m).count();
+    let frame = match camera {
+        None => {
+            "orthographic: x = column, y = row (down), z = height in pixels (towards the camera)"
+        }
+        Some(_) => "camera frame: x right, y down, z towards the camera (z = -depth)",
+    };
+    write!(
+        out,
+        "ply\nformat binary_little_endian 1.0\ncomment photostereo {}\ncomment {frame}\n\
+         element vertex {count}\nproperty float x\nproperty float y\nproperty float z\n\
+         property float nx\nproperty float ny\nproperty float nz\nend_header\n",
+        env!("CARGO_PKG_VERSION")
+    )?;
+    let mut row = Vec::with_capacity(mask.ncols() * 24);
+    for (r, line) in mask.outer_iter().enumerate() {
+        row.clear();
+        for (c, _) in line.indexed_iter().filter(|(_, m)| **m) {
+            let depth = f64::from(z[[r, c]]);
+            let p = match camera {
+                None => [c as f64, r as f64, depth],
+                Some(k) => k.unproject(c as f64, r as f64, depth),
+            };
+            let n = [0, 1, 2].map(|k| f64::from(normals[[r, c, k]]));
+            for v in p.into_iter().chain(n) {
+                row.extend_from_slice(&(v as f32).to_le_bytes());
+            }
+        }
+        out.write_all(&row)?;
+    }
+    Ok(())
 }
 
 fn accessor(

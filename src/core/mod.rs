@@ -1,8 +1,9 @@
 //! The reconstruction core: intake → solve → mask → integrate → outputs / mesh.
 //!
 //! Every stage is a plain function over owned or borrowed arrays; only `intake`,
-//! `outputs` and `commit` (and `synth`, which writes the rendered sets, and `calibrate`'s
-//! folder and mask readers) touch files or bytes.
+//! `outputs` and `commit` (and `synth`, which writes the rendered sets, `calibrate`'s
+//! folder and mask readers, `normalmap`'s reader and `normals_in`, which writes what it
+//! integrated) touch files or bytes.
 
 // First: its macro is used by the modules after it.
 #[macro_use]
@@ -23,6 +24,8 @@ pub mod lights;
 pub mod mask;
 pub mod mesh;
 pub mod metrics;
+pub mod normalmap;
+pub mod normals_in;
 pub mod options;
 pub mod outputs;
 pub mod pipeline;

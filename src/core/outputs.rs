@@ -379,8 +379,7 @@ pub fn encode_to(
         "normal_z.png" => png16_to(out, mask, [normal(2)], signed)?,
         "height.png" => {
             let Heights { z, min, max } = maps.heights();
-            let span = if max > min { max - min } else { 1.0 };
-            png16_to(out, mask, [z.view()], |_, z| (z - min) / span)?
+            range_png16_to(out, mask, z, *min..=*max, false)?
         }
         "normal.exr" => {
             let n = SpecificChannels::rgb(|p: Vec2<usize>| {
@@ -389,19 +388,42 @@ pub fn encode_to(
             });
             exr_to(out, &exr_image((rows, cols), n))?
         }
-        "height.exr" => {
-            let z = maps.heights().z;
-            let z = SpecificChannels::build()
-                .with_channel("Y")
-                .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
-            exr_to(out, &exr_image((rows, cols), z))?
-        }
+        "height.exr" => scalar_exr_to(out, maps.heights().z)?,
         "needle.png" => png_to(out, &render::needle_map(maps.albedo, maps.normals, mask))?,
         "curl.png" => png_to(out, &render::diverging(maps.curl(), mask))?,
         "shaded.png" => shaded_to(out, maps.albedo, maps.normals, mask, shading_light)?,
         _ => return Ok(false),
     }
     Ok(true)
+}
+
+/// A 16-bit gray PNG of `z` over the mask, 0 off it: 0..65535 ↔ `range` (clamped), or
+/// 65535..0 when `reversed` (`depth.png`: near is bright). An empty range maps to 0.
+pub fn range_png16_to(
+    out: &mut dyn Write,
+    mask: &Array2<bool>,
+    z: &Array2<f32>,
+    range: std::ops::RangeInclusive<f32>,
+    reversed: bool,
+) -> std::io::Result<()> {
+    let (min, max) = range.into_inner();
+    let span = if max > min { max - min } else { 1.0 };
+    png16_to(out, mask, [z.view()], |_, z| {
+        if reversed {
+            (max - z) / span
+        } else {
+            (z - min) / span
+        }
+    })
+}
+
+/// A one-channel (`Y`) 32-bit float EXR of `z` (`height.exr`, `depth.exr`); read it back
+/// with [`decode_height_exr`].
+pub fn scalar_exr_to(out: &mut dyn WriteSeek, z: &Array2<f32>) -> std::io::Result<()> {
+    let channel = SpecificChannels::build()
+        .with_channel("Y")
+        .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
+    exr_to(out, &exr_image(z.dim(), channel))
 }
 
 /// Write the picture artifacts `names` in parallel; returns the names written (an
@@ -548,8 +570,8 @@ pub fn decode_png16(bytes: &[u8]) -> image::ImageResult<DynamicImage> {
     image::load_from_memory_with_format(bytes, ImageFormat::Png)
 }
 
-/// Decode `height.exr` (one float channel `Y`), for tests and tools: the image crate
-/// reads only RGB(A) EXRs.
+/// Decode `height.exr` or `depth.exr` (one float channel `Y`), for tests and tools: the
+/// image crate reads only RGB(A) EXRs.
 pub fn decode_height_exr(bytes: &[u8]) -> exr::error::Result<Array2<f32>> {
     use exr::prelude::{ReadChannels, ReadLayers, ReadSpecificChannel};
     let image = exr::prelude::read()

@@ -1,0 +1,277 @@
+//! "Normals in": a normal map ([`normalmap`](super::normalmap)) integrated into heights
+//! (orthographic) or depth (under a pinhole camera), with the reconstruction's
+//! integrators and writers. `photostereo integrate` calls [`run`]; it takes no HTTP types.
+//!
+//! - **Orthographic** (no camera): `integrate::gradients` and the integrator give heights
+//!   in pixels → `height.png` (16-bit, 0..65535 ↔ [`height_min`, `height_max`] of
+//!   `result.json`) and `height.exr` (f32, channel `Y`; off the mask the lowest height).
+//! - **Perspective**: `perspective::log_depth_gradients`, the integrator, then
+//!   `depth_from_log` give depth along the optical axis → `depth.exr` (f32, channel `Y`,
+//!   NaN off the mask; median 1 over the mask, or the working `distance`) and `depth.png`
+//!   (16-bit, **near = bright**: 65535..0 ↔ [`depth_min`, `depth_max`], 0 off the mask).
+//! - Both: `mask.png`, `normal.png` (the normals as read, 16-bit OpenGL encoding),
+//!   `mesh.glb` (heights, or vertices unprojected through the camera), `points.ply` and
+//!   `result.json` ([`Report`]).
+
+use std::path::Path;
+use std::time::Instant;
+
+use ndarray::Array2;
+use serde::Serialize;
+
+use super::camera::Pinhole;
+use super::commit::{self, Committer, WriteSeek};
+use super::error::{InputError, RunError};
+use super::integrate::{self, perspective};
+use super::mesh::{self, Document, MeshError};
+use super::normalmap::{Convention, Counts, NormalMap};
+use super::options::{Integration, MeshOptions, Options};
+use super::outputs::{self, Heights, Maps};
+use super::reconstruction::{Reconstruction, Report as RunReport, Timing};
+
+/// How a normal map is integrated.
+#[derive(Debug, Clone, Default)]
+pub struct Settings {
+    pub integration: Integration,
+    /// Perspective only: the median depth over the mask, in the caller's unit (metric
+    /// depth); without it depth is relative, median 1.
+    pub distance: Option<f64>,
+    pub mesh: MeshOptions,
+    /// Passed on to `result.json` (e.g. a camera file left unused).
+    pub notes: Vec<String>,
+}
+
+impl Settings {
+    /// Refuses what cannot be used: a distance that is not a positive number, or one
+    /// given without a camera (orthographic heights have no depth to scale).
+    pub fn check(&self, camera: Option<&Pinhole>) -> Result<(), InputError> {
+        match (self.distance, camera) {
+            (Some(d), _) if !(d.is_finite() && d > 0.0) => Err(InputError::Options(format!(
+                "distance must be a positive number (the median depth over the mask), got {d}"
+            ))),
+            (Some(_), None) => Err(InputError::Options(
+                "distance needs a camera (--camera or --focal-length): without one the \
+                 integration is orthographic and gives heights in pixels"
+                    .into(),
+            )),
+            _ => Ok(()),
+        }
+    }
+}
+
+/// What the integration wrote into `dir`: `result.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub width: usize,
+    pub height: usize,
+    /// The normal map read.
+    pub source: String,
+    pub mask_file: Option<String>,
+    /// 8 or 16 (PNG), 32 (float EXR).
+    pub bits: u8,
+    pub convention: Convention,
+    /// The pinhole camera; null when orthographic.
+    pub camera: Option<Pinhole>,
+    /// The median depth asked for (perspective); null for relative depth (median 1).
+    pub distance: Option<f64>,
+    pub method: Integration,
+    /// `height` (orthographic, pixels) or `depth` (perspective, along the optical axis).
+    pub output: &'static str,
+    /// What the reader did with each pixel.
+    pub counts: Counts,
+    /// Height range over the mask, pixels (orthographic; `height.png` spans it).
+    pub height_min: Option<f32>,
+    pub height_max: Option<f32>,
+    /// Depth range over the mask (perspective; `depth.png` spans it, near = bright).
+    pub depth_min: Option<f32>,
+    pub depth_max: Option<f32>,
+    pub timings_ms: Vec<Timing>,
+    pub artifacts: Vec<String>,
+    pub notes: Vec<String>,
+}
+
+/// A note for the caller when the map's folder holds a camera file that was not asked
+/// for: only an explicit camera makes the integration perspective.
+pub fn unused_camera_note(map: &Path) -> Option<String> {
+    let dir = map.parent()?;
+    ["camera.json", "K.txt"]
+        .into_iter()
+        .map(|name| dir.join(name))
+        .find(|p| p.is_file())
+        .map(|p| {
+            format!(
+                "{} was not used: the integration is orthographic unless a camera is given \
+                 (--camera {})",
+                p.display(),
+                p.display()
+            )
+        })
+}
+
+/// The integrated surface: heights in pixels (orthographic, off the mask the lowest
+/// height) or depth along the optical axis (perspective, NaN off the mask).
+pub fn surface(map: &NormalMap, settings: &Settings) -> Array2<f32> {
+    let (normals, mask) = (&map.normals, &map.mask);
+    match &map.camera {
+        None => {
+            let (p, q) = integrate::gradients(normals, mask);
+            integrate::integrate(&p, &q, mask, settings.integration)
+        }
+        Some(k) => {
+            let (p, q) = perspective::log_depth_gradients(normals, mask, k);
+            let zeta = integrate::integrate(&p, &q, mask, settings.integration);
+            perspective::depth_from_log(&zeta, mask, k, settings.distance)
+        }
+    }
+}
+
+/// Integrate `map` and write its artifacts into `dir` (created if need be; each artifact
+/// atomically, `result.json` last). Returns the report written.
+pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, RunError> {
+    let mut timings = Vec::new();
+    let start = Instant::now();
+    let z = surface(&map, settings);
+    timings.push(timing("integrate", start));
+
+    let start = Instant::now();
+    let on = z
+        .iter()
+        .zip(&map.mask)
+        .filter(|(_, m)| **m)
+        .map(|(z, _)| *z);
+    let (min, max) = on.fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), v| {
+        (a.min(v), b.max(v))
+    });
+    let perspective = map.camera.is_some();
+    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
+        path: dir.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    let commits = Committer::new();
+    let NormalMap {
+        name,
+        mask_name,
+        width,
+        height,
+        bits,
+        convention,
+        camera,
+        normals,
+        mask,
+        counts,
+    } = map;
+    // The writers take a reconstruction: a white albedo (the mesh's texture).
+    let rec = Reconstruction {
+        width,
+        height,
+        lights: Vec::new(),
+        albedo: mask.mapv(f32::from),
+        albedo_rgb: None,
+        confidence: mask.mapv(f32::from),
+        unreliable: Array2::from_elem(mask.dim(), false),
+        curl: Array2::zeros(mask.dim()),
+        normals,
+        mask,
+        heights: z,
+        report: RunReport {
+            options: Options {
+                integration: settings.integration,
+                mesh: settings.mesh.clone(),
+                ..Options::default()
+            },
+            ..RunReport::default()
+        },
+    };
+    let mut notes = settings.notes.clone();
+    let mut pictures = vec!["mask.png", "normal.png"];
+    if !perspective {
+        pictures.extend(["height.png", "height.exr"]);
+    }
+    let maps = Maps {
+        heights: Some(Heights {
+            z: &rec.heights,
+            min,
+            max,
+        }),
+        ..Maps::of(&rec)
+    };
+    let halt = super::progress::NEVER;
+    let mut written = outputs::write_pictures(&maps, &pictures, [0.0; 3], dir, &commits, halt)?;
+    let mut save =
+        |name: &str, write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>| {
+            commits.write(dir, name, write)?;
+            written.push(name.to_string());
+            Ok::<_, RunError>(())
+        };
+    if perspective {
+        save("depth.exr", &mut |f| {
+            outputs::scalar_exr_to(f, &rec.heights)
+        })?;
+        save("depth.png", &mut |f| {
+            outputs::range_png16_to(f, &rec.mask, &rec.heights, min..=max, true)
+        })?;
+    }
+    save("points.ply", &mut |f| {
+        mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, camera.as_ref())
+    })?;
+    match Document::with_camera(&rec, &settings.mesh, camera.as_ref()) {
+        Ok(doc) => save("mesh.glb", &mut |f| {
+            doc.write_glb(f).map_err(|e| match e {
+                MeshError::Write(io) => io,
+                other => std::io::Error::other(other.to_string()),
+            })
+        })?,
+        // Too small a mask to triangulate: no mesh, and the report says so.
+        Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. })) => {
+            notes.push(format!("no mesh.glb: {e}"))
+        }
+        Err(e) => {
+            return Err(RunError::Output {
+                path: dir.join("mesh.glb").display().to_string(),
+                reason: e.to_string(),
+            });
+        }
+    }
+    timings.push(timing("outputs", start));
+    written.push("result.json".into());
+    let range = (min <= max).then_some((min, max));
+    let (heights, depths) = if perspective {
+        (None, range)
+    } else {
+        (range, None)
+    };
+    let report = Report {
+        width,
+        height,
+        source: name,
+        mask_file: mask_name,
+        bits,
+        convention,
+        camera,
+        distance: settings.distance.filter(|_| perspective),
+        method: settings.integration,
+        output: if perspective { "depth" } else { "height" },
+        counts,
+        height_min: heights.map(|r| r.0),
+        height_max: heights.map(|r| r.1),
+        depth_min: depths.map(|r| r.0),
+        depth_max: depths.map(|r| r.1),
+        timings_ms: timings,
+        artifacts: written,
+        notes,
+    };
+    let json = serde_json::to_vec_pretty(&report).expect("the report serialises");
+    commits.finish()?;
+    commit::write_atomic(dir, "result.json", &json)?;
+    Ok(report)
+}
+
+fn timing(stage: &'static str, start: Instant) -> Timing {
+    Timing {
+        stage,
+        ms: start.elapsed().as_secs_f64() * 1e3,
+    }
+}
+
+#[cfg(test)]
+mod tests;
