@@ -148,30 +148,19 @@ pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, Ru
         reason: e.to_string(),
     })?;
     let commits = Committer::new();
-    let NormalMap {
-        name,
-        mask_name,
-        width,
-        height,
-        bits,
-        convention,
-        camera,
-        normals,
-        mask,
-        counts,
-    } = map;
+    let (camera, dim) = (map.camera, map.mask.dim());
     // The writers take a reconstruction: a white albedo (the mesh's texture).
     let rec = Reconstruction {
-        width,
-        height,
+        width: map.width,
+        height: map.height,
         lights: Vec::new(),
-        albedo: mask.mapv(f32::from),
+        albedo: map.mask.mapv(f32::from),
         albedo_rgb: None,
-        confidence: mask.mapv(f32::from),
-        unreliable: Array2::from_elem(mask.dim(), false),
-        curl: Array2::zeros(mask.dim()),
-        normals,
-        mask,
+        confidence: map.mask.mapv(f32::from),
+        unreliable: Array2::from_elem(dim, false),
+        curl: Array2::zeros(dim),
+        normals: map.normals,
+        mask: map.mask,
         heights: z,
         report: RunReport {
             options: Options {
@@ -241,17 +230,17 @@ pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, Ru
         (range, None)
     };
     let report = Report {
-        width,
-        height,
-        source: name,
-        mask_file: mask_name,
-        bits,
-        convention,
+        width: map.width,
+        height: map.height,
+        source: map.name,
+        mask_file: map.mask_name,
+        bits: map.bits,
+        convention: map.convention,
         camera,
         distance: settings.distance.filter(|_| perspective),
         method: settings.integration,
         output: if perspective { "depth" } else { "height" },
-        counts,
+        counts: map.counts,
         height_min: heights.map(|r| r.0),
         height_max: heights.map(|r| r.1),
         depth_min: depths.map(|r| r.0),

@@ -34,26 +34,27 @@ fn stored(n: [f32; 3], convention: Convention) -> [f32; 3] {
     }
 }
 
-fn png16(n: &Array3<f32>, convention: Convention) -> Vec<u8> {
-    let img = ImageBuffer::from_fn(W as u32, H as u32, |c, r| {
+/// A PNG of `n` in `convention`, with `max` = 255 (8-bit) or 65535 (16-bit).
+fn png(n: &Array3<f32>, convention: Convention, max: f32) -> Vec<u8> {
+    let sample = |r: u32, c: u32| {
         let v = stored(
             [0, 1, 2].map(|k| n[[r as usize, c as usize, k]]),
             convention,
         );
-        Rgb(v.map(|v| ((v + 1.0) / 2.0 * 65535.0).round() as u16))
-    });
-    png_bytes(&img)
+        v.map(|v| ((v + 1.0) / 2.0 * max).round() as u16)
+    };
+    let (w, h) = (W as u32, H as u32);
+    if max > 255.0 {
+        png_bytes(&ImageBuffer::from_fn(w, h, |c, r| Rgb(sample(r, c))))
+    } else {
+        png_bytes(&ImageBuffer::from_fn(w, h, |c, r| {
+            Rgb(sample(r, c).map(|v| v as u8))
+        }))
+    }
 }
 
-fn png8(n: &Array3<f32>, convention: Convention) -> Vec<u8> {
-    let img = ImageBuffer::from_fn(W as u32, H as u32, |c, r| {
-        let v = stored(
-            [0, 1, 2].map(|k| n[[r as usize, c as usize, k]]),
-            convention,
-        );
-        Rgb(v.map(|v| ((v + 1.0) / 2.0 * 255.0).round() as u8))
-    });
-    png_bytes(&img)
+fn png16(n: &Array3<f32>, convention: Convention) -> Vec<u8> {
+    png(n, convention, 65535.0)
 }
 
 fn exr(f: impl Fn(usize, usize) -> [f32; 3]) -> Vec<u8> {
@@ -78,7 +79,7 @@ fn each_convention_and_encoding_round_trips_into_the_project_frame() {
     for convention in [Convention::Opengl, Convention::Directx] {
         let exr_bytes = exr(|r, c| stored([0, 1, 2].map(|k| n[[r, c, k]]), convention));
         for (bits, bytes, tolerance) in [
-            (8, png8(&n, convention), 6e-3),
+            (8, png(&n, convention, 255.0), 6e-3),
             (16, png16(&n, convention), 3e-5),
             (32, exr_bytes, 1e-6),
         ] {
