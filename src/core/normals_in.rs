@@ -27,6 +27,7 @@ use super::mesh::{self, Document, MeshError};
 use super::normalmap::{Convention, Counts, NormalMap};
 use super::options::{Integration, MeshOptions, Options};
 use super::outputs::{self, Heights, Maps};
+use super::progress::NEVER;
 use super::reconstruction::{Reconstruction, Report as RunReport, Timing};
 
 /// How a normal map is integrated.
@@ -118,8 +119,8 @@ pub fn surface(map: &NormalMap, settings: &Settings) -> Array2<f32> {
             integrate::integrate(&p, &q, mask, settings.integration)
         }
         Some(k) => {
-            let (p, q) = perspective::log_depth_gradients(normals, mask, k);
-            let zeta = integrate::integrate(&p, &q, mask, settings.integration);
+            let zeta =
+                integrate::integrate_log_depth(normals, mask, k, settings.integration, None, NEVER);
             perspective::depth_from_log(&zeta, mask, k, settings.distance)
         }
     }

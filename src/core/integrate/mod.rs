@@ -21,6 +21,7 @@
 
 mod bilateral;
 mod components;
+mod crop;
 mod fourier;
 mod multigrid;
 mod path;
@@ -33,6 +34,7 @@ use rayon::prelude::*;
 use self::components::Components;
 use self::multigrid::{MaskStencil, WeightStencil};
 use self::poisson::{largest_change, solve_masked};
+use super::camera::Pinhole;
 use super::contiguous;
 use super::histogram::nth_nonnegative;
 use super::options::Integration;
@@ -303,7 +305,7 @@ fn bilateral_heights(
     weights: Option<&[f32]>,
     halt: Halt,
 ) -> Vec<f32> {
-    let (z, rounds) = bilateral::integrate(p, q, mask, h, w, weights, halt);
+    let (z, rounds) = bilateral::integrate(p, q, None, mask, h, w, weights, halt);
     tracing::debug!(rounds, "bilateral integration");
     z
 }
@@ -557,6 +559,41 @@ impl Edges<'_> {
             .iter()
             .fold([0.0; 2], |a, b| [a[0] + b[0], a[1] + b[1]]);
         if bb > 0.0 { (rr / bb).sqrt() } else { 0.0 }
+    }
+}
+
+/// Log-depth `ζ = −fx ln D` ([`perspective`]) from camera-frame `normals` under `camera`
+/// by `method`, weighted by `confidence` where the method takes weights (as
+/// [`integrate_with_confidence`]); [`perspective::depth_from_log`] turns it into depth.
+/// `bilateral` weighs each pixel's equations by its normal's `n_z²`
+/// ([`perspective::facing`]).
+pub fn integrate_log_depth(
+    normals: &Array3<f32>,
+    mask: &Array2<bool>,
+    camera: &Pinhole,
+    method: Integration,
+    confidence: Option<&Array2<f32>>,
+    halt: Halt,
+) -> Array2<f32> {
+    let (p, q) = perspective::log_depth_gradients(normals, mask, camera);
+    match (method, confidence) {
+        (Integration::Bilateral, _) => {
+            let (h, w) = mask.dim();
+            let m = contiguous(mask.view());
+            let facing = perspective::facing(normals, mask);
+            let (ps, qs, fs) = (
+                contiguous(p.view()),
+                contiguous(q.view()),
+                contiguous(facing.view()),
+            );
+            let wt = confidence.map(|c| contiguous(c.view()));
+            let (z, rounds) =
+                bilateral::integrate(&ps, &qs, Some(&fs), &m, h, w, wt.as_deref(), halt);
+            tracing::debug!(rounds, "bilateral integration (perspective)");
+            finish(z, &m, h, w)
+        }
+        (_, Some(c)) => integrate_with_confidence(&p, &q, mask, method, c, halt),
+        (_, None) => integrate_until(&p, &q, mask, method, halt),
     }
 }
 

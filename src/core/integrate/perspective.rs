@@ -57,6 +57,21 @@ pub fn log_depth_gradients(
     (p, q)
 }
 
+/// Each pixel's facing weight for [`super::bilateral`]: its unit normal's `n_z²` (clamped
+/// to at least [`MIN_NZ`]²; 0 off the mask and for unusable normals).
+pub fn facing(normals: &Array3<f32>, mask: &Array2<bool>) -> Array2<f32> {
+    let (h, w) = mask.dim();
+    assert_eq!(normals.dim(), (h, w, 3), "normals must be (rows, cols, 3)");
+    Array2::from_shape_fn((h, w), |(r, c)| {
+        let n = [0, 1, 2].map(|k| normals[[r, c, k]]);
+        let len = n.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if !(mask[[r, c]] && len.is_finite() && len > 0.0) {
+            return 0.0;
+        }
+        (n[2] / len).max(MIN_NZ).powi(2)
+    })
+}
+
 /// Depth along the optical axis from `ζ` ([`log_depth_gradients`]' integral), NaN off the
 /// mask: relative (median 1 over the mask) without `distance`, else scaled so that the
 /// median depth over the mask is `distance`.

@@ -374,11 +374,13 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 /// by a multigrid V-cycle. Storage: the solution, the residual, the search direction and one
 /// shared vector for `M r` / `A p`, all f32; dot products in f64. Stops early, with the
 /// iterate it has, once `halt` says stop.
+#[cfg(test)]
 pub(super) fn solve_pcg<S: Stencil>(st: &S, b: Vec<f32>, halt: Halt) -> (Vec<f32>, PcgStats) {
     solve_pcg_until(st, b, TOL, MAX_ITER, halt)
 }
 
 /// [`solve_pcg`] with an explicit stopping rule: `‖r‖ ≤ tol ‖b‖` or `max_iter` iterations.
+#[cfg(test)]
 pub(super) fn solve_pcg_until<S: Stencil>(
     st: &S,
     b: Vec<f32>,
@@ -393,6 +395,7 @@ pub(super) fn solve_pcg_until<S: Stencil>(
 /// round's heights in a re-weighting loop. CG runs on the residual `b − A x0` with the
 /// same stopping rule, relative to `‖b‖`: the answer is as accurate as from 0, and a
 /// guess already within the tolerance costs one operator application.
+#[cfg(test)]
 pub(super) fn solve_pcg_from<S: Stencil>(
     st: &S,
     b: Vec<f32>,
@@ -492,15 +495,25 @@ pub(super) fn solve_masked<S: multigrid::Stencil>(
     start: Option<Vec<f32>>,
     halt: Halt,
 ) -> Vec<f32> {
-    let mut b = rhs(st, p, q);
+    solve_rhs(st, rhs(st, p, q), comps, start, (TOL, MAX_ITER), halt)
+}
+
+/// [`solve_masked`] of a right-hand side `b` formed by the caller, stopping at a relative
+/// residual of `stop.0` or after `stop.1` iterations.
+pub(super) fn solve_rhs<S: multigrid::Stencil>(
+    st: &S,
+    mut b: Vec<f32>,
+    comps: &Components,
+    start: Option<Vec<f32>>,
+    stop: (f64, usize),
+    halt: Halt,
+) -> Vec<f32> {
     // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
     // singular system is consistent.
     comps.remove_means(&mut b);
-    let (z, stats) = match start {
-        None => solve_pcg(st, b, halt),
-        Some(x0) => solve_pcg_from(st, b, x0, halt),
-    };
-    if stats.rel_residual > TOL && !halt() {
+    let (tol, max_iter) = stop;
+    let (z, stats) = pcg(st, b, start, tol, max_iter, halt);
+    if stats.rel_residual > tol && stats.iterations < max_iter && !halt() {
         tracing::warn!(
             iterations = stats.iterations,
             rel_residual = stats.rel_residual,
