@@ -10,7 +10,7 @@ use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
 use photostereo::core::bands::Stack;
 use photostereo::core::intake::{self, DirMask, Limits};
-use photostereo::core::normalmap::Convention;
+use photostereo::core::normalmap::{Convention, Lens};
 use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
 use photostereo::core::{Options, metrics, pipeline, stream, synth};
 use photostereo::service;
@@ -55,7 +55,8 @@ enum Command {
         only: Vec<String>,
     },
     /// Score every solver on each data set with ground truth (a folder like res/) and
-    /// print a Markdown table: angular error, depth RMS, solve time.
+    /// print a Markdown table: angular error, depth error (MAE and RMS after the median
+    /// offset, or under the set's camera the median scale: MADE), solve time.
     Evaluate {
         dir: PathBuf,
         /// Integration method for the depth column.
@@ -126,6 +127,34 @@ struct ReconstructArgs {
     /// Mesh: photometric | geometric vertex normals.
     #[arg(long, value_parser = kebab::<MeshNormals>)]
     mesh_normals: Option<MeshNormals>,
+    /// A pinhole camera: a K.txt (3 × 3) or camera.json file, or fx,fy,cx,cy in pixels.
+    /// The surface is then depth along the optical axis (depth.png, depth.exr, points.ply;
+    /// the mesh unprojected through it). Without this flag or --focal-length, the folder's
+    /// own camera.json or K.txt is used; without any, orthographic heights in pixels.
+    #[arg(long)]
+    camera: Option<String>,
+    /// A pinhole camera with this focal length in pixels and its principal point at the
+    /// image centre.
+    #[arg(long, conflicts_with = "camera")]
+    focal_length: Option<f64>,
+    /// With a camera: the working distance, the median depth over the mask (metric depth
+    /// in its unit); without it depth is relative, median 1.
+    #[arg(long, allow_hyphen_values = true)]
+    distance: Option<f64>,
+}
+
+/// Where `--camera` / `--focal-length` say the camera comes from, if they are given.
+fn camera_flags(camera: Option<&str>, focal_length: Option<f64>) -> anyhow::Result<Option<Lens>> {
+    use photostereo::core::camera::Pinhole;
+    Ok(match (camera, focal_length) {
+        // A file when one is there, else the four numbers.
+        (Some(c), _) if Path::new(c).is_file() => Some(Lens::Pinhole(Pinhole::read(Path::new(c))?)),
+        (Some(c), _) => Some(Lens::Pinhole(Pinhole::parse(c).with_context(|| {
+            format!("--camera {c:?} is neither a file nor fx,fy,cx,cy")
+        })?)),
+        (None, Some(f)) => Some(Lens::Centred { focal_px: f }),
+        (None, None) => None,
+    })
 }
 
 #[derive(Args)]
@@ -153,7 +182,7 @@ struct IntegrateArgs {
     focal_length: Option<f64>,
     /// With a camera: the working distance, the median depth over the mask (metric depth
     /// in its unit); without it depth is relative, median 1.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     distance: Option<f64>,
     /// How the map's green channel points: opengl (y up; also the project's normal.png and
     /// the benchmarks' x right, y up, z to the camera: aliases project, benchmark) or
@@ -167,19 +196,10 @@ struct IntegrateArgs {
 }
 
 fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
-    use photostereo::core::camera::Pinhole;
-    use photostereo::core::normalmap::{self, Lens};
+    use photostereo::core::normalmap;
     use photostereo::core::normals_in::{self, Settings};
     let start = std::time::Instant::now();
-    let lens = match (&args.camera, args.focal_length) {
-        // A file when one is there, else the four numbers.
-        (Some(c), _) if Path::new(c).is_file() => Some(Lens::Pinhole(Pinhole::read(Path::new(c))?)),
-        (Some(c), _) => Some(Lens::Pinhole(Pinhole::parse(c).with_context(|| {
-            format!("--camera {c:?} is neither a file nor fx,fy,cx,cy")
-        })?)),
-        (None, Some(f)) => Some(Lens::Centred { focal_px: f }),
-        (None, None) => None,
-    };
+    let lens = camera_flags(args.camera.as_deref(), args.focal_length)?;
     let mut settings = Settings {
         integration: args.integration.unwrap_or_default(),
         distance: args.distance,
@@ -448,6 +468,9 @@ impl ReconstructArgs {
         if self.pixel_size.is_some() {
             o.mesh.pixel_size = self.pixel_size;
         }
+        if self.distance.is_some() {
+            o.distance = self.distance;
+        }
         o.check_values()?;
         Ok((o, chosen))
     }
@@ -462,6 +485,31 @@ impl ReconstructArgs {
         beside.map_or_else(|| PathBuf::from("."), Path::to_path_buf)
     }
 
+    /// The camera of a `width × height` set: `flags` (--camera or --focal-length), else the
+    /// options file's, else the folder's own camera.json or K.txt. Returns the notes for
+    /// `result.json`: which file was used, or left unused.
+    fn camera(
+        &self,
+        flags: Option<Lens>,
+        opts: &mut Options,
+        (width, height): (usize, usize),
+    ) -> anyhow::Result<Vec<String>> {
+        use photostereo::core::camera::Pinhole;
+        if let Some(lens) = flags {
+            opts.camera = Some(lens.resolve(width, height));
+        }
+        let Some(file) = Pinhole::file_in(&self.dir) else {
+            return Ok(Vec::new());
+        };
+        let note = if opts.camera.is_some() {
+            format!("{} not used: a camera was given", file.display())
+        } else {
+            opts.camera = Some(Pinhole::read(&file)?);
+            format!("camera from {}", file.display())
+        };
+        Ok(vec![note])
+    }
+
     fn dir_mask(&self, chosen: Option<MaskMode>) -> DirMask<'_> {
         match (&self.mask_file, chosen) {
             (Some(file), _) => DirMask::File(file),
@@ -473,6 +521,7 @@ impl ReconstructArgs {
 
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let (mut opts, chosen) = args.options()?;
+    let flags = camera_flags(args.camera.as_deref(), args.focal_length)?;
     let start = std::time::Instant::now();
     let scratch = args.scratch_dir();
     let set = stream::open_dir(
@@ -485,9 +534,13 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     if chosen.is_none() && set.info().mask.is_some() && args.mask_file.is_none() {
         opts.mask = MaskMode::Given;
     }
-    for note in &set.info().notes {
+    let mut notes = set.info().notes.clone();
+    let size = (set.info().width, set.info().height);
+    notes.extend(args.camera(flags, &mut opts, size)?);
+    for note in &notes {
         eprintln!("note: {note}");
     }
+    let set = set.noted(notes);
     let decoded = start.elapsed();
     let report = pipeline::run(
         set,
@@ -498,15 +551,18 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
             true
         },
     )?;
+    let (low, high) = report.surface_range();
+    let surface = match report.options.camera {
+        None => format!("heights {low:.2}..{high:.2} px"),
+        Some(_) => format!("depth {low:.4}..{high:.4}"),
+    };
     eprintln!(
-        "{}×{} from {} images: decode {:.0} ms, total {:.0} ms; heights {:.2}..{:.2} px, reprojection RMS {:.4}, integrability RMS {:.4}",
+        "{}×{} from {} images: decode {:.0} ms, total {:.0} ms; {surface}, reprojection RMS {:.4}, integrability RMS {:.4}",
         report.width,
         report.height,
         report.light_count,
         decoded.as_secs_f64() * 1e3,
         start.elapsed().as_secs_f64() * 1e3,
-        report.height_min,
-        report.height_max,
         report.reprojection_rms,
         report.integrability_rms
     );
@@ -535,25 +591,37 @@ fn render(dir: PathBuf, only: Vec<String>) -> anyhow::Result<()> {
 }
 
 fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
+    use photostereo::core::camera::Pinhole;
+    use photostereo::core::metrics::Align;
     let mut sets: Vec<PathBuf> = std::fs::read_dir(&dir)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.join("truth").is_dir())
         .collect();
     sets.sort();
-    println!("| scene | solver | mean ° | median ° | depth RMS px | solve ms |");
-    println!("|---|---|---:|---:|---:|---:|");
+    println!(
+        "| scene | solver | mean ° | median ° | depth MAE | depth RMS | depth in | solve ms |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---|---:|");
     for set_dir in sets {
         let truth = synth::read_truth(&set_dir)?;
         let mut set = intake::load_dir(&set_dir, DirMask::Folder, &Limits::default())?;
         set.mask = Some(truth.mask.clone());
+        // A set with a camera is perspective: its truth is depth along the optical axis.
+        let camera = Pinhole::in_folder(&set_dir)?;
+        let (align, unit) = match camera {
+            None => (Align::Offset, "px, offset"),
+            Some(_) => (Align::Scale, "truth's unit, scaled"),
+        };
         for solver in [Solver::L2, Solver::Weighted, Solver::Robust] {
             let opts = Options {
                 solver,
                 integration,
+                camera,
                 ..Options::default()
             };
             let rec = pipeline::reconstruct(&set, &opts, &mut photostereo::core::RunToEnd)?;
             let acc = metrics::accuracy(&rec, &truth, &truth.mask);
+            let depth = metrics::depth_error(&rec.heights, &truth.depth, &truth.mask, align);
             let solve_ms = rec
                 .report
                 .timings_ms
@@ -561,16 +629,22 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
                 .find(|t| t.stage == "solve")
                 .map_or(0.0, |t| t.ms);
             println!(
-                "| {} | {} | {:.3} | {:.3} | {:.3} | {:.0} |",
+                "| {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {unit} | {:.0} |",
                 set_dir.file_name().unwrap_or_default().to_string_lossy(),
                 serde_json::to_value(solver)?.as_str().unwrap_or_default(),
                 acc.mean_deg,
                 acc.median_deg,
-                acc.depth_rms,
+                depth.mean_abs,
+                depth.rms,
                 solve_ms
             );
         }
     }
+    println!(
+        "\nDepth: heights aligned by the median of (true − estimated), in pixels; under a \
+         camera (a set with camera.json or K.txt), depth scaled by the median of \
+         (true / estimated), in the truth's unit, MAE being the field's MADE."
+    );
     Ok(())
 }
 

@@ -186,5 +186,6 @@ fn seed_synth_reconstructs_a_bump_with_varying_albedo() {
         .iter()
         .fold((1f32, 0f32), |(l, h), a| (l.min(*a), h.max(*a)));
     assert!(lo < 0.35 && hi > 0.65, "albedo range {lo}..{hi}");
-    assert!(rec.report.height_max - rec.report.height_min > 1.0);
+    let (low, high) = rec.report.surface_range();
+    assert!(high - low > 1.0);
 }

@@ -23,10 +23,13 @@ async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8
         job["result"]["width"].as_u64().unwrap() as u32,
         job["result"]["height"].as_u64().unwrap() as u32,
     );
-    // Exactly the selection (`albedo_rgb.png` only for colour inputs).
-    let every = job["options"]["outputs"] == serde_json::json!([outputs::ALL]);
+    // Exactly the selection (`albedo_rgb.png` only for colour inputs; depth pictures in
+    // place of height pictures under a camera).
+    let selection: Option<Vec<String>> =
+        serde_json::from_value(job["options"]["outputs"].clone()).unwrap();
+    let camera = job["options"]["camera"].is_object();
     for (name, _) in ARTIFACTS {
-        let selected = every || outputs::DEFAULT_OUTPUTS.contains(name);
+        let selected = outputs::wanted(selection.as_deref(), name, camera);
         if *name != "albedo_rgb.png" {
             assert_eq!(
                 artifacts.contains_key(*name),
@@ -66,6 +69,7 @@ async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8
                     "albedo.png",
                     "normal.png",
                     "height.png",
+                    "depth.png",
                     "mask.png",
                     "shaded.png",
                 ]
@@ -76,7 +80,7 @@ async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8
             }
             "exr" => {
                 assert_eq!(&bytes[..4], &[0x76, 0x2f, 0x31, 0x01], "{name}: EXR magic");
-                if name == "height.exr" {
+                if name == "height.exr" || name == "depth.exr" {
                     let z = outputs::decode_height_exr(&bytes)
                         .unwrap_or_else(|e| panic!("{name}: {e}"));
                     assert_eq!(z.dim(), (h as usize, w as usize), "{name}");
@@ -96,6 +100,12 @@ async fn check_artifacts(s: &TestServer, job: &Value) -> BTreeMap<String, Vec<u8
             "gltf" => {
                 let doc: Value = serde_json::from_slice(&bytes).unwrap();
                 assert!(doc["asset"]["version"].is_string(), "{name}");
+            }
+            "ply" => {
+                assert!(
+                    bytes.starts_with(b"ply\nformat binary_little_endian 1.0\n"),
+                    "{name}"
+                );
             }
             "json" => {
                 let report: Value = serde_json::from_slice(&bytes).unwrap();
@@ -1636,5 +1646,132 @@ async fn an_lp_lights_part_runs_the_job_of_its_csv() {
         .await
         .unwrap();
     expect_problem(r, 422, &["bump.lp line 1", "number of lights"]).await;
+    s.stop().await;
+}
+
+/// A camera as the `camera` option, as a `camera` part (a K.txt) or as the archive's own
+/// K.txt gives the same depth job, its new artifacts downloadable; a camera that cannot
+/// be, or cannot have taken the images, is refused before the job is queued, naming why.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_camera_makes_depth_and_bad_cameras_get_422() {
+    let set = tempfile::tempdir().unwrap();
+    pinhole_sphere_set(set.path());
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let k_part = || Part::bytes(PINHOLE_K.as_bytes().to_vec()).file_name("K.txt");
+    let mut entries: Vec<(String, Vec<u8>)> = images_of(set.path())
+        .into_iter()
+        .chain([
+            set.path().join("light_directions.csv"),
+            set.path().join("K.txt"),
+        ])
+        .map(|p| {
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            (name, std::fs::read(&p).unwrap())
+        })
+        .collect();
+    let zip = |entries: &[(String, Vec<u8>)]| {
+        let refs: Vec<(&str, &[u8])> = (entries.iter())
+            .map(|(n, b)| (n.as_str(), b.as_slice()))
+            .collect();
+        zip_entries(&refs)
+    };
+    let forms = [
+        folder_form(set.path()).text(
+            "options",
+            r#"{"camera": {"fx": 80, "fy": 80, "cx": 31.5, "cy": 31.5}, "distance": 5}"#,
+        ),
+        folder_form(set.path())
+            .part("camera", k_part())
+            .text("options", r#"{"distance": 5}"#),
+        archive_form(zip(&entries)).text("options", r#"{"distance": 5}"#),
+    ];
+    let mut ids = Vec::new();
+    for form in forms {
+        let job = s.submit(form).await;
+        assert_eq!(job["options"]["camera"]["fx"], 80.0, "{job}");
+        ids.push(job["id"].as_str().unwrap().to_string());
+    }
+    let mut depths = Vec::new();
+    for id in &ids {
+        let job = s.wait_succeeded(id).await;
+        assert!(job["result"]["height_min"].is_null(), "{job}");
+        let (near, far) = (&job["result"]["depth_min"], &job["result"]["depth_max"]);
+        assert!(
+            near.as_f64().unwrap() < 5.0 && 5.0 < far.as_f64().unwrap(),
+            "{job}"
+        );
+        let files = check_artifacts(&s, &job).await;
+        for name in ["depth.exr", "depth.png", "points.ply", "mesh.glb"] {
+            assert!(files.contains_key(name), "{name}: {:?}", files.keys());
+        }
+        assert!(!files.contains_key("height.png"));
+        let report: Value = serde_json::from_slice(&files["result.json"]).unwrap();
+        assert_eq!(report["options"]["distance"], 5.0);
+        depths.push(outputs::decode_height_exr(&files["depth.exr"]).unwrap());
+        if id == &ids[2] {
+            let notes = report["notes"].to_string();
+            assert!(
+                notes.contains("camera from K.txt in the archive"),
+                "{notes}"
+            );
+        }
+    }
+    assert!(depths.windows(2).all(|d| {
+        d[0].iter()
+            .zip(d[1].iter())
+            .all(|(a, b)| a.to_bits() == b.to_bits())
+    }));
+
+    // Refusals, each a 422 naming the problem.
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let with_options = |options: &str| folder_form(set.path()).text("options", options.to_string());
+    for (options, needles) in [
+        (
+            r#"{"camera": {"fx": 80, "fy": 80, "cx": 100, "cy": 31.5}}"#,
+            &["principal point", "64 × 64"][..],
+        ),
+        (
+            r#"{"camera": {"fx": 0, "fy": 80, "cx": 31.5, "cy": 31.5}}"#,
+            &["camera", "fx must be a focal length"],
+        ),
+        (r#"{"camera": "80 80 31.5"}"#, &["camera", "3 numbers"]),
+        (
+            r#"{"camera": "80,80,inf,31.5"}"#,
+            &["camera", "cx must be a finite number"],
+        ),
+        (r#"{"camera": {"fx": 80, "fy": 80}}"#, &["camera", "cx"]),
+        (r#"{"camera": 7}"#, &["camera", "fx,fy,cx,cy"]),
+        (r#"{"distance": 5}"#, &["distance needs a camera"]),
+        (
+            r#"{"camera": "80,80,31.5,31.5", "distance": 0}"#,
+            &["distance must be a positive number"],
+        ),
+    ] {
+        let r = post(with_options(options)).await.unwrap();
+        expect_problem(r, 422, needles).await;
+    }
+    let part = |text: &str| folder_form(set.path()).text("camera", text.to_string());
+    expect_problem(
+        post(part("nan 0 1 0 80 2 0 0 1")).await.unwrap(),
+        422,
+        &["camera part", "fx"],
+    )
+    .await;
+    expect_problem(
+        post(part("hello")).await.unwrap(),
+        422,
+        &["camera part", "not a number"],
+    )
+    .await;
+    let both = folder_form(set.path())
+        .part("camera", k_part())
+        .text("options", r#"{"camera": "80,80,31.5,31.5"}"#);
+    expect_problem(post(both).await.unwrap(), 422, &["not both"]).await;
+    // The archive's K.txt for another resolution.
+    entries.retain(|(n, _)| n != "K.txt");
+    entries.push(("K.txt".into(), b"80 0 319.5\n0 80 239.5\n0 0 1\n".to_vec()));
+    let r = post(archive_form(zip(&entries))).await.unwrap();
+    expect_problem(r, 422, &["principal point", "another resolution"]).await;
     s.stop().await;
 }

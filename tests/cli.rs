@@ -8,7 +8,7 @@ use std::process::Command;
 
 mod common;
 
-use common::{benchmark_folder, mean_normal_error_deg};
+use common::{PINHOLE_K, benchmark_folder, mean_normal_error_deg, pinhole_sphere_set};
 use photostereo::core::outputs;
 use seed::{SEED_SETS, seed};
 
@@ -277,6 +277,91 @@ fn bad_input_fails_with_a_message_naming_the_problem() {
         err.contains("\"a.png\"") && err.contains("not provided"),
         "{err}"
     );
+}
+
+/// The stderr of a run that must fail.
+fn failure(args: &[&str], dir: &Path) -> String {
+    let out = bin()
+        .arg("reconstruct")
+        .arg(dir)
+        .args(["--out", "/tmp/never"])
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(!out.status.success(), "{args:?} succeeded");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[test]
+fn a_set_under_a_camera_reconstructs_to_depth_and_evaluates_by_scale() {
+    use photostereo::core::metrics::{self, Align};
+    let sets = tempfile::tempdir().unwrap();
+    let dir = sets.path().join("pinhole-sphere");
+    std::fs::create_dir(&dir).unwrap();
+    pinhole_sphere_set(&dir);
+    let truth = photostereo::core::synth::read_truth(&dir).unwrap();
+
+    // The folder's K.txt is the camera when no flag names one.
+    let (out, report) = reconstruct(&dir, &[]);
+    let artifacts = report["artifacts"].as_array().unwrap();
+    for name in ["depth.exr", "depth.png", "points.ply", "mesh.glb"] {
+        assert!(artifacts.iter().any(|a| a == name), "{name}: {artifacts:?}");
+        assert!(out.path().join(name).is_file(), "{name}");
+    }
+    assert!(!out.path().join("height.png").exists());
+    assert_eq!(report["options"]["camera"]["fx"], 80.0);
+    assert!(report["height_min"].is_null() && report["depth_max"].as_f64().is_some());
+    let notes = report["notes"].to_string();
+    assert!(
+        notes.contains("camera from") && notes.contains("K.txt"),
+        "{notes}"
+    );
+    let depth =
+        outputs::decode_height_exr(&std::fs::read(out.path().join("depth.exr")).unwrap()).unwrap();
+    let error = metrics::depth_error(&depth, &truth.depth, &truth.mask, Align::Scale);
+    // The sphere's depth spans 4 to ~5.6 units: within a thousandth of it.
+    assert!(error.mean_abs < 2e-3 && error.rms < 4e-3, "{error:?}");
+
+    // --focal-length and --distance: metric depth, its median the distance.
+    let (out, report) = reconstruct(&dir, &["--focal-length", "80", "--distance", "5"]);
+    assert_eq!(report["options"]["distance"], 5.0);
+    assert!(report["notes"].to_string().contains("not used"), "{report}");
+    let depth =
+        outputs::decode_height_exr(&std::fs::read(out.path().join("depth.exr")).unwrap()).unwrap();
+    let mut on: Vec<f32> = depth.iter().copied().filter(|d| d.is_finite()).collect();
+    let k = on.len() / 2;
+    let median = *on.select_nth_unstable_by(k, f32::total_cmp).1;
+    assert!((median - 5.0).abs() < 1e-4, "median depth {median}");
+
+    // Cameras that cannot have taken the images, and a distance without a camera.
+    let err = failure(&["--camera", "80,80,31.5,90"], &dir);
+    assert!(
+        err.contains("principal point") && err.contains("64 × 64"),
+        "{err}"
+    );
+    let err = failure(&["--camera", "80,80,31.5"], &dir);
+    assert!(err.contains("3 numbers"), "{err}");
+    let err = failure(&["--focal-length", "0"], &dir);
+    assert!(err.contains("fx must be a focal length"), "{err}");
+    let err = failure(&["--distance", "2"], &res("bump"));
+    assert!(err.contains("distance needs a camera"), "{err}");
+    let err = failure(&["--distance", "-1", "--camera", PINHOLE_K], &dir);
+    assert!(err.contains("positive"), "{err}");
+
+    // evaluate scores it by scale, in the truth's unit.
+    let out = bin().arg("evaluate").arg(sets.path()).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let table = String::from_utf8(out.stdout).unwrap();
+    let row = (table.lines())
+        .find(|l| l.starts_with("| pinhole-sphere | robust |"))
+        .unwrap_or_else(|| panic!("{table}"));
+    assert!(row.contains("truth's unit, scaled"), "{row}");
+    let made: f64 = row.split('|').nth(5).unwrap().trim().parse().unwrap();
+    assert!(made < 2e-3, "{row}");
 }
 
 #[test]

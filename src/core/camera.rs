@@ -8,15 +8,22 @@
 use std::ops::RangeInclusive;
 use std::path::Path;
 
-use serde::{Deserialize, Serialize};
+use serde::de::{self, MapAccess, Visitor};
+use serde::{Deserialize, Deserializer, Serialize};
 use utoipa::ToSchema;
+use utoipa::openapi::schema::{ObjectBuilder, OneOfBuilder, Type};
+use utoipa::openapi::{Ref, RefOr, Schema};
 
 /// Focal lengths accepted, in pixels: below 1 px nothing is a camera; past 1e7 px a lens
 /// is orthographic to within f32 and the perspective maths loses its precision.
 pub const FOCAL_PX: RangeInclusive<f64> = 1.0..=1e7;
 
-/// A pinhole camera in pixels. Deserialising does not check it: call [`Pinhole::check`]
-/// against the image it belongs to.
+/// The camera files a folder (or an upload) may carry, in the order they are looked for.
+pub const FILES: [&str; 2] = ["camera.json", "K.txt"];
+
+/// A pinhole camera in pixels: pixel (u, v) sees the ray ((u − cx)/fx, (v − cy)/fy, −1)
+/// from the camera at the origin (x right, y down, z towards the camera).
+// Deserialising does not check it: `Pinhole::check` it against its image.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Pinhole {
@@ -101,18 +108,17 @@ impl Pinhole {
 
     /// The camera file a folder carries, if any: `camera.json`, else `K.txt`.
     pub fn in_folder(dir: &Path) -> Result<Option<Self>, CameraError> {
-        for name in ["camera.json", "K.txt"] {
-            let path = dir.join(name);
-            if path.is_file() {
-                return Self::read(&path).map(Some);
-            }
-        }
-        Ok(None)
+        Self::file_in(dir).map(|path| Self::read(&path)).transpose()
     }
 
-    /// Refuses a camera that cannot have taken a `width × height` image: focal lengths
-    /// outside [`FOCAL_PX`], a principal point that is not finite or lies outside the image.
-    pub fn check(&self, width: usize, height: usize) -> Result<(), CameraError> {
+    /// The camera file in `dir` that [`Pinhole::in_folder`] reads, if any.
+    pub fn file_in(dir: &Path) -> Option<std::path::PathBuf> {
+        FILES.iter().map(|n| dir.join(n)).find(|p| p.is_file())
+    }
+
+    /// Refuses what no image's camera can be: focal lengths outside [`FOCAL_PX`] (NaN
+    /// included), a principal point that is not finite.
+    pub fn check_values(&self) -> Result<(), CameraError> {
         for (name, f) in [("fx", self.fx), ("fy", self.fy)] {
             if !FOCAL_PX.contains(&f) {
                 return bad(format!(
@@ -122,7 +128,19 @@ impl Pinhole {
                 ));
             }
         }
-        let inside = |v: f64, n: usize| v.is_finite() && (-0.5..=n as f64 - 0.5).contains(&v);
+        for (name, v) in [("cx", self.cx), ("cy", self.cy)] {
+            if !v.is_finite() {
+                return bad(format!("{name} must be a finite number of pixels, got {v}"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Refuses a camera that cannot have taken a `width × height` image: what
+    /// [`Pinhole::check_values`] refuses, or a principal point outside the image.
+    pub fn check(&self, width: usize, height: usize) -> Result<(), CameraError> {
+        self.check_values()?;
+        let inside = |v: f64, n: usize| (-0.5..=n as f64 - 0.5).contains(&v);
         if !inside(self.cx, width) || !inside(self.cy, height) {
             return bad(format!(
                 "the principal point ({}, {}) lies outside the {width} × {height} image; \
@@ -144,6 +162,68 @@ impl Pinhole {
     pub fn unproject(&self, u: f64, v: f64, depth: f64) -> [f64; 3] {
         self.ray(u, v).map(|c| c * depth)
     }
+}
+
+/// The `camera` option in either form: `{fx, fy, cx, cy}`, or text [`Pinhole::parse`]
+/// reads (a K.txt's nine numbers, `fx,fy,cx,cy`); null for none. For
+/// `#[serde(deserialize_with)]`; the values are checked by [`Pinhole::check_values`].
+pub fn deserialize_option<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Pinhole>, D::Error> {
+    d.deserialize_any(EitherForm)
+}
+
+struct EitherForm;
+
+impl<'de> Visitor<'de> for EitherForm {
+    type Value = Option<Pinhole>;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str(
+            "a camera: {\"fx\", \"fy\", \"cx\", \"cy\"} in pixels, or the text of a K.txt (3 × 3) or fx,fy,cx,cy",
+        )
+    }
+
+    fn visit_unit<E>(self) -> Result<Self::Value, E> {
+        Ok(None)
+    }
+
+    fn visit_none<E>(self) -> Result<Self::Value, E> {
+        Ok(None)
+    }
+
+    fn visit_some<D: Deserializer<'de>>(self, d: D) -> Result<Self::Value, D::Error> {
+        d.deserialize_any(self)
+    }
+
+    fn visit_str<E: de::Error>(self, text: &str) -> Result<Self::Value, E> {
+        Pinhole::parse(text)
+            .map(Some)
+            .map_err(|CameraError(e)| E::custom(e))
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<Self::Value, A::Error> {
+        Pinhole::deserialize(de::value::MapAccessDeserializer::new(map)).map(Some)
+    }
+}
+
+/// The OpenAPI schema of the `camera` option's two forms.
+pub fn option_schema() -> RefOr<Schema> {
+    let text = ObjectBuilder::new()
+        .schema_type(Type::String)
+        .description(Some(
+            "A K.txt's text (3 × 3, zero skew, last row 0 0 1) or `fx,fy,cx,cy`, in pixels",
+        ));
+    OneOfBuilder::new()
+        .item(ObjectBuilder::new().schema_type(Type::Null))
+        .item(Ref::from_schema_name("Pinhole"))
+        .item(text)
+        .description(Some(
+            "A pinhole camera in pixels: `{fx, fy, cx, cy}`, or the text of a K.txt (3 × 3) or \
+             `fx,fy,cx,cy`. With one, normals stay in the camera frame and the surface is depth \
+             along the optical axis (depth.png, depth.exr, points.ply; the mesh unprojected \
+             through it); without one, orthographic heights in pixels. An upload's K.txt or \
+             camera.json (part `camera`, or a file in the archive) is used when this is absent.",
+        ))
+        .into()
 }
 
 #[cfg(test)]
@@ -185,6 +265,64 @@ mod tests {
             ..cam
         };
         assert!(nan.check(100, 80).is_err());
+    }
+
+    #[test]
+    fn the_option_takes_an_object_or_text_and_refuses_anything_else() {
+        #[derive(Deserialize, Debug)]
+        struct Holder {
+            #[serde(default, deserialize_with = "deserialize_option")]
+            camera: Option<Pinhole>,
+        }
+        let read = |json: &str| serde_json::from_str::<Holder>(json).map(|h| h.camera);
+        let want = Pinhole {
+            fx: 80.0,
+            fy: 90.0,
+            cx: 31.5,
+            cy: 20.0,
+        };
+        let object = r#"{"camera": {"fx": 80, "fy": 90, "cx": 31.5, "cy": 20}}"#;
+        assert_eq!(read(object).unwrap(), Some(want));
+        assert_eq!(read(r#"{"camera": "80,90,31.5,20"}"#).unwrap(), Some(want));
+        let k = r#"{"camera": "80 0 31.5\n0 90 20\n0 0 1\n"}"#;
+        assert_eq!(read(k).unwrap(), Some(want));
+        assert_eq!(read(r#"{"camera": null}"#).unwrap(), None);
+        assert_eq!(read("{}").unwrap(), None);
+        for (bad, needle) in [
+            (r#"{"camera": 7}"#, "fx,fy,cx,cy"),
+            (r#"{"camera": "80,90"}"#, "got 2 numbers"),
+            (
+                r#"{"camera": {"fx": 80, "fy": 90, "cx": 1}}"#,
+                "missing field `cy`",
+            ),
+            (r#"{"camera": {"fx": 1, "fx": 2}}"#, "duplicate field `fx`"),
+            (
+                r#"{"camera": {"fx": 80, "fy": 90, "cx": 1, "cy": 1, "k": 0}}"#,
+                "unknown field",
+            ),
+        ] {
+            let e = read(bad).unwrap_err().to_string();
+            assert!(e.contains(needle), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn values_no_camera_has_are_refused_before_the_image_is_known() {
+        let ok = Pinhole::centred(80.0, 64, 64);
+        assert!(ok.check_values().is_ok());
+        let e = |k: Pinhole| k.check_values().unwrap_err().0;
+        assert!(e(Pinhole { fx: 1e8, ..ok }).contains("fx must be a focal length"));
+        assert!(e(Pinhole { fy: f64::NAN, ..ok }).contains("fy"));
+        assert!(
+            e(Pinhole {
+                cx: f64::INFINITY,
+                ..ok
+            })
+            .contains("cx must be a finite")
+        );
+        // Far outside the image is still a camera, just not this image's.
+        let far = Pinhole { cx: 500.0, ..ok };
+        assert!(far.check_values().is_ok() && far.check(64, 64).is_err());
     }
 
     #[test]

@@ -77,6 +77,8 @@ pub enum InputError {
     Mask(String),
     #[error("options: {0}")]
     Options(String),
+    #[error(transparent)]
+    Camera(#[from] super::camera::CameraError),
     #[error("{path}: {reason}")]
     Io { path: String, reason: String },
 }

@@ -25,7 +25,7 @@ use super::error::{InputError, RunError};
 use super::integrate::{self, perspective};
 use super::mesh::{self, Document, MeshError};
 use super::normalmap::{Convention, Counts, NormalMap};
-use super::options::{Integration, MeshOptions, Options};
+use super::options::{self, Integration, MeshOptions, Options};
 use super::outputs::{self, Heights, Maps};
 use super::progress::NEVER;
 use super::reconstruction::{Reconstruction, Report as RunReport, Timing};
@@ -46,17 +46,7 @@ impl Settings {
     /// Refuses what cannot be used: a distance that is not a positive number, or one
     /// given without a camera (orthographic heights have no depth to scale).
     pub fn check(&self, camera: Option<&Pinhole>) -> Result<(), InputError> {
-        match (self.distance, camera) {
-            (Some(d), _) if !(d.is_finite() && d > 0.0) => Err(InputError::Options(format!(
-                "distance must be a positive number (the median depth over the mask), got {d}"
-            ))),
-            (Some(_), None) => Err(InputError::Options(
-                "distance needs a camera (--camera or --focal-length): without one the \
-                 integration is orthographic and gives heights in pixels"
-                    .into(),
-            )),
-            _ => Ok(()),
-        }
+        options::check_distance(self.distance, camera)
     }
 }
 
@@ -167,16 +157,19 @@ pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, Ru
             options: Options {
                 integration: settings.integration,
                 mesh: settings.mesh.clone(),
+                camera,
+                distance: settings.distance,
                 ..Options::default()
             },
             ..RunReport::default()
         },
     };
     let mut notes = settings.notes.clone();
-    let mut pictures = vec!["mask.png", "normal.png"];
-    if !perspective {
-        pictures.extend(["height.png", "height.exr"]);
-    }
+    let pictures: Vec<&str> = ["mask.png", "normal.png"]
+        .into_iter()
+        .chain(["height.png", "height.exr", "depth.exr", "depth.png"])
+        .filter(|n| outputs::fits_surface(n, perspective))
+        .collect();
     let maps = Maps {
         heights: Some(Heights {
             z: &rec.heights,
@@ -193,14 +186,6 @@ pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, Ru
             written.push(name.to_string());
             Ok::<_, RunError>(())
         };
-    if perspective {
-        save("depth.exr", &mut |f| {
-            outputs::scalar_exr_to(f, &rec.heights)
-        })?;
-        save("depth.png", &mut |f| {
-            outputs::range_png16_to(f, &rec.mask, &rec.heights, min..=max, true)
-        })?;
-    }
     save("points.ply", &mut |f| {
         mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, camera.as_ref())
     })?;

@@ -4,6 +4,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::InputError;
+use super::camera::{self, Pinhole};
 
 /// How albedo·normal is solved per pixel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
@@ -115,6 +116,17 @@ pub struct Options {
     /// albedo.png, albedo_rgb.png (colour inputs), mask.png, normal.png, height.png,
     /// confidence.png, shaded.png, mesh.glb and result.json.
     pub outputs: Option<Vec<String>>,
+    /// The pinhole camera (see its schema); absent: orthographic.
+    #[serde(
+        deserialize_with = "camera::deserialize_option",
+        skip_serializing_if = "Option::is_none"
+    )]
+    #[schema(schema_with = camera::option_schema)]
+    pub camera: Option<Pinhole>,
+    /// With a camera: the working distance, the median depth over the mask in the unit
+    /// wanted (metric depth); absent: relative depth, median 1.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub distance: Option<f64>,
 }
 
 impl Default for Options {
@@ -127,6 +139,8 @@ impl Default for Options {
             mesh: MeshOptions::default(),
             max_condition: DEFAULT_MAX_CONDITION,
             outputs: None,
+            camera: None,
+            distance: None,
         }
     }
 }
@@ -134,7 +148,9 @@ impl Default for Options {
 impl Options {
     /// Values JSON (or a flag) can carry but a reconstruction cannot use, refused before a
     /// job starts: a zero or non-finite shading light would shade with NaN, a
-    /// `height_scale` past the f32 range would even be stored as `null`.
+    /// `height_scale` past the f32 range would even be stored as `null`; a camera no image
+    /// can have. (The camera against the images, and the distance, are checked once the
+    /// set's own camera file is known: [`Options::check_camera`].)
     pub fn check_values(&self) -> Result<(), InputError> {
         let bad = |why: String| Err(InputError::Options(why));
         let l = self.shading_light;
@@ -154,9 +170,87 @@ impl Options {
                 "field `mesh`: pixel_size must be a positive number of metres, got {p}"
             ));
         }
+        if let Some(k) = &self.camera {
+            k.check_values().map_err(|camera::CameraError(e)| {
+                InputError::Options(format!("field `camera`: {e}"))
+            })?;
+        }
         Ok(())
+    }
+
+    /// The camera against the `width × height` images it is to have taken, and the
+    /// distance ([`check_distance`]).
+    pub fn check_camera(&self, width: usize, height: usize) -> Result<(), InputError> {
+        if let Some(k) = &self.camera {
+            k.check(width, height)?;
+        }
+        check_distance(self.distance, self.camera.as_ref())
+    }
+}
+
+/// Refuses a working distance (the median depth over the mask) that is not a positive
+/// number, or that comes without a camera: orthographic heights have no depth to scale.
+pub fn check_distance(distance: Option<f64>, camera: Option<&Pinhole>) -> Result<(), InputError> {
+    match (distance, camera) {
+        (Some(d), _) if !(d.is_finite() && d > 0.0) => Err(InputError::Options(format!(
+            "distance must be a positive number (the median depth over the mask), got {d}"
+        ))),
+        (Some(_), None) => Err(InputError::Options(
+            "distance needs a camera (the `camera` option, --camera or --focal-length, or a \
+             K.txt or camera.json with the images): without one the surface is orthographic \
+             heights in pixels"
+                .into(),
+        )),
+        _ => Ok(()),
     }
 }
 
 /// Past this, noise in the images is amplified more than 100-fold into the normals.
 pub const DEFAULT_MAX_CONDITION: f64 = 100.0;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_camera_is_checked_against_the_images_and_a_distance_needs_one() {
+        let camera = Some(Pinhole::centred(80.0, 64, 48));
+        let with = |camera, distance| Options {
+            camera,
+            distance,
+            ..Options::default()
+        };
+        assert!(with(camera, Some(5.0)).check_camera(64, 48).is_ok());
+        assert!(with(None, None).check_camera(64, 48).is_ok());
+        let e = |o: Options| o.check_camera(64, 48).unwrap_err().to_string();
+        assert!(e(with(None, Some(5.0))).contains("distance needs a camera"));
+        assert!(e(with(camera, Some(0.0))).contains("positive"));
+        assert!(e(with(camera, Some(f64::NAN))).contains("positive"));
+        // The principal point of a 640 × 480 camera lies outside a 64 × 48 image.
+        let large = Some(Pinhole::centred(80.0, 640, 480));
+        let outside = e(with(large, None));
+        assert!(
+            outside.starts_with("camera: the principal point"),
+            "{outside}"
+        );
+        let bad = with(Some(Pinhole::centred(0.5, 64, 48)), None);
+        let message = bad.check_values().unwrap_err().to_string();
+        assert!(message.contains("field `camera`: fx"), "{message}");
+    }
+
+    #[test]
+    fn without_a_camera_the_options_serialise_as_before() {
+        let json = serde_json::to_value(Options::default()).unwrap();
+        assert!(json.get("camera").is_none() && json.get("distance").is_none());
+        let camera = Some(Pinhole::centred(80.0, 64, 48));
+        let json = serde_json::to_value(Options {
+            camera,
+            ..Options::default()
+        })
+        .unwrap();
+        assert_eq!(json["camera"]["fx"], 80.0);
+        // And what it wrote reads back.
+        let back: Options = serde_json::from_value(json).unwrap();
+        assert_eq!(back.camera, camera);
+    }
+}

@@ -30,6 +30,8 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
     ("height.png", "image/png"),
     ("normal.exr", "image/x-exr"),
     ("height.exr", "image/x-exr"),
+    ("depth.png", "image/png"),
+    ("depth.exr", "image/x-exr"),
     ("needle.png", "image/png"),
     ("curl.png", "image/png"),
     ("confidence.png", "image/png"),
@@ -38,6 +40,7 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
     ("preview.png", "image/png"),
     ("mesh.glb", "model/gltf-binary"),
     ("mesh.gltf", "model/gltf+json"),
+    ("points.ply", "application/x-ply"),
     ("result.json", "application/json"),
 ];
 
@@ -45,7 +48,8 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
 /// their most precise lossless form that every viewer opens. The rest (EXRs, the three
 /// normal components, needle/curl/unreliable pictures, the preview, `mesh.gltf`) are 95
 /// of the 127 MB a 2048² job writes with every artifact, and are written on request.
-/// `albedo_rgb.png` is written only for colour inputs.
+/// `albedo_rgb.png` is written only for colour inputs; under a camera `height.png` gives
+/// way to [`DEFAULT_DEPTH_OUTPUTS`].
 pub const DEFAULT_OUTPUTS: &[&str] = &[
     "albedo.png",
     "albedo_rgb.png",
@@ -58,15 +62,32 @@ pub const DEFAULT_OUTPUTS: &[&str] = &[
     "result.json",
 ];
 
+/// Added to the default set under a camera: the depth in both forms and the point cloud,
+/// what a perspective reconstruction is for.
+pub const DEFAULT_DEPTH_OUTPUTS: &[&str] = &["depth.png", "depth.exr", "points.ply"];
+
 /// In an `outputs` selection, stands for every artifact.
 pub const ALL: &str = "all";
 
 /// Whether artifact `name` is to be written under the `outputs` selection `selection`
-/// (the default set when there is none).
-pub fn wanted(selection: Option<&[String]>, name: &str) -> bool {
-    match selection {
-        None => DEFAULT_OUTPUTS.contains(&name),
+/// (the default set when there is none), for a surface of heights, or of depth when
+/// `camera` ([`fits_surface`]).
+pub fn wanted(selection: Option<&[String]>, name: &str, camera: bool) -> bool {
+    let selected = match selection {
+        None => DEFAULT_OUTPUTS.contains(&name) || camera && DEFAULT_DEPTH_OUTPUTS.contains(&name),
         Some(names) => names.iter().any(|n| n == name || n == ALL),
+    };
+    selected && fits_surface(name, camera)
+}
+
+/// Whether artifact `name` exists for a surface of heights (orthographic), or of depth
+/// along the optical axis when `camera`: the height pictures for one, the depth pictures
+/// for the other.
+pub fn fits_surface(name: &str, camera: bool) -> bool {
+    match name {
+        "height.png" | "height.exr" => !camera,
+        "depth.png" | "depth.exr" => camera,
+        _ => true,
     }
 }
 
@@ -288,7 +309,7 @@ pub struct Maps<'a> {
     pub heights: Option<Heights<'a>>,
 }
 
-/// Integrated heights and their range over the mask.
+/// Integrated heights (or depth, for the depth pictures) and their range over the mask.
 pub struct Heights<'a> {
     pub z: &'a Array2<f32>,
     pub min: f32,
@@ -305,10 +326,13 @@ impl<'a> Maps<'a> {
             curl: Some(&rec.curl),
             confidence: &rec.confidence,
             unreliable: &rec.unreliable,
-            heights: Some(Heights {
-                z: &rec.heights,
-                min: rec.report.height_min,
-                max: rec.report.height_max,
+            heights: Some({
+                let (min, max) = rec.report.surface_range();
+                Heights {
+                    z: &rec.heights,
+                    min,
+                    max,
+                }
             }),
         }
     }
@@ -323,11 +347,14 @@ impl<'a> Maps<'a> {
     }
 }
 
-/// Whether picture `name` is drawn after the integration: from the heights, or from the
-/// curl, which is formed once the integration's buffers are freed. The others are written
-/// while the integration runs.
+/// Whether picture `name` is drawn after the integration: from the heights (or depth), or
+/// from the curl, which is formed once the integration's buffers are freed. The others are
+/// written while the integration runs.
 pub fn after_integration(name: &str) -> bool {
-    matches!(name, "height.png" | "height.exr" | "curl.png")
+    matches!(
+        name,
+        "height.png" | "height.exr" | "depth.png" | "depth.exr" | "curl.png"
+    )
 }
 
 /// Whether artifact `name` applies to these maps (`albedo_rgb.png` needs colour).
@@ -388,7 +415,11 @@ pub fn encode_to(
             });
             exr_to(out, &exr_image((rows, cols), n))?
         }
-        "height.exr" => scalar_exr_to(out, maps.heights().z)?,
+        "height.exr" | "depth.exr" => scalar_exr_to(out, maps.heights().z)?,
+        "depth.png" => {
+            let Heights { z, min, max } = maps.heights();
+            range_png16_to(out, mask, z, *min..=*max, true)?
+        }
         "needle.png" => png_to(out, &render::needle_map(maps.albedo, maps.normals, mask))?,
         "curl.png" => png_to(out, &render::diverging(maps.curl(), mask))?,
         "shaded.png" => shaded_to(out, maps.albedo, maps.normals, mask, shading_light)?,
@@ -399,7 +430,7 @@ pub fn encode_to(
 
 /// A 16-bit gray PNG of `z` over the mask, 0 off it: 0..65535 ↔ `range` (clamped), or
 /// 65535..0 when `reversed` (`depth.png`: near is bright). An empty range maps to 0.
-pub fn range_png16_to(
+fn range_png16_to(
     out: &mut dyn Write,
     mask: &Array2<bool>,
     z: &Array2<f32>,
@@ -419,7 +450,7 @@ pub fn range_png16_to(
 
 /// A one-channel (`Y`) 32-bit float EXR of `z` (`height.exr`, `depth.exr`); read it back
 /// with [`decode_height_exr`].
-pub fn scalar_exr_to(out: &mut dyn WriteSeek, z: &Array2<f32>) -> std::io::Result<()> {
+fn scalar_exr_to(out: &mut dyn WriteSeek, z: &Array2<f32>) -> std::io::Result<()> {
     let channel = SpecificChannels::build()
         .with_channel("Y")
         .with_pixel_fn(|p: Vec2<usize>| (z[[p.y(), p.x()]],));
@@ -696,13 +727,29 @@ mod tests {
 
     #[test]
     fn the_default_selection_is_the_default_set_and_all_is_everything() {
+        let all = [ALL.to_string()];
         for (name, _) in ARTIFACTS {
-            assert_eq!(wanted(None, name), DEFAULT_OUTPUTS.contains(name), "{name}");
-            assert!(wanted(Some(&[ALL.to_string()]), name), "{name}");
+            assert_eq!(
+                wanted(None, name, false),
+                DEFAULT_OUTPUTS.contains(name) && !name.starts_with("depth."),
+                "{name}"
+            );
+            assert!(wanted(Some(&all), name, false) || name.starts_with("depth."));
+            // Under a camera: depth in place of heights, and the point cloud.
+            let depth = DEFAULT_OUTPUTS.contains(name) || DEFAULT_DEPTH_OUTPUTS.contains(name);
+            assert_eq!(
+                wanted(None, name, true),
+                depth && !name.starts_with("height."),
+                "{name}"
+            );
+            assert!(wanted(Some(&all), name, true) || name.starts_with("height."));
         }
         let some = ["mesh.gltf".to_string()];
-        assert!(wanted(Some(&some), "mesh.gltf") && !wanted(Some(&some), "albedo.png"));
-        assert!(DEFAULT_OUTPUTS.iter().all(|n| content_type(n).is_some()));
+        assert!(
+            wanted(Some(&some), "mesh.gltf", false) && !wanted(Some(&some), "albedo.png", false)
+        );
+        let mut defaults = DEFAULT_OUTPUTS.iter().chain(DEFAULT_DEPTH_OUTPUTS);
+        assert!(defaults.all(|n| content_type(n).is_some()));
         assert!(check_selection(&[ALL.to_string(), "height.exr".into()]).is_ok());
         assert!(check_selection(&["everything".to_string()]).is_err());
     }

@@ -15,6 +15,7 @@ use super::bands::{InMemory, Stack};
 use super::commit::{self, Committer};
 use super::error::RunError;
 use super::intake::ImageSet;
+use super::integrate::perspective;
 use super::lights::{self, Light};
 use super::options::Options;
 use super::outputs::{self, Maps};
@@ -34,7 +35,7 @@ pub fn reconstruct(
     step(progress, Stage::Integrate)?;
     let polled: &dyn Progress = progress;
     let (slopes, heights) = timings.time(Stage::Integrate, || {
-        let slopes = Slopes::of(&surface);
+        let slopes = Slopes::of(&surface, opts);
         let heights = slopes.integrate(&surface, opts, &|| polled.halted());
         (slopes, heights)
     });
@@ -75,6 +76,7 @@ fn prepare(
     if let Some(names) = &opts.outputs {
         outputs::check_selection(names)?;
     }
+    opts.check_camera(stack.info().width, stack.info().height)?;
 
     step(progress, Stage::Solve)?;
     let polled: &dyn Progress = progress;
@@ -154,15 +156,21 @@ fn prepare(
     })
 }
 
-/// The surface gradients integration starts from.
+/// The surface gradients integration starts from: of the heights (orthographic), or of
+/// `ζ = −fx ln D` under a camera (`perspective::log_depth_gradients`), which the same
+/// integrators integrate.
 struct Slopes {
     p: Array2<f32>,
     q: Array2<f32>,
 }
 
 impl Slopes {
-    fn of(surface: &Prepared) -> Self {
-        let (p, q) = integrate::gradients(&surface.normals, &surface.mask);
+    fn of(surface: &Prepared, opts: &Options) -> Self {
+        let (normals, mask) = (&surface.normals, &surface.mask);
+        let (p, q) = match &opts.camera {
+            None => integrate::gradients(normals, mask),
+            Some(k) => perspective::log_depth_gradients(normals, mask, k),
+        };
         Self { p, q }
     }
 
@@ -172,10 +180,17 @@ impl Slopes {
         integrate::curl(&self.p, &self.q, &surface.mask)
     }
 
+    /// Heights, or depth along the optical axis under a camera (relative, or scaled to
+    /// the working distance).
     fn integrate(&self, surface: &Prepared, opts: &Options, halt: Halt) -> Array2<f32> {
         let (p, q, mask) = (&self.p, &self.q, &surface.mask);
         let confidence = &surface.confidence;
-        integrate::integrate_with_confidence(p, q, mask, opts.integration, confidence, halt)
+        let z =
+            integrate::integrate_with_confidence(p, q, mask, opts.integration, confidence, halt);
+        match &opts.camera {
+            None => z,
+            Some(k) => perspective::depth_from_log(&z, mask, k, opts.distance),
+        }
     }
 }
 
@@ -205,10 +220,14 @@ impl Prepared {
         let sums = MaskSums::of(&self, &curl, &heights);
         let object = sums.object;
         let per_object = |v: f64| if object > 0 { v / object as f64 } else { 0.0 };
-        let (height_min, height_max) = if object > 0 {
+        let range = if object > 0 {
             (sums.low, sums.high)
         } else {
             (0.0, 0.0)
+        };
+        let (heights_range, depth_range) = match opts.camera {
+            None => (Some(range), None),
+            Some(_) => (None, Some(range)),
         };
         let warnings = robust::warnings(self.estimate.as_ref(), sums.unreliable, object);
         let report = Report {
@@ -234,8 +253,10 @@ impl Prepared {
             options: opts.clone(),
             light_condition_number: self.condition,
             timings_ms: timings.0,
-            height_min,
-            height_max,
+            height_min: heights_range.map(|r| r.0),
+            height_max: heights_range.map(|r| r.1),
+            depth_min: depth_range.map(|r| r.0),
+            depth_max: depth_range.map(|r| r.1),
             integrability_rms: per_object(sums.curl2).sqrt(),
             reprojection_rms: per_object(self.solve_sums.residual2).sqrt(),
             clamped_albedo_pixels: self.clamped,
@@ -380,7 +401,8 @@ pub fn run(
     dir: &Path,
     progress: &mut dyn Progress,
 ) -> Result<Report, RunError> {
-    let wanted = |name: &str| outputs::wanted(opts.outputs.as_deref(), name);
+    let camera = opts.camera.is_some();
+    let wanted = |name: &str| outputs::wanted(opts.outputs.as_deref(), name, camera);
     let (late, early): (Vec<&str>, Vec<&str>) = outputs::ARTIFACTS
         .iter()
         .map(|(n, _)| *n)
@@ -403,7 +425,7 @@ pub fn run(
     let polled: &dyn Progress = progress;
     let halt = || polled.halted();
     let start = Instant::now();
-    let slopes = Slopes::of(&surface);
+    let slopes = Slopes::of(&surface, opts);
     // The integration is the job's peak: what the solve left in the allocator's arenas
     // would add to it.
     heap::release_free_heap();
@@ -464,9 +486,11 @@ fn drop_aside<T: Send + 'static>(value: T) {
         .spawn(move || drop(value));
 }
 
-/// The glTF files and the preview picture. A mask too small to triangulate gives no mesh
-/// (and says so in the log of the caller) rather than failing the whole job. One glTF
-/// document serves both mesh files; it and the preview are built in parallel.
+/// The glTF files, the point cloud and the preview picture. A mask too small to
+/// triangulate gives no mesh (and says so in the log of the caller) rather than failing
+/// the whole job. One glTF document serves both mesh files; it, the point cloud and the
+/// preview are built in parallel. Under a camera the vertices and points are unprojected
+/// through it.
 fn write_meshes(
     rec: &Reconstruction,
     opts: &Options,
@@ -475,7 +499,8 @@ fn write_meshes(
     commits: &Committer,
     halt: Halt,
 ) -> Result<Vec<String>, RunError> {
-    use super::mesh::{Document, MeshError};
+    use super::commit::WriteSeek;
+    use super::mesh::{self, Document, MeshError};
     let save = |name: &str, made: Result<Vec<u8>, MeshError>| match made {
         Ok(bytes) => {
             (commits.write(dir, name, &mut |f| f.write_all(&bytes))).map(|_| Some(name.to_string()))
@@ -512,12 +537,21 @@ fn write_meshes(
         wanted("mesh.glb") && !halt(),
         wanted("mesh.gltf") && !halt(),
     );
-    let (meshes, preview) = rayon::join(
+    let points = || {
+        (wanted("points.ply") && !halt()).then(|| {
+            let (z, normals, mask) = (&rec.heights, &rec.normals, &rec.mask);
+            let write = &mut |f: &mut dyn WriteSeek| {
+                mesh::write_points_ply(f, z, normals, mask, rec.camera())
+            };
+            (commits.write(dir, "points.ply", write)).map(|()| Some("points.ply".to_string()))
+        })
+    };
+    let (meshes, (preview, points)) = rayon::join(
         || -> Vec<Result<Option<String>, RunError>> {
             if !(glb || gltf) {
                 return Vec::new();
             }
-            let doc = match Document::new(rec, &opts.mesh) {
+            let doc = match Document::with_camera(rec, &opts.mesh, rec.camera()) {
                 Ok(doc) => doc,
                 Err(e) => return vec![save(if glb { "mesh.glb" } else { "mesh.gltf" }, Err(e))],
             };
@@ -528,14 +562,17 @@ fn write_meshes(
             a.into_iter().chain(b).collect()
         },
         || {
-            (wanted("preview.png") && !halt()).then(|| {
-                let img = super::preview::preview(rec, PREVIEW_SIZE.0, PREVIEW_SIZE.1);
-                save("preview.png", Ok(outputs::png_bytes(&img)))
-            })
+            let preview = || {
+                (wanted("preview.png") && !halt()).then(|| {
+                    let img = super::preview::preview(rec, PREVIEW_SIZE.0, PREVIEW_SIZE.1);
+                    save("preview.png", Ok(outputs::png_bytes(&img)))
+                })
+            };
+            rayon::join(preview, points)
         },
     );
     let mut written = Vec::new();
-    for r in meshes.into_iter().chain(preview) {
+    for r in meshes.into_iter().chain(preview).chain(points) {
         written.extend(r?);
     }
     Ok(written)

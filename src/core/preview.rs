@@ -1,7 +1,8 @@
 //! `preview.png`: the reconstructed surface from an oblique view, like MATLAB's `surf`.
 //!
 //! The height map is laid out as a landscape in the mesh's frame (x = column, y = −row,
-//! z = height), so the top of the object is the far side and appears at the top of the
+//! z = height; under a camera, the unprojected points with y flipped, which is the same
+//! orientation), so the top of the object is the far side and appears at the top of the
 //! picture. An orthographic camera raised 40° above that plane and turned 30° looks at
 //! it; a light above-left of the camera shades it (Lambert, times the albedo). A small
 //! z-buffered rasteriser draws a decimated mesh with 2×2 supersampling.
@@ -40,7 +41,7 @@ pub fn preview(rec: &Reconstruction, width: u32, height: u32) -> RgbImage {
         normals: MeshNormals::Photometric,
     };
     let background = Rgb(BACKGROUND);
-    let mesh = match mesh::triangulate(rec, &opts) {
+    let mesh = match mesh::triangulate_with(rec, &opts, rec.camera()) {
         Ok(m) if width > 0 && height > 0 => m,
         _ => return RgbImage::from_pixel(width, height, background),
     };

@@ -5,6 +5,7 @@ use std::time::Instant;
 use ndarray::{Array2, Array3};
 use serde::Serialize;
 
+use super::camera::Pinhole;
 use super::lights::Light;
 use super::options::Options;
 use super::progress::Stage;
@@ -23,7 +24,8 @@ pub struct Reconstruction {
     /// Unit normals `(rows, cols, 3)`, all zero off the mask.
     pub normals: Array3<f32>,
     pub mask: Array2<bool>,
-    /// Heights in pixel units; off the mask they equal the lowest height on it.
+    /// Heights in pixel units, off the mask the lowest height on it; or, under a camera
+    /// (`report.options.camera`), depth along the optical axis, NaN off the mask.
     pub heights: Array2<f32>,
     /// Integrability residual dp/dy − dq/dx, 0 off the mask.
     pub curl: Array2<f32>,
@@ -32,6 +34,25 @@ pub struct Reconstruction {
     /// Mask pixels with fewer than 3 usable observations (their normals are a fallback).
     pub unreliable: Array2<bool>,
     pub report: Report,
+}
+
+impl Reconstruction {
+    /// The camera the surface is depth under; None for orthographic heights.
+    pub fn camera(&self) -> Option<&Pinhole> {
+        self.report.options.camera.as_ref()
+    }
+}
+
+impl Report {
+    /// The surface's range over the mask, heights or depth, `(0, 0)` for an empty mask.
+    pub fn surface_range(&self) -> (f32, f32) {
+        let [min, max] = if self.options.camera.is_some() {
+            [self.depth_min, self.depth_max]
+        } else {
+            [self.height_min, self.height_max]
+        };
+        (min.unwrap_or(0.0), max.unwrap_or(0.0))
+    }
 }
 
 /// The numbers that go into `result.json`.
@@ -44,8 +65,16 @@ pub struct Report {
     pub options: Options,
     pub light_condition_number: f64,
     pub timings_ms: Vec<Timing>,
-    pub height_min: f32,
-    pub height_max: f32,
+    /// Height range over the mask, pixels (orthographic; `height.png` spans it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub height_min: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub height_max: Option<f32>,
+    /// Depth range over the mask (under a camera; `depth.png` spans it, near = bright).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_min: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth_max: Option<f32>,
     pub integrability_rms: f64,
     pub reprojection_rms: f64,
     pub clamped_albedo_pixels: usize,

@@ -698,13 +698,15 @@ fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
 
 /// The report's headline numbers (as in `result.json`).
 fn summarize(report: &Report) -> serde_json::Value {
-    const KEYS: [&str; 16] = [
+    const KEYS: [&str; 18] = [
         "width",
         "height",
         "light_count",
         "light_condition_number",
         "height_min",
         "height_max",
+        "depth_min",
+        "depth_max",
         "integrability_rms",
         "reprojection_rms",
         "object_pixels",

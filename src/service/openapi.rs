@@ -7,6 +7,7 @@ use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::openapi::{ObjectBuilder, RefOr};
 use utoipa::{Modify, OpenApi};
 
+use crate::core::camera::Pinhole;
 use crate::core::outputs::{ALL, ARTIFACTS};
 
 use super::calibrations::{
@@ -25,6 +26,7 @@ use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
     ),
     components(schemas(
         Problem,
+        Pinhole,
         JobStatus,
         JobView,
         JobList,

@@ -91,10 +91,15 @@ pub struct ResultSummary {
     pub light_count: Option<u64>,
     /// Condition number of the light matrix (1 is ideal).
     pub light_condition_number: Option<f64>,
-    /// Lowest height on the object, in pixel units.
+    /// Lowest height on the object, in pixel units (orthographic).
     pub height_min: Option<f64>,
-    /// Highest height on the object, in pixel units.
+    /// Highest height on the object, in pixel units (orthographic).
     pub height_max: Option<f64>,
+    /// Nearest depth on the object, along the optical axis (under a camera; relative with
+    /// median 1, or in the unit of the `distance` option).
+    pub depth_min: Option<f64>,
+    /// Farthest depth on the object (under a camera).
+    pub depth_max: Option<f64>,
     /// RMS of the integrability residual (curl) over the object.
     pub integrability_rms: Option<f64>,
     /// RMS difference between the images and the reconstruction re-rendered under the
@@ -125,7 +130,7 @@ pub struct JobList {
 }
 
 /// The `POST /v1/jobs` form. Send either `images` + `lights` (or `calibration`) (+ `mask`,
-/// `options`) or `archive` (+ `mask`, `options`).
+/// `camera`, `options`) or `archive` (+ `mask`, `camera`, `options`).
 #[derive(ToSchema)]
 #[allow(dead_code)] // documents the multipart body; the handler streams it
 pub struct JobUpload {
@@ -145,6 +150,12 @@ pub struct JobUpload {
     /// Optional mask image, same size as the images (non-zero = object).
     #[schema(value_type = ImageFile, required = false)]
     mask: Option<Vec<u8>>,
+    /// Optional pinhole camera of the images (text or file part): a K.txt (3 × 3), a
+    /// camera.json `{fx, fy, cx, cy}` or `fx,fy,cx,cy`, in pixels; or give it as the
+    /// `camera` option (not both). An archive's own `camera.json` or `K.txt` is used when
+    /// neither is sent.
+    #[schema(value_type = String, required = false)]
+    camera: Option<String>,
     /// Optional reconstruction options as JSON (unknown fields are refused).
     #[schema(value_type = Options, required = false)]
     options: Option<String>,

@@ -25,6 +25,7 @@ use axum::extract::multipart::{Field, MultipartError};
 use image::ImageReader;
 use serde::Deserialize;
 
+use crate::core::camera::{self, Pinhole};
 use crate::core::layout;
 use crate::core::lights::{self, Light};
 use crate::core::options::MaskMode;
@@ -144,6 +145,9 @@ const ARCHIVE_FILE: &str = "archive.zip";
 const MAX_CALLBACK_BYTES: usize = 2048;
 /// Longest `calibration` part accepted (bytes; an id is 36).
 const MAX_CALIBRATION_BYTES: usize = 256;
+/// Longest camera file accepted (`camera` part, or a camera file in an archive): a K.txt
+/// or camera.json is a few dozen bytes.
+const MAX_CAMERA_BYTES: usize = 4096;
 
 /// The light table of a job's `calibration` part (the id as sent), as the caller may see
 /// it; a 422 naming the id when there is none.
@@ -187,6 +191,8 @@ struct Parts {
     callback_url: Option<String>,
     /// The `calibration` part: a calibration id instead of a light table.
     calibration: Option<String>,
+    /// The `camera` part: a K.txt's or camera.json's text, or `fx,fy,cx,cy`.
+    camera: Option<Pinhole>,
     count: usize,
     /// Bytes of image and mask files written so far (bounded by `max_input_bytes`).
     stored: u64,
@@ -331,6 +337,12 @@ pub async fn receive(
                     .map_err(|_| ApiError::invalid("calibration: not UTF-8 text"))?;
                 parts.calibration = Some(id.trim().to_string());
             }
+            "camera" => {
+                once(&parts.camera, "camera")?;
+                let bytes =
+                    read_small(&mut field, MAX_CAMERA_BYTES, "camera", tap, config, hash).await?;
+                parts.camera = Some(parse_camera(&bytes, "the camera part")?);
+            }
             "archive" => {
                 once(&parts.archive, "archive")?;
                 if !parts.images.is_empty() || parts.lights.is_some() {
@@ -352,12 +364,12 @@ pub async fn receive(
             }
             "" => {
                 return Err(ApiError::bad_request(
-                    "a multipart part has no name; expected images, lights, calibration, mask, options, callback_url or archive",
+                    "a multipart part has no name; expected images, lights, calibration, mask, camera, options, callback_url or archive",
                 ));
             }
             other => {
                 return Err(ApiError::bad_request(format!(
-                    "unknown part {other:?}; expected images, lights, calibration, mask, options, callback_url or archive"
+                    "unknown part {other:?}; expected images, lights, calibration, mask, camera, options, callback_url or archive"
                 )));
             }
         }
@@ -384,6 +396,14 @@ pub async fn receive(
         parts.images = unpacked.images;
         parts.lights = Some(unpacked.table);
         notes = unpacked.notes;
+        if let Some((name, camera)) = unpacked.camera {
+            notes.push(choose_camera(
+                &mut options,
+                parts.camera.is_some(),
+                &name,
+                camera,
+            ));
+        }
         match (own_mask, unpacked.mask) {
             (Ok(()), Some(mask)) => {
                 parts.mask = Some(mask);
@@ -442,6 +462,16 @@ pub async fn receive(
         )
         .into());
     }
+    if let Some(camera) = parts.camera {
+        if options.camera.is_some() {
+            return Err(ApiError::invalid(
+                "send the camera either as the camera part or as the `camera` option, not both",
+            ));
+        }
+        options.camera = Some(camera);
+    }
+    let first = ordered[0];
+    options.check_camera(first.width as usize, first.height as usize)?;
 
     let manifest = Manifest {
         images: ordered
@@ -473,6 +503,25 @@ fn calibration_with_archive() -> ApiError {
     ApiError::invalid(
         "a calibration part goes with images parts; an archive brings its own light table",
     )
+}
+
+/// A camera file's bytes (`what` names it in a refusal): 422 naming the problem.
+fn parse_camera(bytes: &[u8], what: &str) -> Result<Pinhole, ApiError> {
+    let text = std::str::from_utf8(bytes)
+        .map_err(|_| ApiError::invalid(format!("camera: {what} is not UTF-8 text")))?;
+    let named = |camera::CameraError(e)| camera::CameraError(format!("{what}: {e}"));
+    let camera = Pinhole::parse(text).and_then(|k| k.check_values().map(|()| k));
+    Ok(camera.map_err(|e| InputError::from(named(e)))?)
+}
+
+/// An archive's own camera file is the camera unless one was sent (`camera` part or
+/// option): the note for `result.json` says which.
+fn choose_camera(options: &mut Options, part: bool, name: &str, camera: Pinhole) -> String {
+    if part || options.camera.is_some() {
+        return format!("{name} in the archive not used: a camera was sent");
+    }
+    options.camera = Some(camera);
+    format!("camera from {name} in the archive")
 }
 
 /// Every light of the calibration has its image and every image its light, else a 422
@@ -888,6 +937,8 @@ struct Unpacked {
     mask: Option<StoredImage>,
     /// Whether it holds a `mask.png` (used or not).
     has_mask: bool,
+    /// Its camera file (`camera.json`, else `K.txt`): the name and the camera.
+    camera: Option<(String, Pinhole)>,
     notes: Vec<String>,
 }
 
@@ -991,23 +1042,15 @@ fn extract_archive(
         .collect();
     tables.sort();
     for (name, i) in tables {
-        let mut entry = zip.by_index(i).map_err(|e| zip_error(name, e))?;
-        if entry.size() > budget {
-            return Err(over_budget());
-        }
-        let mut bytes = Vec::new();
-        (&mut entry)
-            .take(MAX_LIGHTS_BYTES as u64 + 1)
-            .read_to_end(&mut bytes)
-            .map_err(|e| {
-                ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}"))
-            })?;
-        if bytes.len() > MAX_LIGHTS_BYTES {
-            return Err(ApiError::too_large(format!(
-                "the light table file {name:?} is larger than {MAX_LIGHTS_BYTES} bytes"
-            )));
-        }
-        budget -= bytes.len() as u64;
+        let what = format!("the light table file {name:?}");
+        let bytes = read_entry(
+            &mut zip,
+            i,
+            (name, &what),
+            MAX_LIGHTS_BYTES,
+            &mut budget,
+            &over_budget,
+        )?;
         texts.insert(name, bytes);
     }
     let mut names: Vec<String> = by_name.keys().cloned().collect();
@@ -1025,6 +1068,22 @@ fn extract_archive(
         .into());
     }
     let mask_name = table.mask.as_deref().filter(|_| want_mask);
+    let camera = match camera::FILES.iter().find(|n| by_name.contains_key(**n)) {
+        Some(name) => {
+            let what = format!("{name} in the archive");
+            let index = by_name[*name];
+            let bytes = read_entry(
+                &mut zip,
+                index,
+                (name, &what),
+                MAX_CAMERA_BYTES,
+                &mut budget,
+                &over_budget,
+            )?;
+            Some((name.to_string(), parse_camera(&bytes, &what)?))
+        }
+        None => None,
+    };
 
     // Then the images the table names, and the mask, in archive order.
     let mut images = Vec::new();
@@ -1102,8 +1161,37 @@ fn extract_archive(
         table: lights::to_json(&table.lights),
         mask,
         has_mask: table.mask.is_some(),
+        camera,
         notes: table.notes,
     })
+}
+
+/// A small entry (a table or camera file: its name, and what it is for a refusal) read
+/// whole, within `limit` bytes and the archive's unpacking `budget`.
+fn read_entry(
+    zip: &mut zip::ZipArchive<BufReader<File>>,
+    index: usize,
+    (name, what): (&str, &str),
+    limit: usize,
+    budget: &mut u64,
+    over_budget: &dyn Fn() -> ApiError,
+) -> Result<Vec<u8>, ApiError> {
+    let mut entry = zip.by_index(index).map_err(|e| zip_error(name, e))?;
+    if entry.size() > *budget {
+        return Err(over_budget());
+    }
+    let mut bytes = Vec::new();
+    (&mut entry)
+        .take(limit as u64 + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| ApiError::invalid(format!("archive entry {name:?} cannot be read: {e}")))?;
+    if bytes.len() > limit {
+        return Err(ApiError::too_large(format!(
+            "{what} is larger than {limit} bytes"
+        )));
+    }
+    *budget -= bytes.len() as u64;
+    Ok(bytes)
 }
 
 /// The archive reader on its own, for property tests and fuzzing: unpack the zip file at
@@ -1216,6 +1304,33 @@ mod tests {
     }
 
     #[test]
+    fn an_archive_brings_its_camera_file_json_first() {
+        let p = png(4, 4);
+        let k = b"8 0 1.5\n0 8 1.5\n0 0 1\n";
+        let json = br#"{"fx": 9, "fy": 9, "cx": 1.5, "cy": 1.5}"#;
+        let camera = |entries: &[(&str, &[u8])]| {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("a.zip");
+            std::fs::write(&path, zip_of(entries)).unwrap();
+            extract_archive(&path, dir.path(), &limits(), true).map(|u| u.camera)
+        };
+        let base = [("a.png", &p[..]), ("light_directions.csv", TABLE)];
+        let (name, k_txt) = camera(&[base[0], base[1], ("K.txt", k)]).unwrap().unwrap();
+        assert_eq!((name.as_str(), k_txt.fx, k_txt.cx), ("K.txt", 8.0, 1.5));
+        let both = camera(&[base[0], base[1], ("K.txt", k), ("camera.json", json)]);
+        assert_eq!(both.unwrap().unwrap().1.fx, 9.0);
+        assert!(camera(&base).unwrap().is_none());
+        let e = camera(&[base[0], base[1], ("K.txt", b"8 8")]).unwrap_err();
+        assert_eq!(e.status().as_u16(), 422);
+        assert!(
+            e.detail().contains("K.txt in the archive") && e.detail().contains("2 numbers"),
+            "{e}"
+        );
+        let e = camera(&[base[0], base[1], ("K.txt", &[b' '; 5000][..])]).unwrap_err();
+        assert_eq!(e.status().as_u16(), 413, "{e}");
+    }
+
+    #[test]
     fn refuses_unsafe_layouts_junk_and_bombs() {
         let p = png(4, 4);
         let e = extract(
@@ -1314,6 +1429,12 @@ mod tests {
             (
                 r#"{"mesh": {"step": 2, "step": 3}}"#,
                 "duplicate field `step`",
+            ),
+            (r#"{"camera": "1 2 3"}"#, "field `camera`"),
+            (r#"{"camera": [80, 80, 1, 1]}"#, "field `camera`"),
+            (
+                r#"{"camera": {"fx": 0.5, "fy": 80, "cx": 1, "cy": 1}}"#,
+                "field `camera`: fx must be a focal length",
             ),
         ] {
             let e = parse_options(bad.as_bytes()).unwrap_err();

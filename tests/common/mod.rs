@@ -404,3 +404,39 @@ pub fn mean_normal_error_deg(out: &Path, scene: &Scene) -> f64 {
     }
     sum / count as f64
 }
+
+/// The camera of [`pinhole_sphere_set`]: a wide lens on a 64² frame.
+pub const PINHOLE_K: &str = "80 0 31.5\n0 80 31.5\n0 0 1\n";
+
+/// A sphere of radius 2 centred 6 units down the optical axis, seen through [`PINHOLE_K`]
+/// and rendered (Lambertian, 12 lights, 16-bit) into `dir` with the camera as `K.txt`:
+/// camera-frame normals, and depth along the optical axis as `truth/depth.exr`, as the
+/// renderer writes a perspective set.
+pub fn pinhole_sphere_set(dir: &Path) {
+    let k = photostereo::core::camera::Pinhole::parse(PINHOLE_K).unwrap();
+    let (rho, centre) = (2.0, [0.0, 0.0, -6.0]);
+    // The near hit of pixel (x, y)'s ray: depth t and the outward normal (nz > 0 all over
+    // a sphere centred on the axis).
+    let hit = |x: f64, y: f64| {
+        let d = k.ray(x, y);
+        let dd: f64 = d.iter().map(|v| v * v).sum();
+        let dc: f64 = d.iter().zip(centre).map(|(a, b)| a * b).sum();
+        let cc: f64 = centre.iter().map(|v| v * v).sum();
+        let disc = dc * dc - dd * (cc - rho * rho);
+        (disc > 0.0).then(|| {
+            let t = (dc - disc.sqrt()) / dd;
+            let n = [0, 1, 2].map(|i| (d[i] * t - centre[i]) / rho);
+            (t, n)
+        })
+    };
+    // `from_fn` takes z and its slopes: the slopes (−nx/nz, −ny/nz) give back the normal.
+    let scene = Scene::from_fn(
+        64,
+        64,
+        |x, y| hit(x, y).map(|(t, n)| (t, -n[0] / n[2], -n[1] / n[2])),
+        |x, _| 0.5 + 0.3 * x / 64.0,
+    );
+    let lights = synth::light_rings(12, 15.0, 45.0);
+    synth::write_set(dir, &scene, &lights, &Capture::default()).unwrap();
+    std::fs::write(dir.join("K.txt"), PINHOLE_K).unwrap();
+}
