@@ -2,10 +2,11 @@
 //! normals, depth and albedo (gray or RGB), lit by distant point or area lights of given
 //! colours, with cast shadows, one bounce of interreflection, specular lobes (Blinn–Phong
 //! or GGX Cook–Torrance) and a camera with exposure, black level, shot and read noise,
-//! clipping and quantisation.
+//! clipping and quantisation; and perspective scenes with depth steps ([`depth_scenes`]).
 
 mod brdf;
 mod chrome;
+mod depth_scenes;
 mod render;
 mod scene;
 mod sensor;
@@ -14,6 +15,7 @@ mod write;
 
 pub use brdf::Specular;
 pub use chrome::{ChromeSet, RoomLight, matte_intensities};
+pub use depth_scenes::{DepthScene, depth_scenes, ortho_step_plate, sphere_in_front, step_plate};
 pub use render::{Rendered, render, render_rgb};
 pub use scene::Scene;
 pub use sensor::Exposure;
@@ -118,6 +120,9 @@ pub fn chrome_catalogue() -> Vec<(&'static str, ChromeSet)> {
 }
 
 /// The data sets `photostereo render` writes into `res/`: name, scene, lights, capture.
+/// `step-plate` is perspective ([`step_plate`]): it carries its camera (`K.txt`,
+/// `camera.json`) and depth along the optical axis as truth; it is kept small (96², eight
+/// images) because its EXR truth barely compresses.
 pub fn catalogue() -> Vec<(&'static str, Scene, Vec<[f64; 3]>, Capture)> {
     let seed_lights = vec![
         [0.0, 0.0, 1.0],
@@ -253,6 +258,12 @@ pub fn catalogue() -> Vec<(&'static str, Scene, Vec<[f64; 3]>, Capture)> {
                 seed: 19,
                 ..Capture::default()
             },
+        ),
+        (
+            "step-plate",
+            step_plate(96).to_scene(),
+            light_rings(8, 10.0, 50.0),
+            Capture::default(),
         ),
     ]
 }
@@ -484,5 +495,25 @@ mod tests {
         let luma = 0.2126 * a(0) + 0.7152 * a(1) + 0.0722 * a(2);
         assert!((truth.albedo[[12, 12]] as f64 - luma).abs() < 1e-6);
         assert!((a(0) - a(1)).abs() > 0.01, "the channels differ");
+    }
+
+    #[test]
+    fn perspective_sets_write_their_camera_and_depth() {
+        let dir = tempfile::tempdir().unwrap();
+        let scene = sphere_in_front(32);
+        let lights = light_rings(4, 10.0, 40.0);
+        write_set(dir.path(), &scene.to_scene(), &lights, &Capture::default()).unwrap();
+        let camera = crate::core::camera::Pinhole::in_folder(dir.path()).unwrap();
+        assert_eq!(camera, scene.camera);
+        let k = crate::core::camera::Pinhole::read(&dir.path().join("K.txt")).unwrap();
+        assert_eq!(Some(k), scene.camera);
+        let truth = read_truth(dir.path()).unwrap();
+        assert_eq!(truth.mask, scene.mask);
+        for (t, d) in truth.depth.iter().zip(&scene.depth) {
+            assert_eq!(t, d);
+        }
+        for (t, n) in truth.normals.iter().zip(&scene.normals) {
+            assert_eq!(t, n);
+        }
     }
 }

@@ -18,7 +18,14 @@ pub struct Rendered {
 }
 
 /// Render one image per light (directions need not be unit length).
+///
+/// Cast shadows and interreflection march the scene as an orthographic height field: a
+/// perspective scene (one with a camera) takes neither.
 pub fn render(scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Rendered {
+    assert!(
+        scene.camera.is_none() || !(capture.cast_shadows || capture.bounce_rays.is_some()),
+        "cast shadows and interreflection need an orthographic scene"
+    );
     let max = if capture.bit_depth == 8 {
         255.0
     } else {

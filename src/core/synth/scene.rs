@@ -2,18 +2,24 @@
 
 use ndarray::{Array2, Array3};
 
+use crate::core::camera::Pinhole;
+
 /// A surface with ground truth, sampled at pixel centres (x = column, y = row down).
 #[derive(Debug, Clone)]
 pub struct Scene {
     pub width: usize,
     pub height: usize,
-    /// Heights in pixel units (0 off the mask).
+    /// Heights in pixel units (0 off the mask); with a `camera`, depth along the optical
+    /// axis instead.
     pub depth: Array2<f64>,
     /// Unit normals in the seed frame, zero off the mask.
     pub normals: Array3<f64>,
     /// Diffuse albedo per channel, `(rows, cols, 1 or 3)`: gray or RGB.
     pub albedo: Array3<f64>,
     pub mask: Array2<bool>,
+    /// The pinhole camera of a perspective scene ([`super::DepthScene::to_scene`]): its
+    /// normals are in the camera frame and its `depth` is depth. None: orthographic.
+    pub camera: Option<Pinhole>,
 }
 
 impl Scene {
@@ -50,6 +56,7 @@ impl Scene {
             normals,
             albedo: alb,
             mask,
+            camera: None,
         }
     }
 

@@ -19,7 +19,9 @@ use crate::core::outputs::png_bytes_filtered;
 /// capture's light colours), and ground truth under `truth/` (`normal.exr`: seed-frame
 /// normals with the mask in alpha; `depth.exr`: heights in pixels; `albedo.exr`: the
 /// diffuse albedo per channel, gray in RGB for a gray scene, times the exposure gain so
-/// that it is the albedo the images show under a unit light).
+/// that it is the albedo the images show under a unit light). A perspective scene (one
+/// with a camera) writes camera-frame normals, depth along the optical axis in
+/// `depth.exr`, and its camera beside the images as `K.txt` (3 × 3) and `camera.json`.
 pub fn write_set(
     dir: &Path,
     scene: &Scene,
@@ -44,6 +46,12 @@ pub fn write_set(
         csv.push('\n');
     }
     write_atomic(dir, LIGHTS_FILE, csv.as_bytes())?;
+    if let Some(k) = scene.camera {
+        let text = format!("{} 0 {}\n0 {} {}\n0 0 1\n", k.fx, k.cx, k.fy, k.cy);
+        write_atomic(dir, "K.txt", text.as_bytes())?;
+        let json = serde_json::to_vec_pretty(&k).expect("a camera serialises");
+        write_atomic(dir, "camera.json", &json)?;
+    }
     let exr = |f: &dyn Fn(usize, usize) -> [f32; 4]| {
         let img = Rgba32FImage::from_fn(scene.width as u32, scene.height as u32, |x, y| {
             Rgba(f(y as usize, x as usize))

@@ -1,0 +1,191 @@
+//! Depth steps kept (issue 42): on the renderer's perspective scenes with exact normals and
+//! depth (`synth::depth_scenes`), the discontinuity-preserving integrator (`bilateral`)
+//! must leave a depth error well below Poisson's where the scene has depth steps, and no
+//! worse than Poisson's where it is smooth; likewise for an orthographic step scene.
+//!
+//! Depth error as the field measures it: MADE, the mean absolute depth error over the mask
+//! after scaling the estimate by `s = median(true / estimated)`; `rel` is MADE over the
+//! scene's depth range. Orthographic heights have an unknown offset instead of a scale: the
+//! estimate is shifted by `median(true − estimated)`.
+//!
+//! `cargo test --release --test depth_steps -- --nocapture` prints the tables.
+
+use std::sync::Mutex;
+use std::time::Instant;
+
+use ndarray::Array2;
+use photostereo::core::integrate::integrate;
+use photostereo::core::integrate::perspective::depth_from_log;
+use photostereo::core::metrics::{Align, depth_error};
+use photostereo::core::options::Integration;
+use photostereo::core::synth::{self, DepthScene};
+
+/// Side of the scenes, pixels.
+const SIZE: usize = 256;
+/// Methods compared, Poisson first.
+const METHODS: [Integration; 3] = [
+    Integration::Poisson,
+    Integration::RobustPoisson,
+    Integration::Bilateral,
+];
+/// On step scenes bilateral's MADE must be at most this fraction of Poisson's.
+const STEP_RATIO: f64 = 0.5;
+/// On smooth scenes bilateral's MADE must be at most this multiple of Poisson's, plus
+/// [`SMOOTH_EPS`] of the depth range.
+const SMOOTH_RATIO: f64 = 1.05;
+const SMOOTH_EPS: f64 = 1e-5;
+
+/// MADE under a camera (the estimate scaled by median(true / estimated)), or the mean
+/// absolute error after the median offset for orthographic heights: `metrics::depth_error`,
+/// which `photostereo evaluate` reports. The estimate must be finite on the whole mask.
+fn made(est: &Array2<f32>, scene: &DepthScene) -> f64 {
+    let finite = (est.iter().zip(&scene.mask)).all(|(e, m)| !*m || e.is_finite());
+    assert!(
+        finite,
+        "{}: the estimate is not finite everywhere on the mask",
+        scene.name
+    );
+    let align = match scene.camera {
+        Some(_) => Align::Scale,
+        None => Align::Offset,
+    };
+    depth_error(est, &scene.depth, &scene.mask, align).mean_abs
+}
+
+/// The scene integrated by `method` from its exact normals: perspective (log-depth
+/// gradients, then depth) with a camera, else orthographic heights in pixels.
+fn reconstruct(scene: &DepthScene, method: Integration) -> Array2<f32> {
+    let (p, q) = scene.gradients();
+    let z = integrate(&p, &q, &scene.mask, method);
+    match scene.camera {
+        Some(camera) => depth_from_log(&z, &scene.mask, &camera, None),
+        None => z,
+    }
+}
+
+/// The measuring tests take turns, so that their timings are not shared with another's
+/// and their tables print whole.
+static TURN: Mutex<()> = Mutex::new(());
+
+/// MADE per method (in [`METHODS`]' order) for each scene, with the table printed.
+fn measure(scenes: &[DepthScene]) -> Vec<[f64; 3]> {
+    let _turn = TURN.lock().unwrap_or_else(|e| e.into_inner());
+    let mut table = String::from(
+        "| scene | method | MADE | rel (of depth range) | ms |\n|---|---|---:|---:|---:|\n",
+    );
+    let figures = scenes
+        .iter()
+        .map(|scene| {
+            let range = scene.depth_range();
+            METHODS.map(|method| {
+                let start = Instant::now();
+                let est = reconstruct(scene, method);
+                let ms = start.elapsed().as_secs_f64() * 1e3;
+                let e = made(&est, scene);
+                table += &format!(
+                    "| {} | {method:?} | {e:.5} | {:.5} | {ms:.0} |\n",
+                    scene.name,
+                    e / range
+                );
+                e
+            })
+        })
+        .collect();
+    println!("{table}");
+    figures
+}
+
+/// Bilateral against Poisson on every scene, all figures in the panic message.
+fn hold(scenes: &[DepthScene], figures: &[[f64; 3]]) {
+    let mut failed = Vec::new();
+    for (scene, [poisson, _, bilateral]) in scenes.iter().zip(figures) {
+        let range = scene.depth_range();
+        let (bound, kind) = if scene.smooth {
+            (SMOOTH_RATIO * poisson + SMOOTH_EPS * range, "smooth")
+        } else {
+            (STEP_RATIO * poisson, "steps")
+        };
+        if bilateral > &bound {
+            failed.push(format!(
+                "{} ({kind}): bilateral MADE {bilateral:.5} > {bound:.5} (Poisson {poisson:.5}, ratio {:.3})",
+                scene.name,
+                bilateral / poisson
+            ));
+        }
+    }
+    assert!(failed.is_empty(), "{}", failed.join("\n"));
+}
+
+/// The scenes of `synth::depth_scenes` with these names, in this order.
+fn named(names: &[&str]) -> Vec<DepthScene> {
+    let all = synth::depth_scenes(SIZE);
+    (names.iter())
+        .map(|n| (all.iter().find(|s| s.name == *n).cloned()).unwrap_or_else(|| panic!("{n}")))
+        .collect()
+}
+
+/// Steps at occluding contours, where the normals turn away from the camera before the
+/// surface breaks: what real objects show and what bilateral weighting is built for.
+#[test]
+fn bilateral_keeps_perspective_depth_steps_far_better_than_poisson() {
+    let scenes = named(&["sphere-in-front", "two-objects"]);
+    let figures = measure(&scenes);
+    hold(&scenes, &figures);
+}
+
+#[test]
+fn bilateral_is_as_accurate_as_poisson_on_a_smooth_perspective_scene() {
+    let scenes = named(&["bumps"]);
+    let figures = measure(&scenes);
+    hold(&scenes, &figures);
+}
+
+/// Not met yet (issue 42): a thin panel hinged on a plate steps along edges whose normals
+/// do not turn, so nothing marks the break in the normals but the path dependence; the
+/// bilateral weights never form there and the depth stays as smeared as Poisson's
+/// (MADE 0.197 vs 0.197 perspective, 8.45 vs 8.91 px orthographic), while Poisson with
+/// the true steps cut recovers it (`without_the_steps_poisson_is_nearly_exact`).
+#[test]
+#[ignore = "issue 42, not met: bilateral ≈ Poisson on the hinged panel's steps"]
+fn bilateral_keeps_a_hinged_panels_steps_far_better_than_poisson() {
+    let scenes = [
+        named(&["step-plate"]).remove(0),
+        synth::ortho_step_plate(SIZE),
+    ];
+    let figures = measure(&scenes);
+    hold(&scenes, &figures);
+}
+
+/// Not met yet (issue 42): on a lone sphere down to its steep rim, bilateral's MADE is
+/// 14 × Poisson's (7e-4 vs 5e-5 of a depth range of 2), both tiny.
+#[test]
+#[ignore = "issue 42, not met: bilateral 14 × Poisson on the sphere's steep rim"]
+fn bilateral_is_as_accurate_as_poisson_on_a_lone_sphere() {
+    let scenes = named(&["sphere"]);
+    let figures = measure(&scenes);
+    hold(&scenes, &figures);
+}
+
+/// The bound is within reach: the normals fix the depth (every step ends somewhere), and
+/// Poisson on the mask without the steps' pixels recovers it there to a small fraction
+/// of its error on the whole mask (a tenth at most).
+#[test]
+fn without_the_steps_poisson_is_nearly_exact() {
+    let scenes = (synth::depth_scenes(SIZE).into_iter())
+        .filter(|s| !s.smooth)
+        .chain([synth::ortho_step_plate(SIZE)]);
+    for scene in scenes {
+        let steps = scene.steps();
+        let cut = DepthScene {
+            mask: Array2::from_shape_fn(steps.dim(), |i| scene.mask[i] && !steps[i]),
+            ..scene.clone()
+        };
+        let whole = made(&reconstruct(&scene, Integration::Poisson), &scene);
+        let around = made(&reconstruct(&cut, Integration::Poisson), &cut);
+        println!(
+            "{}: Poisson MADE {whole:.5}, without the steps' pixels {around:.5}",
+            scene.name
+        );
+        assert!(around < 0.1 * whole, "{}", scene.name);
+    }
+}
