@@ -455,7 +455,6 @@ fn a_small_memory_budget_downscales_and_spills_with_the_same_accuracy() {
 }
 
 #[test]
-#[ignore = "known gap (issue 41 stays open): under a 1 MiB budget the downscaled outline fit finds 8 % of a frame-filling ball and 19 % of the real-room ball"]
 fn a_small_memory_budget_finds_a_ball_filling_the_frame_or_in_a_room() {
     small_budget_within_bounds(&[
         ("filling, 16-bit", ChromeSet::filling(16, 47)),

@@ -666,7 +666,8 @@ fn locate(
         let refs: Vec<&Array2<u16>> = first.coarse.iter().collect();
         environment::estimate(&refs, ambient_coarse.as_ref())
     };
-    let rough = fit_outline(&env.mapv(|v| v as f32 / 65535.0)).map_err(LocateError::NoOutline)?;
+    let rough = sphere::fit_outline_downscaled(&env.mapv(|v| v as f32 / 65535.0), f)
+        .map_err(LocateError::NoOutline)?;
     let (w, h) = dim;
     if f == 1 {
         // The copies are the images: the ball's window is cut from them, one at a time.
@@ -701,7 +702,9 @@ fn locate(
         r: rough.circle.r * k,
     };
     check_circle(&up, w, h)?;
-    let win = Window::around(&up, sphere::refine_margin(up.r, 2.0 * k), dim);
+    // The rough circle may be off by a coarse pixel or two.
+    let off = 2.0 * k;
+    let win = Window::around(&up, sphere::refine_margin(up.r, off), dim);
     let second = reading::read_all(images, dim, &plan(None, &[win], false, scratch, budget))?;
     let ambient_window = match ambient {
         Some(a) => Some(
@@ -713,7 +716,7 @@ fn locate(
     };
     let env = second.windows[0].median(ambient_window.as_ref())?;
     drop(ambient_window);
-    let fine = sphere::refine_outline(&env, win.local(&up)).map_err(LocateError::NoOutline)?;
+    let fine = sphere::refine_outline(&env, win.local(&up), off).map_err(LocateError::NoOutline)?;
     let circle = Circle {
         cx: fine.circle.cx + win.c0 as f64,
         cy: fine.circle.cy + win.r0 as f64,

@@ -48,16 +48,32 @@ pub struct OutlineFit {
 /// Fit the sphere's outline in `image` (e.g. the environment, the per-pixel median of the set); the error says why none
 /// was found.
 pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
+    fit_outline_downscaled(image, 1)
+}
+
+/// [`fit_outline`] on a copy of the images downscaled `factor` times (box averages; 1:
+/// not downscaled), to be refined at full resolution ([`refine_outline`]).
+///
+/// The copy's gradients are not the image's: shading and texture rise `factor` times per
+/// pixel, and edges take `factor` times the share of the pixels, while the ball's outline
+/// (a step) keeps its strength. So the edge threshold taken from the copy's gradients is
+/// divided by `factor`, which keeps a faint outline (a dark ball on a dark backdrop, a
+/// ball mirroring a room as bright as its surroundings) above it as at full resolution;
+/// and candidate centres are kept 6 pixels of the image apart, as at full resolution, but
+/// at least 3 of the copy's.
+pub fn fit_outline_downscaled(image: &Array2<f32>, factor: usize) -> Result<OutlineFit, String> {
+    let factor = factor.max(1) as f64;
     let smooth = gaussian(image, 1.0);
     let (gx, gy) = gradients(&smooth);
-    let (edges, threshold) = edge_points(&gx, &gy);
+    let (edges, threshold) = edge_points(&gx, &gy, factor as f32);
     if edges.len() < 20 {
         return Err("the images have almost no edges".into());
     }
     let (h, w) = image.dim();
     let max_radius = w.max(h) as f64;
     let mut best: Option<(usize, Circle)> = None;
-    for (cx, cy) in centre_candidates(&edges, w, h, max_radius) {
+    let apart = (6.0 / factor).max(3.0);
+    for (cx, cy) in centre_candidates(&edges, w, h, max_radius, apart) {
         if let Some((cover, r)) = best_radius(&edges, cx, cy, max_radius)
             && best.is_none_or(|b| cover > b.0)
         {
@@ -97,9 +113,10 @@ pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
 /// Refine a rough outline (e.g. one fitted on a downscaled image) on the full-resolution
 /// `image` (an environment, 0..=65535, around the ball): the same rounds of radial
 /// sub-pixel refinement as [`fit_outline`]'s, the edge threshold from the image's own
-/// gradients (a sample of them). Holds the smoothed image (4 bytes a pixel) and little
-/// else.
-pub fn refine_outline(image: &Array2<u16>, rough: Circle) -> Result<OutlineFit, String> {
+/// gradients (a sample of them); the first round looks `off` pixels either side of the
+/// rough circle at least, as far as it may be off. Holds the smoothed image (4 bytes a
+/// pixel) and little else.
+pub fn refine_outline(image: &Array2<u16>, rough: Circle, off: f64) -> Result<OutlineFit, String> {
     let smooth = gaussian_u16(image, 1.0);
     let threshold = sampled_threshold(&smooth);
     let mut fit = OutlineFit {
@@ -107,7 +124,7 @@ pub fn refine_outline(image: &Array2<u16>, rough: Circle) -> Result<OutlineFit, 
         coverage: 0.0,
         rms: 0.0,
     };
-    let wide = (0.03 * rough.r).max(4.0);
+    let wide = (0.03 * rough.r).max(4.0).max(off);
     for window in [wide, (0.5 * wide).max(4.0), 4.0, 3.0, 2.0, 2.0] {
         fit = refine(&smooth, fit.circle, window, threshold)
             .ok_or("the outline could not be traced to sub-pixel accuracy")?;
@@ -275,8 +292,9 @@ struct Edge {
 
 /// Gradient maxima along the gradient above the threshold, and the threshold: a tenth of
 /// the 99th percentile of the gradient magnitude, and at least three times its median
-/// (the noise).
-fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>) -> (Vec<Edge>, f32) {
+/// (the noise), divided by `downscaled` (the image's downscaling factor, 1 at full
+/// resolution; see [`fit_outline_downscaled`]).
+fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>, downscaled: f32) -> (Vec<Edge>, f32) {
     let (h, w) = gx.dim();
     let mag = Array2::from_shape_fn((h, w), |i| gx[i].hypot(gy[i]));
     let mut sorted: Vec<f32> = mag.iter().cloned().filter(|&m| m > 0.0).collect();
@@ -285,7 +303,7 @@ fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>) -> (Vec<Edge>, f32) {
     }
     sorted.sort_unstable_by(f32::total_cmp);
     let q = |f: f64| sorted[((sorted.len() - 1) as f64 * f) as usize];
-    let threshold = (0.1 * q(0.99)).max(3.0 * q(0.5));
+    let threshold = (0.1 * q(0.99)).max(3.0 * q(0.5)) / downscaled;
     let mut edges: Vec<(f32, Edge)> = Vec::new();
     for r in 2..h.saturating_sub(2) {
         for c in 2..w.saturating_sub(2) {
@@ -326,8 +344,14 @@ fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>) -> (Vec<Edge>, f32) {
 }
 
 /// Centres voted for by the edge points' gradient lines: the strongest peaks of the
-/// (3×3-smoothed) accumulator, at least 6 px apart.
-fn centre_candidates(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64, f64)> {
+/// (3×3-smoothed) accumulator, at least `apart` px apart.
+fn centre_candidates(
+    edges: &[Edge],
+    w: usize,
+    h: usize,
+    max_radius: f64,
+    apart: f64,
+) -> Vec<(f64, f64)> {
     let mut acc = Array2::<u32>::zeros((h, w));
     for e in edges {
         for sign in [-1.0f32, 1.0] {
@@ -363,7 +387,10 @@ fn centre_candidates(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec
     let mut chosen: Vec<(f64, f64)> = Vec::new();
     for (_, r, c) in peaks {
         let (x, y) = (c as f64, r as f64);
-        if chosen.iter().all(|&(px, py)| (px - x).hypot(py - y) >= 6.0) {
+        if chosen
+            .iter()
+            .all(|&(px, py)| (px - x).hypot(py - y) >= apart)
+        {
             chosen.push((x, y));
             if chosen.len() == 12 {
                 break;
