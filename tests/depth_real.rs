@@ -12,6 +12,7 @@ use std::time::Instant;
 use ndarray::{Array2, Array3};
 use photostereo::core::camera::Pinhole;
 use photostereo::core::integrate::{self, perspective};
+use photostereo::core::metrics::{self, Align};
 use photostereo::core::options::Integration;
 use photostereo::core::progress::NEVER;
 
@@ -74,18 +75,6 @@ fn read_mask(dir: &Path) -> Array2<bool> {
     })
 }
 
-/// MADE in the truth's unit: mean |s·est − truth| with s = median(truth / est).
-fn made(est: &Array2<f32>, truth: &Array2<f32>, mask: &Array2<bool>) -> f64 {
-    let pairs: Vec<(f64, f64)> = (est.iter().zip(truth).zip(mask))
-        .filter(|((e, t), m)| **m && e.is_finite() && t.is_finite() && **e > 0.0)
-        .map(|((e, t), _)| (f64::from(*e), f64::from(*t)))
-        .collect();
-    let mut ratios: Vec<f64> = pairs.iter().map(|(e, t)| t / e).collect();
-    let k = ratios.len() / 2;
-    let s = *ratios.select_nth_unstable_by(k, f64::total_cmp).1;
-    pairs.iter().map(|(e, t)| (s * e - t).abs()).sum::<f64>() / pairs.len() as f64
-}
-
 fn score(name: &str, method: Integration) -> Option<(f64, f64)> {
     let dir = seed::real_or_skip(&format!("normals/diligent-{name}"))?;
     let normals = read_normals(&dir);
@@ -96,7 +85,8 @@ fn score(name: &str, method: Integration) -> Option<(f64, f64)> {
     let zeta = integrate::integrate_log_depth(&normals, &mask, &camera, method, None, NEVER);
     let depth = perspective::depth_from_log(&zeta, &mask, &camera, None);
     let secs = t.elapsed().as_secs_f64();
-    Some((made(&depth, &truth, &mask), secs))
+    let made = metrics::depth_error(&depth, &truth, &mask, Align::Scale).mean_abs;
+    Some((made, secs))
 }
 
 /// BiNI's MADE on each object with its published code (k = 2, perspective), mm: the

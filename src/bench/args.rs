@@ -84,6 +84,15 @@ pub struct BenchArgs {
     /// `--workers 1`).
     #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
     pub serve_args: Vec<String>,
+    /// Instead of the other measurements: the integrators alone on normal maps, at each of
+    /// --sizes (a rendered perspective scene, against orthographic `robust-poisson`) and
+    /// on --normal-maps.
+    #[arg(long)]
+    pub integrators: bool,
+    /// With --integrators: a folder whose sub-folders each hold `normal_map.png`,
+    /// `mask.png` and `K.txt` (e.g. ../shared/real/normals), integrated perspective.
+    #[arg(long, requires = "integrators")]
+    pub normal_maps: Option<PathBuf>,
     /// Where to create the temporary directory [default: the system's temp dir].
     #[arg(long)]
     pub tmp_dir: Option<PathBuf>,

@@ -11,7 +11,8 @@
 //! The module reads downward: [`args`] holds the flags, [`sets`] renders the image sets,
 //! [`timing`] times the core jobs on them (and measures their memory through [`memory`]),
 //! [`http`] drives the in-process server with the small client in [`client`], [`sweep`]
-//! runs the light-count sweep in child processes, [`hostile`] probes a `serve` child process
+//! runs the light-count sweep in child processes, [`integrators`] times the integrators
+//! alone on normal maps, [`hostile`] probes a `serve` child process
 //! ([`child`]) with [`probe`] under hostile loads, and [`tables`] prints what was measured;
 //! [`stats`] holds the medians and percentiles they share.
 
@@ -20,6 +21,7 @@ mod child;
 mod client;
 mod hostile;
 mod http;
+mod integrators;
 mod memory;
 mod probe;
 mod sets;
@@ -55,6 +57,16 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         print!(
             "{}",
             tables::hostile_table(&args, &machine, (loads.0, &loads.1), &run)
+        );
+        return Ok(());
+    }
+    if args.integrators {
+        let runs = integrators::run(&args.sizes, args.runs, args.normal_maps.as_deref())?;
+        let loads = (load_at_start.as_str(), load_average());
+        let tables = (runs.0.as_slice(), runs.1.as_slice());
+        print!(
+            "{}",
+            tables::integrators_table(&args, &machine, (loads.0, &loads.1), tables)
         );
         return Ok(());
     }
