@@ -233,7 +233,7 @@ fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
         c.transparent,
         c.outside_mask
     );
-    let report = normals_in::run(map, &settings, &args.out)?;
+    let report = normals_in::run(map, &settings, &args.out, &mut photostereo::core::RunToEnd)?;
     let (what, range) = match report.output {
         "depth" => ("depth", (report.depth_min, report.depth_max)),
         _ => ("heights (px)", (report.height_min, report.height_max)),

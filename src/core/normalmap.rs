@@ -28,12 +28,13 @@
 
 use std::path::Path;
 
-use image::DynamicImage;
+use image::ColorType;
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use super::InputError;
 use super::camera::{CameraError, Pinhole};
 use super::intake::{self, Limits};
 
@@ -174,6 +175,37 @@ pub enum NormalMapError {
     },
 }
 
+impl NormalMapError {
+    /// Why the file `name` could not be read as a picture (`e` from intake's decoder or
+    /// header probe).
+    pub fn unreadable(name: &str, e: InputError) -> Self {
+        match e {
+            InputError::UnsupportedFormat { reason, .. } => Self::Unsupported {
+                name: name.into(),
+                what: format!("not a format that can be read ({reason})"),
+            },
+            e => Self::Unreadable {
+                name: name.into(),
+                reason: e.to_string(),
+            },
+        }
+    }
+}
+
+/// Bits per sample of a normal map `name` whose pixels are `colour`: 8 or 16 (PNG), 32
+/// (float EXR); refused when the picture has no three channels (gray, gray + alpha).
+pub fn bits_of(name: &str, colour: ColorType) -> Result<u8, NormalMapError> {
+    match colour {
+        ColorType::Rgb8 | ColorType::Rgba8 => Ok(8),
+        ColorType::Rgb16 | ColorType::Rgba16 => Ok(16),
+        ColorType::Rgb32F | ColorType::Rgba32F => Ok(32),
+        other => Err(NormalMapError::Unsupported {
+            name: name.into(),
+            what: format!("{other:?}"),
+        }),
+    }
+}
+
 /// A mask given by name and bytes (PNG or any format intake reads; non-zero = object).
 pub struct MaskInput<'a> {
     pub name: &'a str,
@@ -216,27 +248,9 @@ pub fn decode(
     convention: Convention,
     lens: Option<Lens>,
 ) -> Result<NormalMap, NormalMapError> {
-    let img = intake::decode(name, bytes, &Limits::default()).map_err(|e| match e {
-        super::InputError::UnsupportedFormat { reason, .. } => NormalMapError::Unsupported {
-            name: name.into(),
-            what: format!("not a format that can be read ({reason})"),
-        },
-        e => NormalMapError::Unreadable {
-            name: name.into(),
-            reason: e.to_string(),
-        },
-    })?;
-    let bits = match &img {
-        DynamicImage::ImageRgb8(_) | DynamicImage::ImageRgba8(_) => 8,
-        DynamicImage::ImageRgb16(_) | DynamicImage::ImageRgba16(_) => 16,
-        DynamicImage::ImageRgb32F(_) | DynamicImage::ImageRgba32F(_) => 32,
-        other => {
-            return Err(NormalMapError::Unsupported {
-                name: name.into(),
-                what: format!("{:?}", other.color()),
-            });
-        }
-    };
+    let img = intake::decode(name, bytes, &Limits::default())
+        .map_err(|e| NormalMapError::unreadable(name, e))?;
+    let bits = bits_of(name, img.color())?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     let mask_name = mask.as_ref().map(|m| m.name.to_string());
     let given = match mask {

@@ -1,6 +1,7 @@
 //! "Normals in": a normal map ([`normalmap`](super::normalmap)) integrated into heights
 //! (orthographic) or depth (under a pinhole camera), with the reconstruction's
-//! integrators and writers. `photostereo integrate` calls [`run`]; it takes no HTTP types.
+//! integrators and writers. `photostereo integrate` and the service's normals jobs call
+//! [`run`]; it takes no HTTP types.
 //!
 //! - **Orthographic** (no camera): `integrate::gradients` and the integrator give heights
 //!   in pixels → `height.png` (16-bit, 0..65535 ↔ [`height_min`, `height_max`] of
@@ -27,8 +28,13 @@ use super::mesh::{self, Document, MeshError};
 use super::normalmap::{Convention, Counts, NormalMap};
 use super::options::{self, Integration, MeshOptions, Options};
 use super::outputs::{self, Heights, Maps};
-use super::progress::NEVER;
+use super::pipeline::{not_halted, step};
+use super::progress::{Halt, Progress, Stage};
 use super::reconstruction::{Reconstruction, Report as RunReport, Timing};
+
+/// The job options (`Options` fields) a normal map's integration takes; the others are
+/// the photometric reconstruction's.
+pub const OPTIONS: [&str; 4] = ["integration", "mesh", "camera", "distance"];
 
 /// How a normal map is integrated.
 #[derive(Debug, Clone, Default)]
@@ -43,6 +49,17 @@ pub struct Settings {
 }
 
 impl Settings {
+    /// The settings of a job's `options` (the fields of [`OPTIONS`]; the camera goes to
+    /// the reader as its [`Lens`](super::normalmap::Lens)).
+    pub fn of(options: &Options) -> Self {
+        Self {
+            integration: options.integration,
+            distance: options.distance,
+            mesh: options.mesh.clone(),
+            notes: Vec::new(),
+        }
+    }
+
     /// Refuses what cannot be used: a distance that is not a positive number, or one
     /// given without a camera (orthographic heights have no depth to scale).
     pub fn check(&self, camera: Option<&Pinhole>) -> Result<(), InputError> {
@@ -100,29 +117,41 @@ pub fn unused_camera_note(map: &Path) -> Option<String> {
 }
 
 /// The integrated surface: heights in pixels (orthographic, off the mask the lowest
-/// height) or depth along the optical axis (perspective, NaN off the mask).
-pub fn surface(map: &NormalMap, settings: &Settings) -> Array2<f32> {
+/// height) or depth along the optical axis (perspective, NaN off the mask). The iterative
+/// integrators stop early (with meaningless values) once `halt` says stop.
+pub fn surface(map: &NormalMap, settings: &Settings, halt: Halt) -> Array2<f32> {
     let (normals, mask) = (&map.normals, &map.mask);
     match &map.camera {
         None => {
             let (p, q) = integrate::gradients(normals, mask);
-            integrate::integrate(&p, &q, mask, settings.integration)
+            integrate::integrate_until(&p, &q, mask, settings.integration, halt)
         }
         Some(k) => {
             let zeta =
-                integrate::integrate_log_depth(normals, mask, k, settings.integration, None, NEVER);
+                integrate::integrate_log_depth(normals, mask, k, settings.integration, None, halt);
             perspective::depth_from_log(&zeta, mask, k, settings.distance)
         }
     }
 }
 
 /// Integrate `map` and write its artifacts into `dir` (created if need be; each artifact
-/// atomically, `result.json` last). Returns the report written.
-pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, RunError> {
+/// atomically, `result.json` last). Returns the report written. The stages (integrate,
+/// outputs, mesh) are announced to `progress`, which is polled within them: once it says
+/// stop, the run ends [`RunError::Cancelled`].
+pub fn run(
+    map: NormalMap,
+    settings: &Settings,
+    dir: &Path,
+    progress: &mut dyn Progress,
+) -> Result<Report, RunError> {
     let mut timings = Vec::new();
+    step(progress, Stage::Integrate)?;
     let start = Instant::now();
-    let z = surface(&map, settings);
+    let polled: &dyn Progress = progress;
+    let z = surface(&map, settings, &|| polled.halted());
+    not_halted(polled)?;
     timings.push(timing("integrate", start));
+    step(progress, Stage::Outputs)?;
 
     let start = Instant::now();
     let on = z
@@ -178,8 +207,11 @@ pub fn run(map: NormalMap, settings: &Settings, dir: &Path) -> Result<Report, Ru
         }),
         ..Maps::of(&rec)
     };
-    let halt = super::progress::NEVER;
-    let mut written = outputs::write_pictures(&maps, &pictures, [0.0; 3], dir, &commits, halt)?;
+    let polled: &dyn Progress = progress;
+    let halt = || polled.halted();
+    let mut written = outputs::write_pictures(&maps, &pictures, [0.0; 3], dir, &commits, &halt)?;
+    not_halted(polled)?;
+    step(progress, Stage::Mesh)?;
     let mut save =
         |name: &str, write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>| {
             commits.write(dir, name, write)?;

@@ -581,7 +581,7 @@ fn write_meshes(
 /// Size of `preview.png`.
 pub const PREVIEW_SIZE: (u32, u32) = (800, 600);
 
-fn step(progress: &mut dyn Progress, stage: Stage) -> Result<(), RunError> {
+pub(super) fn step(progress: &mut dyn Progress, stage: Stage) -> Result<(), RunError> {
     if progress.enter(stage) {
         Ok(())
     } else {
@@ -591,7 +591,7 @@ fn step(progress: &mut dyn Progress, stage: Stage) -> Result<(), RunError> {
 
 /// After work that polled `halted` and may have cut itself short: its results are only
 /// kept when the run was not stopped meanwhile.
-fn not_halted(progress: &dyn Progress) -> Result<(), RunError> {
+pub(super) fn not_halted(progress: &dyn Progress) -> Result<(), RunError> {
     if progress.halted() {
         Err(RunError::Cancelled)
     } else {

@@ -187,7 +187,7 @@ pub fn integrate(
 }
 
 /// [`integrate`], stopping early (with meaningless heights) once `halt` says stop.
-fn integrate_until(
+pub fn integrate_until(
     p: &Array2<f32>,
     q: &Array2<f32>,
     mask: &Array2<bool>,

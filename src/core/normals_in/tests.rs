@@ -4,6 +4,7 @@ use ndarray::Array2;
 use super::*;
 use crate::core::normalmap::{self, Lens};
 use crate::core::outputs::png_bytes;
+use crate::core::progress::{NEVER, RunToEnd};
 
 /// A 16-bit OpenGL normal map of `normals` (project frame), black where `None`.
 fn png16(size: (usize, usize), n: impl Fn(usize, usize) -> Option<[f64; 3]>) -> Vec<u8> {
@@ -79,7 +80,7 @@ fn an_orthographic_spheres_normal_map_integrates_to_the_sphere() {
         map.counts.used,
         truth.iter().filter(|t| t.is_finite()).count()
     );
-    let z = surface(&map, &Settings::default());
+    let z = surface(&map, &Settings::default(), NEVER);
     // Away from the silhouette (within 0.9 of the radius), where slopes stay below ~2.
     let c = (n as f64 - 1.0) / 2.0;
     let inner = Array2::from_shape_fn((n, n), |(r, col)| {
@@ -114,7 +115,7 @@ fn a_spheres_normal_map_under_a_pinhole_integrates_to_its_depth() {
         distance: Some(median),
         ..Settings::default()
     };
-    let depth = surface(&map, &settings);
+    let depth = surface(&map, &settings, NEVER);
     assert!(
         (depth.iter().zip(&map.mask)).all(|(d, m)| d.is_finite() == *m),
         "NaN exactly off the mask"
@@ -158,7 +159,7 @@ fn run_writes_every_artifact_and_a_report_that_lists_them() {
         distance: Some(8.0),
         ..Settings::default()
     };
-    let report = run(map, &settings, dir.path()).unwrap();
+    let report = run(map, &settings, dir.path(), &mut RunToEnd).unwrap();
     let expected = [
         "mask.png",
         "normal.png",
@@ -221,7 +222,7 @@ fn run_writes_every_artifact_and_a_report_that_lists_them() {
     let (bytes, _) = ortho_sphere(40, 15.0);
     let map = normalmap::decode("s.png", &bytes, None, Convention::Opengl, None).unwrap();
     let dir = tempfile::tempdir().unwrap();
-    let report = run(map, &Settings::default(), dir.path()).unwrap();
+    let report = run(map, &Settings::default(), dir.path(), &mut RunToEnd).unwrap();
     assert_eq!(
         report.artifacts,
         [
