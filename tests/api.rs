@@ -1775,3 +1775,324 @@ async fn a_camera_makes_depth_and_bad_cameras_get_422() {
     expect_problem(r, 422, &["principal point", "another resolution"]).await;
     s.stop().await;
 }
+
+/// A `normals` part of `bytes` named `name`.
+fn normals_part(bytes: Vec<u8>, name: &str) -> Part {
+    Part::bytes(bytes).file_name(name.to_string())
+}
+
+/// Every artifact of a succeeded normals job, fetched: exactly `expected`, each with its
+/// content type.
+async fn normals_artifacts(
+    s: &TestServer,
+    job: &Value,
+    expected: &[&str],
+) -> BTreeMap<String, Vec<u8>> {
+    let artifacts = job["artifacts"].as_object().expect("artifacts");
+    let names: HashSet<&str> = artifacts.keys().map(String::as_str).collect();
+    assert_eq!(names, expected.iter().copied().collect(), "{job}");
+    let mut out = BTreeMap::new();
+    for (name, url) in artifacts {
+        let r = s
+            .client
+            .get(s.url(url.as_str().unwrap()))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{name}");
+        let content_type = outputs::content_type(name).unwrap();
+        assert_eq!(r.headers()["content-type"], content_type, "{name}");
+        out.insert(name.clone(), r.bytes().await.unwrap().to_vec());
+    }
+    out
+}
+
+const HEIGHT_ARTIFACTS: [&str; 7] = [
+    "height.png",
+    "height.exr",
+    "mask.png",
+    "normal.png",
+    "mesh.glb",
+    "points.ply",
+    "result.json",
+];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_normals_job_integrates_heights_as_the_cli_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let (size, radius) = (72, 30.0);
+    let (normal, truth) = ortho_sphere(size, radius);
+    let opengl = normal_map_png16((size, size), false, &normal);
+    let directx = normal_map_png16((size, size), true, &normal);
+    let options = r#"{"integration": "poisson"}"#;
+    let job = s
+        .submit(
+            Form::new()
+                .part("normals", normals_part(opengl.clone(), "sphere.png"))
+                .text("options", options),
+        )
+        .await;
+    assert_eq!(job["image_count"], 0, "{job}");
+    let flipped = s
+        .submit(
+            Form::new()
+                .part("normals", normals_part(directx, "sphere-dx.png"))
+                .text("convention", "directx")
+                .text("options", options),
+        )
+        .await;
+    let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    assert!(job["result"]["depth_min"].is_null(), "{job}");
+    let span = |key: &str| job["result"][key].as_f64().unwrap();
+    assert!(span("height_max") - span("height_min") > 20.0, "{job}");
+    let files = normals_artifacts(&s, &job, &HEIGHT_ARTIFACTS).await;
+    let report: Value = serde_json::from_slice(&files["result.json"]).unwrap();
+    assert_eq!(report["source"], "sphere.png");
+    assert_eq!(report["output"], "height");
+    assert_eq!(report["method"], "poisson");
+    let served = outputs::decode_height_exr(&files["height.exr"]).unwrap();
+
+    // The CLI on the same file.
+    let map = dir.path().join("sphere.png");
+    std::fs::write(&map, &opengl).unwrap();
+    let out = dir.path().join("cli");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
+        .args([
+            "integrate",
+            map.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .args(["--integration", "poisson"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let cli = outputs::decode_height_exr(&std::fs::read(out.join("height.exr")).unwrap()).unwrap();
+    let worst = (served.iter().zip(&cli)).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        worst < 1e-3,
+        "heights differ from the CLI's by up to {worst} px"
+    );
+    // …and they are the sphere's, up to an offset (away from the silhouette).
+    let inner = |r: usize, c: usize| {
+        let mid = (f64::from(size) - 1.0) / 2.0;
+        (r as f64 - mid).hypot(c as f64 - mid) < 0.8 * radius
+    };
+    let offsets: Vec<f64> = (ndarray::indices(truth.dim()).into_iter())
+        .filter(|&(r, c)| inner(r, c))
+        .map(|(r, c)| truth[[r, c]] - f64::from(served[[r, c]]))
+        .collect();
+    let mean = offsets.iter().sum::<f64>() / offsets.len() as f64;
+    let spread = offsets.iter().fold(0f64, |m, o| m.max((o - mean).abs()));
+    assert!(
+        spread < 0.8,
+        "heights off the sphere's by up to {spread} px"
+    );
+
+    // The DirectX map with its convention gives the same heights.
+    let flipped = s.wait_succeeded(flipped["id"].as_str().unwrap()).await;
+    let files = normals_artifacts(&s, &flipped, &HEIGHT_ARTIFACTS).await;
+    let heights = outputs::decode_height_exr(&files["height.exr"]).unwrap();
+    let worst = (heights.iter().zip(&served)).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        worst < 1e-3,
+        "the DirectX map's heights differ by {worst} px"
+    );
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_normals_job_with_a_camera_gives_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let k = photostereo::core::camera::Pinhole::parse("120 0 48\n0 120 38\n0 0 1\n").unwrap();
+    let (map, truth) = pinhole_sphere_normal_map(&k);
+    // A mask that keeps the left half of the sphere, whose median true depth is the
+    // working distance.
+    let mask =
+        image::GrayImage::from_fn(96, 80, |c, _| image::Luma([if c < 48 { 255 } else { 0 }]));
+    let mut kept: Vec<f64> = (ndarray::indices(truth.dim()).into_iter())
+        .filter(|&(r, c)| c < 48 && truth[[r, c]].is_finite())
+        .map(|(r, c)| truth[[r, c]])
+        .collect();
+    let mid = kept.len() / 2;
+    let median = *kept.select_nth_unstable_by(mid, f64::total_cmp).1;
+    let form = Form::new()
+        .part("normals", normals_part(map, "sphere.png"))
+        .part(
+            "mask",
+            Part::bytes(outputs::png_bytes(&mask)).file_name("mask.png"),
+        )
+        .part(
+            "camera",
+            Part::bytes(b"120,120,48,38".to_vec()).file_name("camera.txt"),
+        )
+        .text("options", format!(r#"{{"distance": {median}}}"#));
+    let job = s.submit(form).await;
+    assert_eq!(job["options"]["camera"]["fx"], 120.0, "{job}");
+    let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    assert!(job["result"]["height_min"].is_null(), "{job}");
+    let expected = [
+        "depth.png",
+        "depth.exr",
+        "mask.png",
+        "normal.png",
+        "mesh.glb",
+        "points.ply",
+        "result.json",
+    ];
+    let files = normals_artifacts(&s, &job, &expected).await;
+    let report: Value = serde_json::from_slice(&files["result.json"]).unwrap();
+    assert_eq!(report["output"], "depth");
+    assert_eq!(report["mask_file"], "mask.png");
+    assert_eq!(report["distance"], median);
+    let depth = outputs::decode_height_exr(&files["depth.exr"]).unwrap();
+    let mut worst = 0f64;
+    for ((d, t), (r, c)) in depth.iter().zip(&truth).zip(ndarray::indices((80, 96))) {
+        assert_eq!(d.is_finite(), t.is_finite() && c < 48, "mask at ({r}, {c})");
+        if d.is_finite() && (c as f64 - 48.0).hypot(r as f64 - 38.0) < 30.0 {
+            worst = worst.max((f64::from(*d) - t).abs() / t);
+        }
+    }
+    assert!(worst < 0.01, "largest relative depth error {worst:.4}");
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn normals_jobs_refuse_mixed_parts_and_bad_maps_naming_them() {
+    let synth = seed!("synth-images");
+    let dir = tempfile::tempdir().unwrap();
+    let mut c = config(dir.path());
+    c.max_pixels = 100 * 100; // the synth set's images
+    let s = TestServer::start(c).await;
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let (normal, _) = ortho_sphere(40, 15.0);
+    let map = || normals_part(normal_map_png16((40, 40), false, &normal), "sphere.png");
+    let normals = || Form::new().part("normals", map());
+
+    // Parts of an image job, before or after the map.
+    let images = || images_of(&synth).into_iter().map(|p| file_part(&p));
+    let mut both = folder_form(&synth).part("normals", map());
+    let r = post(both).await.unwrap();
+    expect_problem(r, 422, &["both a normals part and images"]).await;
+    both = normals().part("images", images().next().unwrap());
+    let r = post(both).await.unwrap();
+    expect_problem(r, 422, &["both a normals part and images"]).await;
+    for (part, value) in [("lights", "a.png, 0, 0, 1"), ("calibration", "0b6f2a43")] {
+        let r = post(normals().text(part, value)).await.unwrap();
+        expect_problem(r, 422, &["both a normals part and", part]).await;
+    }
+    let archive = zip_folder(&synth, None);
+    let form = normals().part("archive", Part::bytes(archive).file_name("set.zip"));
+    expect_problem(
+        post(form).await.unwrap(),
+        422,
+        &["normals part and archive"],
+    )
+    .await;
+
+    // Maps that are no normal maps, or too large.
+    let refused = [
+        (
+            Part::bytes(png(40, 40, 128)).file_name("gray.png"),
+            422,
+            &["\"gray.png\"", "L8", "RGB"][..],
+        ),
+        (
+            Part::bytes(b"hello".to_vec()).file_name("n.txt"),
+            422,
+            &["\"n.txt\"", "not a format that can be read"],
+        ),
+        (
+            normals_part(
+                normal_map_png16((120, 120), false, |_, _| Some([0.0, 0.0, 1.0])),
+                "big.png",
+            ),
+            413,
+            &["big.png", "120×120"],
+        ),
+    ];
+    for (part, status, needles) in refused {
+        let r = post(Form::new().part("normals", part)).await.unwrap();
+        expect_problem(r, status, needles).await;
+    }
+    // A mask of another size, options a normals job does not take, a bad convention, a
+    // convention without a map, a camera that does not fit the map.
+    let mask = Part::bytes(png(30, 20, 255)).file_name("mask.png");
+    let r = post(normals().part("mask", mask)).await.unwrap();
+    expect_problem(
+        r,
+        422,
+        &["mask \"mask.png\" is 30×20", "\"sphere.png\" is 40×40"],
+    )
+    .await;
+    let r = post(normals().text("options", r#"{"solver": "l2"}"#))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["`solver` does not apply to a normals job"]).await;
+    let r = post(normals().text("convention", "sideways"))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["\"sideways\"", "opengl", "directx"]).await;
+    let r = post(folder_form(&synth).text("convention", "directx"))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["convention part goes with a normals part"]).await;
+    let r = post(normals().text("camera", "500,500,300,250"))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["principal point"]).await;
+    let r = post(normals().text("options", r#"{"distance": 3}"#))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["distance needs a camera"]).await;
+
+    // What only decoding finds fails the job, naming it: vectors that are not unit
+    // length, no usable pixel.
+    let grey = normal_map_png16((40, 40), false, |_, _| Some([0.8, -0.8, 0.8]));
+    let black = normal_map_png16((40, 40), false, |_, _| None);
+    for (bytes, needle) in [
+        (grey, "does not decode to unit normals"),
+        (black, "has no usable pixel"),
+    ] {
+        let job = s
+            .submit(Form::new().part("normals", normals_part(bytes, "bad.png")))
+            .await;
+        let id = job["id"].as_str().unwrap();
+        let job = s.wait_finished(id).await;
+        assert_eq!(job["status"], "failed", "{job}");
+        assert_eq!(job["error"]["status"], 422, "{job}");
+        let detail = job["error"]["detail"].as_str().unwrap();
+        assert!(
+            detail.contains("\"bad.png\"") && detail.contains(needle),
+            "{detail}"
+        );
+    }
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_interrupted_normals_job_runs_again_after_a_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut slow = config(dir.path());
+    slow.workers = 1;
+    slow.stage_delay = Duration::from_millis(400);
+    slow.shutdown_grace = Duration::from_millis(100);
+    let s = TestServer::start(slow.clone()).await;
+    let (normal, _) = ortho_sphere(48, 20.0);
+    let map = normal_map_png16((48, 48), false, &normal);
+    let job = s
+        .submit(Form::new().part("normals", normals_part(map, "sphere.png")))
+        .await;
+    let id = job["id"].as_str().unwrap().to_string();
+    s.wait_for(&id, Duration::from_secs(30), |j| j["status"] == "running")
+        .await;
+    s.stop().await;
+
+    let s = TestServer::start(config(dir.path())).await;
+    let job = s.wait_succeeded(&id).await;
+    assert_eq!(job["attempts"], 2, "the interrupted job ran again: {job}");
+    normals_artifacts(&s, &job, &HEIGHT_ARTIFACTS).await;
+    s.stop().await;
+}

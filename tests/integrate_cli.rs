@@ -1,13 +1,14 @@
 //! `photostereo integrate` end to end: normal maps written here (and the real DiLiGenT
 //! maps under ../shared/real/normals) through the real binary.
 
+mod common;
 mod seed;
 
 use std::path::Path;
 use std::process::{Command, Output};
 
+use common::pinhole_sphere_normal_map;
 use image::{ImageBuffer, Luma, Rgb};
-use ndarray::Array2;
 use photostereo::core::camera::Pinhole;
 use photostereo::core::outputs::{self, png_bytes};
 
@@ -26,32 +27,6 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-/// A sphere of radius 3 at depth 10 on the optical axis of `k`, in a 96 × 80 frame: a
-/// 16-bit OpenGL normal map (black background) and its true depth (NaN off it).
-fn sphere(k: &Pinhole) -> (Vec<u8>, Array2<f64>) {
-    let (w, h, rho, dist) = (96u32, 80u32, 3.0, 10.0);
-    let hit = |r: u32, c: u32| {
-        let d = k.ray(c as f64, r as f64);
-        let dd: f64 = d.iter().map(|v| v * v).sum();
-        let dc = -d[2] * dist;
-        let disc = dc * dc - dd * (dist * dist - rho * rho);
-        (disc > 0.0).then(|| {
-            let t = (dc - disc.sqrt()) / dd;
-            let n = [d[0] * t / rho, d[1] * t / rho, (-t + dist) / rho];
-            (t, n)
-        })
-    };
-    let img = ImageBuffer::from_fn(w, h, |c, r| match hit(r, c) {
-        // OpenGL: y up.
-        Some((_, [x, y, z])) => Rgb([x, -y, z].map(|v| ((v + 1.0) / 2.0 * 65535.0).round() as u16)),
-        None => Rgb([0u16; 3]),
-    });
-    let truth = Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
-        hit(r as u32, c as u32).map_or(f64::NAN, |(t, _)| t)
-    });
-    (png_bytes(&img), truth)
-}
-
 const K: Pinhole = Pinhole {
     fx: 120.0,
     fy: 120.0,
@@ -62,7 +37,7 @@ const K: Pinhole = Pinhole {
 #[test]
 fn a_written_normal_map_integrates_to_its_depth_through_the_binary() {
     let dir = tempfile::tempdir().unwrap();
-    let (bytes, truth) = sphere(&K);
+    let (bytes, truth) = pinhole_sphere_normal_map(&K);
     let map = dir.path().join("sphere.png");
     std::fs::write(&map, bytes).unwrap();
     std::fs::write(dir.path().join("K.txt"), "120 0 48\n0 120 38\n0 0 1\n").unwrap();
@@ -137,7 +112,7 @@ fn a_written_normal_map_integrates_to_its_depth_through_the_binary() {
 #[test]
 fn bad_inputs_exit_non_zero_naming_the_problem() {
     let dir = tempfile::tempdir().unwrap();
-    let (bytes, _) = sphere(&K);
+    let (bytes, _) = pinhole_sphere_normal_map(&K);
     let map = dir.path().join("sphere.png");
     std::fs::write(&map, bytes).unwrap();
     let out = dir.path().join("out");

@@ -3,6 +3,7 @@
 //! ```text
 //! jobs/{id}/input.partial/   an upload being received (removed if it fails)
 //! jobs/{id}/input/           manifest.json, lights.txt, 000.img, 001.img, …, mask.img
+//!                            (a normals job: manifest.json, normals.img, mask.img)
 //! jobs/{id}/output.partial/  a reconstruction being written
 //! jobs/{id}/output/          the finished artifacts (renamed from output.partial at once)
 //! calibrations/{id}/files.partial/  a calibration's upload and files being made
@@ -30,11 +31,13 @@ use uuid::Uuid;
 
 use super::repo::ArtifactInfo;
 use super::util::sync_dir;
+use crate::core::normalmap::Convention;
 
 /// File names inside a job's input directory.
 pub const MANIFEST_FILE: &str = "manifest.json";
 pub const LIGHTS_FILE: &str = "lights.txt";
 pub const MASK_FILE: &str = "mask.img";
+pub const NORMALS_FILE: &str = "normals.img";
 
 /// Name of the `i`-th stored input image.
 pub fn image_file(i: usize) -> String {
@@ -46,6 +49,10 @@ pub fn image_file(i: usize) -> String {
 pub struct Manifest {
     pub images: Vec<ManifestEntry>,
     pub mask: Option<ManifestEntry>,
+    /// A normals job's normal map (its `images` are then empty and there is no light
+    /// table).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normals: Option<NormalsEntry>,
     /// What the upload ignored or chose (an archive's unnamed images, say), for the
     /// job's `result.json`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -58,6 +65,16 @@ pub struct ManifestEntry {
     pub name: String,
     /// The stored file, relative to the input directory.
     pub file: String,
+}
+
+/// A normals job's normal map and how its green channel points.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NormalsEntry {
+    /// The `normals` part's file name.
+    pub name: String,
+    /// The stored file, relative to the input directory.
+    pub file: String,
+    pub convention: Convention,
 }
 
 /// A stored file that the service serves.
@@ -416,5 +433,24 @@ mod tests {
         store.remove_job(id).unwrap();
         store.remove_job(id).unwrap();
         assert!(store.job_ids().unwrap().is_empty());
+    }
+
+    #[test]
+    fn manifests_without_normals_still_read_and_a_normals_job_round_trips() {
+        let old = br#"{"images": [{"name": "a.png", "file": "000.img"}], "mask": null}"#;
+        let manifest: Manifest = serde_json::from_slice(old).unwrap();
+        assert_eq!((manifest.images.len(), manifest.normals), (1, None));
+        let normals = Manifest {
+            images: Vec::new(),
+            mask: None,
+            normals: Some(NormalsEntry {
+                name: "n.png".into(),
+                file: NORMALS_FILE.into(),
+                convention: Convention::Directx,
+            }),
+            notes: Vec::new(),
+        };
+        let json = serde_json::to_vec(&normals).unwrap();
+        assert_eq!(serde_json::from_slice::<Manifest>(&json).unwrap(), normals);
     }
 }

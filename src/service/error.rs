@@ -7,6 +7,7 @@ use axum::response::{IntoResponse, Response};
 use crate::core::InputError;
 use crate::core::RunError;
 use crate::core::calibrate::CalibrationError;
+use crate::core::normalmap::NormalMapError;
 
 use super::problem::{PROBLEM_JSON, Problem};
 
@@ -299,6 +300,13 @@ impl From<InputError> for ApiError {
 
 /// The calibration's errors name the image, circle or mask at fault: 422, except for the
 /// input errors, mapped as above.
+/// A normal map that cannot be used: 422 naming the file and the problem.
+impl From<NormalMapError> for ApiError {
+    fn from(e: NormalMapError) -> Self {
+        Self::invalid(e.to_string())
+    }
+}
+
 impl From<CalibrationError> for ApiError {
     fn from(e: CalibrationError) -> Self {
         match e {

@@ -10,11 +10,12 @@
 //! Each job's inputs are fetched into local scratch, opened with `stream::open_with`
 //! (each image decoded once into a scratch file beside them, read back band by band) and
 //! run by `pipeline::run` into a staged output directory that the store commits when the
-//! job succeeds, under a key of this attempt's own. Every write about the job carries the
-//! lease's token, so a worker that lost its lease records nothing. A store that does not
-//! answer makes the job wait and run again, never fail. Progress goes to the repo at every
-//! stage; the progress callback is also where cancellation, the time limit, shutdown and a
-//! lost lease stop a job.
+//! job succeeds, under a key of this attempt's own; a normals job's map is decoded by
+//! `normalmap::decode` and integrated by `normals_in::run` in its place. Every write about
+//! the job carries the lease's token, so a worker that lost its lease records nothing. A
+//! store that does not answer makes the job wait and run again, never fail. Progress goes
+//! to the repo at every stage; the progress callback is also where cancellation, the time
+//! limit, shutdown and a lost lease stop a job.
 
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
@@ -30,15 +31,18 @@ use crate::core::bands::Stack;
 use crate::core::error::panic_message;
 use crate::core::intake::NamedFile;
 use crate::core::lights;
+use crate::core::normalmap::{self, Lens, MaskInput, NormalMap};
+use crate::core::normals_in;
 use crate::core::outputs::ARTIFACTS;
 use crate::core::pipeline;
 use crate::core::progress::{Progress, Stage};
-use crate::core::reconstruction::Report;
 use crate::core::stream::{self, Prescanned, Streamed};
 use crate::core::{InputError, Options};
 
 use super::Inner;
-use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, Manifest, is_unavailable};
+use super::blobs::{
+    LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry, is_unavailable,
+};
 use super::budget::{self, Reservation, Use};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
@@ -589,32 +593,74 @@ fn execute(
             serde_json::from_slice(&b)
                 .map_err(|e| ApiError::internal(format!("manifest of {id}: {e}")))
         })?;
-    let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(ApiError::from)?;
 
     if !clock.enter(Stage::Decode) {
         return Err(Stop::Stopped);
     }
-    let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
-    let set = open_inputs(inner, scanned, lights, &input, &manifest, clock)?;
-    let set = set.noted(manifest.notes.clone());
-    // The images' size is known now: keep the job's own estimate of the budget.
-    let info = set.info();
-    memory.shrink_to(budget::job_peak_bytes((info.width * info.height) as u64));
-
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
-    let report = pipeline::run(set, &options, &out, clock);
-    clock.close();
-    let report = match report {
-        Ok(r) => r,
-        Err(RunError::Cancelled) => return Err(Stop::Stopped),
-        Err(e) => return Err(ApiError::from(e).into()),
+    let summary = match &manifest.normals {
+        Some(map) => {
+            let map = read_normal_map(&input, map, manifest.mask.as_ref(), &options)?;
+            memory.shrink_to(budget::job_peak_bytes((map.width * map.height) as u64));
+            let settings = normals_in::Settings::of(&options);
+            let report = normals_in::run(map, &settings, &out, clock);
+            summarize(&finished(report, clock)?)
+        }
+        None => {
+            let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(ApiError::from)?;
+            let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
+            let set = open_inputs(inner, scanned, lights, &input, &manifest, clock)?;
+            let set = set.noted(manifest.notes.clone());
+            // The images' size is known now: keep the job's own estimate of the budget.
+            let info = set.info();
+            memory.shrink_to(budget::job_peak_bytes((info.width * info.height) as u64));
+            let report = pipeline::run(set, &options, &out, clock);
+            summarize(&finished(report, clock)?)
+        }
     };
     let mut artifacts = list_artifacts(&out).map_err(ApiError::from)?;
     inner
         .store
         .commit_outputs(id, attempt, &mut artifacts)
         .map_err(|e| store_error(e, "committing the outputs"))?;
-    Ok((summarize(&report), artifacts))
+    Ok((summary, artifacts))
+}
+
+/// A run's report, once its last stage is timed; a stopped run is [`Stop::Stopped`].
+fn finished<R>(report: Result<R, RunError>, clock: &mut StageClock<'_>) -> Result<R, Stop> {
+    clock.close();
+    match report {
+        Ok(r) => Ok(r),
+        Err(RunError::Cancelled) => Err(Stop::Stopped),
+        Err(e) => Err(ApiError::from(e).into()),
+    }
+}
+
+/// A normals job's map (and mask) decoded under the job's camera: a 422 naming the
+/// problem when it holds no usable normals.
+fn read_normal_map(
+    input: &Path,
+    map: &NormalsEntry,
+    mask: Option<&ManifestEntry>,
+    options: &Options,
+) -> Result<NormalMap, ApiError> {
+    let bytes = std::fs::read(input.join(&map.file))?;
+    let mask_bytes = match mask {
+        Some(m) => Some(std::fs::read(input.join(&m.file))?),
+        None => None,
+    };
+    let mask = mask.zip(mask_bytes.as_deref()).map(|(m, bytes)| MaskInput {
+        name: &m.name,
+        bytes,
+    });
+    let lens = options.camera.map(Lens::Pinhole);
+    Ok(normalmap::decode(
+        &map.name,
+        &bytes,
+        mask,
+        map.convention,
+        lens,
+    )?)
 }
 
 /// The first pass over the job's images, taking those the upload scanned (`scanned`, by
@@ -697,7 +743,7 @@ fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
 }
 
 /// The report's headline numbers (as in `result.json`).
-fn summarize(report: &Report) -> serde_json::Value {
+fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
     const KEYS: [&str; 18] = [
         "width",
         "height",

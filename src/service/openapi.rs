@@ -8,6 +8,7 @@ use utoipa::openapi::{ObjectBuilder, RefOr};
 use utoipa::{Modify, OpenApi};
 
 use crate::core::camera::Pinhole;
+use crate::core::normalmap::Convention;
 use crate::core::outputs::{ALL, ARTIFACTS};
 
 use super::calibrations::{
@@ -22,11 +23,12 @@ use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
     info(
         title = "photostereo",
         version = "1",
-        description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. Lights can be measured first: `POST /v1/calibrations` with one chrome-sphere image per light, then give the calibration's id as the job's `calibration` part. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`. Each key belongs to a tenant: a tenant sees and manages only its own jobs (another tenant's job is answered exactly like one that does not exist, 404), and a key with the admin role sees all. Each tenant has quotas (jobs queued or running, submissions per minute, stored bytes), answered with 429 and Retry-After; the queue serves tenants in turn."
+        description = "Photometric stereo reconstruction as a service: upload images of an object lit from known directions, get back albedo, normals, heights, meshes and pictures.\n\nSubmit a job with `POST /v1/jobs` (multipart), poll `GET /v1/jobs/{id}` until it has `succeeded`, then download the artifacts it links. A normal map made elsewhere is integrated the same way: send it as the job's `normals` part instead of images and lights. Lights can be measured first: `POST /v1/calibrations` with one chrome-sphere image per light, then give the calibration's id as the job's `calibration` part. Every error is an RFC 9457 `application/problem+json` body.\n\nWhen the server has API keys configured, every `/v1` route needs `Authorization: Bearer <key>`. Each key belongs to a tenant: a tenant sees and manages only its own jobs (another tenant's job is answered exactly like one that does not exist, 404), and a key with the admin role sees all. Each tenant has quotas (jobs queued or running, submissions per minute, stored bytes), answered with 429 and Retry-After; the queue serves tenants in turn."
     ),
     components(schemas(
         Problem,
         Pinhole,
+        Convention,
         JobStatus,
         JobView,
         JobList,

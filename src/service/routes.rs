@@ -14,6 +14,7 @@ use uuid::Uuid;
 
 use crate::core::Options;
 use crate::core::error::panic_message;
+use crate::core::normalmap::Convention;
 use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
@@ -59,6 +60,7 @@ pub struct JobView {
     /// How many times a worker has started the job (more than 1 when a restart
     /// interrupted it).
     pub attempts: u32,
+    /// The images uploaded (0 for a normals job).
     pub image_count: u32,
     /// The options in force, defaults filled in.
     #[schema(value_type = Options)]
@@ -130,7 +132,8 @@ pub struct JobList {
 }
 
 /// The `POST /v1/jobs` form. Send either `images` + `lights` (or `calibration`) (+ `mask`,
-/// `camera`, `options`) or `archive` (+ `mask`, `camera`, `options`).
+/// `camera`, `options`), `archive` (+ `mask`, `camera`, `options`), or `normals` (+ `mask`,
+/// `camera`, `convention`, `options`).
 #[derive(ToSchema)]
 #[allow(dead_code)] // documents the multipart body; the handler streams it
 pub struct JobUpload {
@@ -147,7 +150,7 @@ pub struct JobUpload {
     /// are used, matched to the images by name.
     #[schema(value_type = String, format = Uuid, required = false)]
     calibration: Option<String>,
-    /// Optional mask image, same size as the images (non-zero = object).
+    /// Optional mask image, same size as the images or the normal map (non-zero = object).
     #[schema(value_type = ImageFile, required = false)]
     mask: Option<Vec<u8>>,
     /// Optional pinhole camera of the images (text or file part): a K.txt (3 × 3), a
@@ -156,13 +159,24 @@ pub struct JobUpload {
     /// neither is sent.
     #[schema(value_type = String, required = false)]
     camera: Option<String>,
-    /// Optional reconstruction options as JSON (unknown fields are refused).
+    /// Optional reconstruction options as JSON (unknown fields are refused; a normals job
+    /// takes only `integration`, `mesh`, `camera` and `distance`).
     #[schema(value_type = Options, required = false)]
     options: Option<String>,
     /// Instead of images + lights: a .zip of a folder with the images and
     /// `light_directions.csv`, at its top or inside one folder.
     #[schema(value_type = String, content_media_type = "application/zip", required = false)]
     archive: Option<Vec<u8>>,
+    /// Instead of images + lights: a normal map to integrate into heights (orthographic) or,
+    /// with a camera, depth; an RGB(A) 8/16-bit PNG (`n = 2·v/max − 1`) or 32-bit float
+    /// OpenEXR. Black, transparent and zero-length pixels are background; the job fails
+    /// (422) when the map does not decode to unit normals or has no usable pixel.
+    #[schema(value_type = ImageFile, required = false)]
+    normals: Option<Vec<u8>>,
+    /// With `normals`: how its green channel points, `opengl` (y up, the default; aliases
+    /// `project`, `benchmark`) or `directx` (y down).
+    #[schema(value_type = Convention, required = false)]
+    convention: Option<String>,
     /// Optional webhook: an `http://` URL on the server's allow-list that the job resource
     /// is POSTed to when the job ends, signed with the tenant's webhook secret
     /// (`Webhook-Timestamp`, `Webhook-Signature: v1=<hex HMAC-SHA256 of "timestamp.body">`).

@@ -5,6 +5,10 @@
 //!
 //! Nothing the caller sends becomes a path: images are stored as `000.img`, `001.img`, …
 //! and `manifest.json` maps them to the names the light table uses.
+//!
+//! A normals job sends a `normals` part (a normal map, stored as `normals.img`) instead of
+//! images and lights; its header, the mask's size and the camera are checked here, its
+//! pixels by the job.
 
 use std::collections::HashMap;
 use std::fs::File;
@@ -28,11 +32,16 @@ use serde::Deserialize;
 use crate::core::camera::{self, Pinhole};
 use crate::core::layout;
 use crate::core::lights::{self, Light};
+use crate::core::normalmap::{self, Convention, NormalMapError};
+use crate::core::normals_in;
 use crate::core::options::MaskMode;
 use crate::core::outputs;
 use crate::core::{InputError, Options};
 
-use super::blobs::{LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, image_file};
+use super::blobs::{
+    LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, NORMALS_FILE, NormalsEntry,
+    image_file,
+};
 use super::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use super::error::ApiError;
 use super::idempotency::PartHasher;
@@ -148,13 +157,15 @@ const MAX_CALIBRATION_BYTES: usize = 256;
 /// Longest camera file accepted (`camera` part, or a camera file in an archive): a K.txt
 /// or camera.json is a few dozen bytes.
 const MAX_CAMERA_BYTES: usize = 4096;
+/// Longest `convention` part accepted (bytes; `benchmark` is 9).
+const MAX_CONVENTION_BYTES: usize = 64;
 
 /// The light table of a job's `calibration` part (the id as sent), as the caller may see
 /// it; a 422 naming the id when there is none.
 pub type CalibrationTables<'a> =
     &'a (dyn Fn(String) -> BoxFuture<'static, Result<Vec<u8>, ApiError>> + Send + Sync);
 
-/// An image stored in the staging directory.
+/// An image (or a mask, a normal map) stored in the staging directory.
 #[derive(Debug, Clone)]
 struct StoredImage {
     /// The caller's name for it (what the light table says).
@@ -165,6 +176,15 @@ struct StoredImage {
     height: u32,
     /// Bits per sample (8, 16 or 32), as the core will decode it.
     depth: u8,
+}
+
+impl StoredImage {
+    fn entry(&self) -> ManifestEntry {
+        ManifestEntry {
+            name: self.name.clone(),
+            file: self.file.clone(),
+        }
+    }
 }
 
 /// A received, checked job, ready to be queued.
@@ -193,6 +213,12 @@ struct Parts {
     calibration: Option<String>,
     /// The `camera` part: a K.txt's or camera.json's text, or `fx,fy,cx,cy`.
     camera: Option<Pinhole>,
+    /// The `normals` part: a normal map to integrate instead of images and lights.
+    normals: Option<StoredImage>,
+    /// The `convention` part: how the normal map's green channel points.
+    convention: Option<Convention>,
+    /// The top-level fields the options part names.
+    options_fields: Vec<String>,
     count: usize,
     /// Bytes of image and mask files written so far (bounded by `max_input_bytes`).
     stored: u64,
@@ -225,6 +251,9 @@ pub async fn receive(
         }
         let part = field.name().unwrap_or_default().to_string();
         hash.part(&part, field.file_name());
+        if parts.normals.is_some() && IMAGE_JOB_PARTS.contains(&part.as_str()) {
+            return Err(normals_with(&part));
+        }
         match part.as_str() {
             "images" => {
                 if parts.archive.is_some() {
@@ -268,11 +297,7 @@ pub async fn receive(
             }
             "mask" => {
                 once(&parts.mask, "mask")?;
-                let name = field
-                    .file_name()
-                    .filter(|n| !n.is_empty())
-                    .unwrap_or("mask")
-                    .to_string();
+                let name = file_name_or(&field, "mask");
                 let target = dir.join(MASK_FILE);
                 let stored = Some((&mut parts.stored, name.as_str()));
                 let (head, _) =
@@ -299,8 +324,11 @@ pub async fn receive(
                 let bytes =
                     read_small(&mut field, MAX_OPTIONS_BYTES, "options", tap, config, hash).await?;
                 let options = parse_options(&bytes)?;
-                let names_mask = serde_json::from_slice::<serde_json::Value>(&bytes)
-                    .is_ok_and(|v| v.get("mask").is_some());
+                parts.options_fields = serde_json::from_slice::<serde_json::Value>(&bytes)
+                    .ok()
+                    .and_then(|v| Some(v.as_object()?.keys().cloned().collect()))
+                    .unwrap_or_default();
+                let names_mask = parts.options_fields.iter().any(|f| f == "mask");
                 parts.mask_chosen = names_mask.then_some(options.mask);
                 parts.options = Some(options);
             }
@@ -362,20 +390,61 @@ pub async fn receive(
                 }
                 parts.archive = Some(path);
             }
+            "normals" => {
+                once(&parts.normals, "normals")?;
+                if let Some(other) = parts.image_job_part() {
+                    return Err(normals_with(other));
+                }
+                let name = file_name_or(&field, "normals");
+                let target = dir.join(NORMALS_FILE);
+                let stored = Some((&mut parts.stored, name.as_str()));
+                let (head, _) =
+                    stream_to_file(&mut field, &target, tap, config, hash, stored).await?;
+                let (width, height, depth) =
+                    probe_normals(target, name.clone(), head, config).await?;
+                parts.normals = Some(StoredImage {
+                    name,
+                    file: NORMALS_FILE.to_string(),
+                    width,
+                    height,
+                    depth,
+                });
+            }
+            "convention" => {
+                once(&parts.convention, "convention")?;
+                let bytes = read_small(
+                    &mut field,
+                    MAX_CONVENTION_BYTES,
+                    "convention",
+                    tap,
+                    config,
+                    hash,
+                )
+                .await?;
+                parts.convention = Some(parse_convention(&bytes)?);
+            }
             "" => {
-                return Err(ApiError::bad_request(
-                    "a multipart part has no name; expected images, lights, calibration, mask, camera, options, callback_url or archive",
-                ));
+                return Err(ApiError::bad_request(format!(
+                    "a multipart part has no name; expected {PART_NAMES}"
+                )));
             }
             other => {
                 return Err(ApiError::bad_request(format!(
-                    "unknown part {other:?}; expected images, lights, calibration, mask, camera, options, callback_url or archive"
+                    "unknown part {other:?}; expected {PART_NAMES}"
                 )));
             }
         }
     }
 
     let mut options = parts.options.take().unwrap_or_default();
+    if parts.normals.is_some() {
+        return finish_normals(parts, options, dir).await;
+    }
+    if parts.convention.is_some() {
+        return Err(ApiError::invalid(
+            "a convention part goes with a normals part: it says how the normal map's green channel points",
+        ));
+    }
     let mut notes = Vec::new();
     if let Some(archive) = parts.archive.take() {
         let limits = ArchiveLimits::from(config);
@@ -426,7 +495,7 @@ pub async fn receive(
         (None, Some(id)) => calibrations(id.clone()).await?,
         (None, None) => {
             return Err(ApiError::bad_request(
-                "missing the lights part (the light table: CSV `name, x, y, z[, intensity]`, JSON or .lp), a calibration part or an archive part",
+                "missing the lights part (the light table: CSV `name, x, y, z[, intensity]`, JSON or .lp), a calibration part or an archive part; or send a normals part (a normal map to integrate)",
             ));
         }
     };
@@ -462,7 +531,111 @@ pub async fn receive(
         )
         .into());
     }
-    if let Some(camera) = parts.camera {
+    take_camera_part(&mut options, parts.camera)?;
+    let first = ordered[0];
+    options.check_camera(first.width as usize, first.height as usize)?;
+
+    let manifest = Manifest {
+        images: ordered.iter().map(|i| i.entry()).collect(),
+        mask: parts.mask.as_ref().map(StoredImage::entry),
+        normals: None,
+        notes,
+    };
+    write_manifest(dir, &manifest).await?;
+    tokio::fs::write(dir.join(LIGHTS_FILE), &table).await?;
+    received(ordered.len(), &options, parts.callback_url)
+}
+
+/// A normals job's parts checked against each other, and its manifest written: its
+/// options name only the fields it takes, a mask has the map's size, a camera (part or
+/// option) fits the map. The map's pixels are the job's to check (unit length, usable
+/// pixels): it fails naming them.
+async fn finish_normals(
+    mut parts: Parts,
+    mut options: Options,
+    dir: &Path,
+) -> Result<Received, ApiError> {
+    let Some(map) = parts.normals.take() else {
+        return Err(ApiError::internal("no normals part"));
+    };
+    let other = (parts.options_fields.iter()).find(|f| !normals_in::OPTIONS.contains(&f.as_str()));
+    if let Some(field) = other {
+        return Err(InputError::Options(format!(
+            "field `{field}` does not apply to a normals job, which takes {}",
+            normals_in::OPTIONS.join(", ")
+        ))
+        .into());
+    }
+    if let Some(mask) = &parts.mask
+        && (mask.width, mask.height) != (map.width, map.height)
+    {
+        return Err(NormalMapError::MaskSize {
+            mask: mask.name.clone(),
+            mask_width: mask.width as usize,
+            mask_height: mask.height as usize,
+            name: map.name.clone(),
+            width: map.width as usize,
+            height: map.height as usize,
+        }
+        .into());
+    }
+    take_camera_part(&mut options, parts.camera)?;
+    options.check_camera(map.width as usize, map.height as usize)?;
+    let manifest = Manifest {
+        images: Vec::new(),
+        mask: parts.mask.as_ref().map(StoredImage::entry),
+        normals: Some(NormalsEntry {
+            name: map.name,
+            file: map.file,
+            convention: parts.convention.unwrap_or_default(),
+        }),
+        notes: Vec::new(),
+    };
+    write_manifest(dir, &manifest).await?;
+    received(0, &options, parts.callback_url)
+}
+
+/// The parts of an image job, which a normals job replaces.
+const IMAGE_JOB_PARTS: [&str; 4] = ["images", "lights", "calibration", "archive"];
+
+/// Every part name `POST /v1/jobs` takes, for refusals.
+const PART_NAMES: &str = "images, lights, calibration, mask, camera, options, callback_url, archive, normals or convention";
+
+impl Parts {
+    /// The first of [`IMAGE_JOB_PARTS`] received, if any.
+    fn image_job_part(&self) -> Option<&'static str> {
+        let sent = [
+            !self.images.is_empty(),
+            self.lights.is_some(),
+            self.calibration.is_some(),
+            self.archive.is_some(),
+        ];
+        IMAGE_JOB_PARTS
+            .into_iter()
+            .zip(sent)
+            .find_map(|(part, sent)| sent.then_some(part))
+    }
+}
+
+fn normals_with(part: &str) -> ApiError {
+    ApiError::invalid(format!(
+        "the upload has both a normals part and {part}: a normals job integrates the normal map it is sent (with an optional mask, camera, convention and options) and takes no images, lights, calibration or archive"
+    ))
+}
+
+/// The `convention` part: `opengl` (aliases `project`, `benchmark`) or `directx`.
+fn parse_convention(bytes: &[u8]) -> Result<Convention, ApiError> {
+    let text = String::from_utf8_lossy(bytes).trim().to_string();
+    serde_json::from_value(serde_json::Value::String(text.clone())).map_err(|_| {
+        ApiError::invalid(format!(
+            "convention: {text:?} is not a normal map convention; expected opengl (green up; aliases project, benchmark) or directx (green down)"
+        ))
+    })
+}
+
+/// The `camera` part becomes the `camera` option; a 422 when both were sent.
+fn take_camera_part(options: &mut Options, part: Option<Pinhole>) -> Result<(), ApiError> {
+    if let Some(camera) = part {
         if options.camera.is_some() {
             return Err(ApiError::invalid(
                 "send the camera either as the camera part or as the `camera` option, not both",
@@ -470,32 +643,26 @@ pub async fn receive(
         }
         options.camera = Some(camera);
     }
-    let first = ordered[0];
-    options.check_camera(first.width as usize, first.height as usize)?;
+    Ok(())
+}
 
-    let manifest = Manifest {
-        images: ordered
-            .iter()
-            .map(|i| ManifestEntry {
-                name: i.name.clone(),
-                file: i.file.clone(),
-            })
-            .collect(),
-        mask: parts.mask.as_ref().map(|m| ManifestEntry {
-            name: m.name.clone(),
-            file: m.file.clone(),
-        }),
-        notes,
-    };
-    let manifest = serde_json::to_vec_pretty(&manifest)
+async fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), ApiError> {
+    let bytes = serde_json::to_vec_pretty(manifest)
         .map_err(|e| ApiError::internal(format!("manifest: {e}")))?;
-    tokio::fs::write(dir.join(MANIFEST_FILE), manifest).await?;
-    tokio::fs::write(dir.join(LIGHTS_FILE), &table).await?;
+    tokio::fs::write(dir.join(MANIFEST_FILE), bytes).await?;
+    Ok(())
+}
+
+fn received(
+    image_count: usize,
+    options: &Options,
+    callback_url: Option<String>,
+) -> Result<Received, ApiError> {
     Ok(Received {
-        image_count: ordered.len(),
-        options: serde_json::to_value(&options)
+        image_count,
+        options: serde_json::to_value(options)
             .map_err(|e| ApiError::internal(format!("options: {e}")))?,
-        callback_url: parts.callback_url,
+        callback_url,
     })
 }
 
@@ -580,6 +747,15 @@ pub(super) fn multipart_error(e: MultipartError, tap: &BodyTap, config: &Config)
     } else {
         ApiError::bad_request(format!("malformed multipart body: {}", e.body_text()))
     }
+}
+
+/// A part's file name, or `default` when it has none.
+fn file_name_or(field: &Field<'_>, default: &str) -> String {
+    field
+        .file_name()
+        .filter(|n| !n.is_empty())
+        .unwrap_or(default)
+        .to_string()
 }
 
 /// The file name of an image part: the name the light table uses for it.
@@ -766,6 +942,43 @@ fn probe_image(
     head: &[u8],
     max_pixels: u64,
 ) -> Result<(u32, u32, u8), InputError> {
+    let (w, h, colour) = read_header(path, name, head, max_pixels)?;
+    // Bits per sample of what the decoder will produce (the core's bit depth).
+    let depth = 8 * colour.bytes_per_pixel() / colour.channel_count().max(1);
+    Ok((w, h, depth))
+}
+
+/// A normal map's dimensions and bits per sample (8, 16 or 32) from its header: a 422
+/// naming the part's file when it is no normal map (unrecognised, gray), 413 over the
+/// pixel limit.
+async fn probe_normals(
+    path: PathBuf,
+    name: String,
+    head: Vec<u8>,
+    config: &Config,
+) -> Result<(u32, u32, u8), ApiError> {
+    let max_pixels = config.max_pixels;
+    tokio::task::spawn_blocking(move || {
+        let (w, h, colour) = read_header(&path, &name, &head, max_pixels).map_err(|e| {
+            if e.is_too_large() || matches!(e, InputError::Io { .. }) {
+                ApiError::from(e)
+            } else {
+                NormalMapError::unreadable(&name, e).into()
+            }
+        })?;
+        Ok((w, h, normalmap::bits_of(&name, colour)?))
+    })
+    .await?
+}
+
+/// Recognise a picture from its first bytes `head` and read its dimensions and colour
+/// type from the header; refused over `max_pixels`.
+fn read_header(
+    path: &Path,
+    name: &str,
+    head: &[u8],
+    max_pixels: u64,
+) -> Result<(u32, u32, image::ColorType), InputError> {
     use image::ImageDecoder;
     let format = image::guess_format(head).map_err(|_| InputError::UnsupportedFormat {
         name: name.into(),
@@ -785,9 +998,7 @@ fn probe_image(
             },
         })?;
     let (w, h) = decoder.dimensions();
-    // Bits per sample of what the decoder will produce (the core's bit depth).
     let colour = decoder.color_type();
-    let depth = 8 * colour.bytes_per_pixel() / colour.channel_count().max(1);
     let pixels = u64::from(w) * u64::from(h);
     if pixels > max_pixels {
         return Err(InputError::TooLarge {
@@ -798,7 +1009,7 @@ fn probe_image(
             limit: max_pixels,
         });
     }
-    Ok((w, h, depth))
+    Ok((w, h, colour))
 }
 
 /// The refusal of the part `name` that takes a job's stored input files past `limit`

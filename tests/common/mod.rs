@@ -7,6 +7,8 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use ndarray::Array2;
+use photostereo::core::camera::Pinhole;
 use photostereo::core::synth::{self, Capture, Scene};
 use photostereo::service::{AppState, Config, serve_with};
 use reqwest::multipart::{Form, Part};
@@ -413,7 +415,7 @@ pub const PINHOLE_K: &str = "80 0 31.5\n0 80 31.5\n0 0 1\n";
 /// camera-frame normals, and depth along the optical axis as `truth/depth.exr`, as the
 /// renderer writes a perspective set.
 pub fn pinhole_sphere_set(dir: &Path) {
-    let k = photostereo::core::camera::Pinhole::parse(PINHOLE_K).unwrap();
+    let k = Pinhole::parse(PINHOLE_K).unwrap();
     let (rho, centre) = (2.0, [0.0, 0.0, -6.0]);
     // The near hit of pixel (x, y)'s ray: depth t and the outward normal (nz > 0 all over
     // a sphere centred on the axis).
@@ -439,4 +441,64 @@ pub fn pinhole_sphere_set(dir: &Path) {
     let lights = synth::light_rings(12, 15.0, 45.0);
     synth::write_set(dir, &scene, &lights, &Capture::default()).unwrap();
     std::fs::write(dir.join("K.txt"), PINHOLE_K).unwrap();
+}
+
+/// A 16-bit normal map of project-frame normals `n(row, col)` (x right, y down, z towards
+/// the camera), black where `None`, encoded as the project's `normal.png` is
+/// (`v = (n + 1)/2 · 65535`): green = y up (OpenGL), or y down (DirectX) when `green_down`.
+pub fn normal_map_png16(
+    (w, h): (u32, u32),
+    green_down: bool,
+    n: impl Fn(u32, u32) -> Option<[f64; 3]>,
+) -> Vec<u8> {
+    let encode = |v: f64| ((v + 1.0) / 2.0 * 65535.0).round() as u16;
+    let img = image::ImageBuffer::from_fn(w, h, |c, r| match n(r, c) {
+        Some([x, y, z]) => image::Rgb([x, if green_down { y } else { -y }, z].map(encode)),
+        None => image::Rgb([0u16; 3]),
+    });
+    photostereo::core::outputs::png_bytes(&img)
+}
+
+/// A sphere of radius `radius` px seen orthographically, centred in a `size²` frame: its
+/// normal at (row, col), and its true height there (NaN off the disc).
+pub fn ortho_sphere(
+    size: u32,
+    radius: f64,
+) -> (impl Fn(u32, u32) -> Option<[f64; 3]>, Array2<f64>) {
+    let c = (f64::from(size) - 1.0) / 2.0;
+    let at = move |r: u32, col: u32| {
+        let (x, y) = (f64::from(col) - c, f64::from(r) - c);
+        let z2 = radius * radius - x * x - y * y;
+        (z2 > 0.0).then(|| [x, y, z2.sqrt()])
+    };
+    let n = size as usize;
+    let truth = Array2::from_shape_fn((n, n), |(r, col)| {
+        at(r as u32, col as u32).map_or(f64::NAN, |p| p[2])
+    });
+    (
+        move |r, col| at(r, col).map(|p| p.map(|v| v / radius)),
+        truth,
+    )
+}
+
+/// A sphere of radius 3 at depth 10 on the optical axis of `k`, in a 96 × 80 frame: a
+/// 16-bit OpenGL normal map (black background) and its true depth (NaN off it).
+pub fn pinhole_sphere_normal_map(k: &Pinhole) -> (Vec<u8>, Array2<f64>) {
+    let (w, h, rho, dist) = (96u32, 80u32, 3.0, 10.0);
+    let hit = |r: u32, c: u32| {
+        let d = k.ray(c as f64, r as f64);
+        let dd: f64 = d.iter().map(|v| v * v).sum();
+        let dc = -d[2] * dist;
+        let disc = dc * dc - dd * (dist * dist - rho * rho);
+        (disc > 0.0).then(|| {
+            let t = (dc - disc.sqrt()) / dd;
+            let n = [d[0] * t / rho, d[1] * t / rho, (-t + dist) / rho];
+            (t, n)
+        })
+    };
+    let map = normal_map_png16((w, h), false, |r, c| hit(r, c).map(|(_, n)| n));
+    let truth = Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
+        hit(r as u32, c as u32).map_or(f64::NAN, |(t, _)| t)
+    });
+    (map, truth)
 }
