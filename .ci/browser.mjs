@@ -8,16 +8,18 @@
 // through the page, waits for the job to succeed, then checks that the relighting canvas
 // draws, that it changes when the light is dragged, that the 3-D canvas draws the mesh;
 // then a job whose outputs have no mesh.glb, whose 3-D view draws the height map as a
-// grid; then a calibration made over the API, offered in the form and picked for a job
-// that runs on its lights; that the page logged no console errors; then that a refused
-// light table is shown as the problem's title and detail beside it.
+// grid; then a normal map (that job's normal.png) picked and integrated, its mesh drawn;
+// then a calibration made over the API, offered in the form and picked for a job that
+// runs on its lights; that the page logged no console errors; then that a refused light
+// table is shown as the problem's title and detail beside it.
 // On the server with a key (--keyed): the page asks for the key before calling the API
 // (no console error), says a wrong key is not valid, and with the right key submits and
 // shows the result. A refused request is logged by Chromium as "Failed to load resource:
 // the server responded with a status of 4xx": those two (the 422 of the refused table, the
 // 401 of the wrong key) are the only console errors accepted, each after its step.
 // Screenshots go to the given directory only (never into the repository).
-import { readdirSync, readFileSync } from "node:fs";
+import { mkdtempSync, readdirSync, readFileSync, writeFileSync } from "node:fs";
+import { tmpdir } from "node:os";
 import { basename, join } from "node:path";
 import { parseArgs } from "node:util";
 import { launch } from "./browser-drivers.mjs";
@@ -85,10 +87,15 @@ const drawn = async (id, share) => {
 // Drop the set's files on the form (ticking `outputs`, if any), submit, wait for the new
 // job to end; returns its status and id. The result opens by itself when it succeeds.
 async function submitSet(outputs = []) {
-  const before = await page.evaluate(() => document.querySelectorAll("#jobs tbody tr").length);
   await page.files("[data-testid=file-input]", files);
   await page.waitFor(() => document.querySelector("#file-list li") && document.getElementById("lights").value.trim());
   for (const name of outputs) await page.click(`#options input[type=checkbox][value="${name}"]`);
+  return submitAndWait();
+}
+
+// Submit the form as it is and wait for the new job to end; returns its status and id.
+async function submitAndWait() {
+  const before = await page.evaluate(() => document.querySelectorAll("#jobs tbody tr").length);
   await page.click("[data-testid=submit]");
   await page.waitFor(
     (n) => {
@@ -200,6 +207,27 @@ try {
     `raking from either side, the grid's half on that side is the brighter (left ${gridLeft.half}, right ${gridRight.half})`,
   );
   if (arg.shots) await page.screenshot("[data-testid=mesh-canvas]", join(arg.shots, "grid.png"));
+
+  // A normal map picked instead of the set (that job's normal.png): its job integrates the
+  // map, and the 3-D view draws the mesh it wrote. The outputs ticked above are
+  // unticked first: a normals job takes no `outputs` option.
+  await page.evaluate(() => {
+    for (const c of document.querySelectorAll("#options input[type=checkbox]:checked")) c.checked = false;
+  });
+  const normalMap = join(mkdtempSync(join(tmpdir(), "photostereo-normals-")), "normal.png");
+  const normalPng = await fetch(`${arg.open}/v1/jobs/${job.id}/artifacts/normal.png`);
+  writeFileSync(normalMap, Buffer.from(await normalPng.arrayBuffer()));
+  await page.files("[data-testid=normals-input]", [normalMap]);
+  const integrated = await submitAndWait();
+  check(integrated.status === "succeeded", `a job of a picked normal map succeeds (${integrated.status})`);
+  await resultShown(integrated.id, "mesh");
+  const normalsJob = await (await fetch(`${arg.open}/v1/jobs/${integrated.id}`)).json();
+  check(
+    normalsJob.image_count === 0 && "height.png" in (normalsJob.artifacts || {}),
+    `that job integrated the map into heights (${Object.keys(normalsJob.artifacts || {}).join(", ")})`,
+  );
+  const normalsMesh = await drawn("mesh-canvas", 1 / 50);
+  check(normalsMesh.lit > normalsMesh.total / 50, `the 3-D canvas draws its mesh (${normalsMesh.lit} of ${normalsMesh.total} pixels lit)`);
   check(errorsSince(0).length === 0, `no console errors${page.errors.length ? ": " + page.errors.join(" | ") : ""}`);
 
   // A calibration made over the API is offered in the form, and a job that picks it runs

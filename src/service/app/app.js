@@ -53,6 +53,7 @@ function isMask(name) {
 
 async function takeFiles(files) {
   clearProblems();
+  $("normals-input").value = ""; // images replace a normal map
   upload.images = [];
   upload.mask = null;
   upload.archive = null;
@@ -124,6 +125,13 @@ function wireDrop() {
     drop.classList.remove("over");
     takeFiles(await droppedFiles(e.dataTransfer));
   });
+  // A normal map replaces the images (a dropped mask goes with it).
+  $("normals-input").addEventListener("change", () => {
+    clearProblems();
+    upload.images = [];
+    upload.archive = null;
+    listFiles();
+  });
   for (const id of ["file-input", "folder-input"]) {
     $(id).addEventListener("change", async (e) => {
       await takeFiles([...e.target.files]);
@@ -139,7 +147,11 @@ async function submit(e) {
   clearProblems();
   const form = new FormData();
   const calibration = $("calibration-field").hidden ? "" : $("calibration").value;
-  if (upload.archive) {
+  const normals = $("normals-input").files[0];
+  if (normals) {
+    form.append("normals", normals, normals.name);
+    if ($("convention").value !== "opengl") form.append("convention", $("convention").value);
+  } else if (upload.archive) {
     form.append("archive", upload.archive, upload.archive.name);
   } else {
     if (!upload.images.length) {
@@ -310,15 +322,17 @@ async function showResult(job) {
   );
   if (token !== shown) return;
   showMaps($("maps"), images, job);
+  // A normal map's job has no albedo: its surface is white on the mask.
+  const surface = { ...images, "albedo.png": images["albedo.png"] || images["mask.png"] };
   relight ??= new Relight($("relight-canvas"));
-  relight.setImages(images);
+  relight.setImages(surface);
   meshView ??= new MeshView($("mesh-canvas"));
   if (a["mesh.glb"]) {
     const glb = await (await api.raw("GET", a["mesh.glb"])).arrayBuffer();
     if (token !== shown) return;
-    meshView.setSurface(parseGlb(glb), images["albedo.png"], "mesh");
-  } else if (images["height.png"] && images["albedo.png"]) {
-    meshView.setSurface(gridFromMaps(images, job.result || {}), images["albedo.png"], "grid");
+    meshView.setSurface(parseGlb(glb), surface["albedo.png"], "mesh");
+  } else if (images["height.png"] && surface["albedo.png"]) {
+    meshView.setSurface(gridFromMaps(surface, job.result || {}), surface["albedo.png"], "grid");
   } else {
     meshView.setMessage("This job wrote neither mesh.glb nor height.png and albedo.png (choose them in the outputs to see the surface).");
   }
