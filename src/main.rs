@@ -127,10 +127,18 @@ struct ReconstructArgs {
     /// Mesh: photometric | geometric vertex normals.
     #[arg(long, value_parser = kebab::<MeshNormals>)]
     mesh_normals: Option<MeshNormals>,
+    #[command(flatten)]
+    camera: CameraArgs,
+}
+
+/// A pinhole camera, making the surface depth along the optical axis (depth.png,
+/// depth.exr, points.ply; the mesh unprojected through it).
+#[derive(Args)]
+struct CameraArgs {
     /// A pinhole camera: a K.txt (3 × 3) or camera.json file, or fx,fy,cx,cy in pixels.
-    /// The surface is then depth along the optical axis (depth.png, depth.exr, points.ply;
-    /// the mesh unprojected through it). Without this flag or --focal-length, the folder's
-    /// own camera.json or K.txt is used; without any, orthographic heights in pixels.
+    /// Without it or --focal-length, `reconstruct` uses the folder's own camera.json or
+    /// K.txt, `integrate` no camera (a file beside the map is only noted); without any,
+    /// orthographic heights in pixels.
     #[arg(long)]
     camera: Option<String>,
     /// A pinhole camera with this focal length in pixels and its principal point at the
@@ -143,18 +151,22 @@ struct ReconstructArgs {
     distance: Option<f64>,
 }
 
-/// Where `--camera` / `--focal-length` say the camera comes from, if they are given.
-fn camera_flags(camera: Option<&str>, focal_length: Option<f64>) -> anyhow::Result<Option<Lens>> {
-    use photostereo::core::camera::Pinhole;
-    Ok(match (camera, focal_length) {
-        // A file when one is there, else the four numbers.
-        (Some(c), _) if Path::new(c).is_file() => Some(Lens::Pinhole(Pinhole::read(Path::new(c))?)),
-        (Some(c), _) => Some(Lens::Pinhole(Pinhole::parse(c).with_context(|| {
-            format!("--camera {c:?} is neither a file nor fx,fy,cx,cy")
-        })?)),
-        (None, Some(f)) => Some(Lens::Centred { focal_px: f }),
-        (None, None) => None,
-    })
+impl CameraArgs {
+    /// Where `--camera` / `--focal-length` say the camera comes from, if they are given.
+    fn lens(&self) -> anyhow::Result<Option<Lens>> {
+        use photostereo::core::camera::Pinhole;
+        Ok(match (self.camera.as_deref(), self.focal_length) {
+            // A file when one is there, else the four numbers.
+            (Some(c), _) if Path::new(c).is_file() => {
+                Some(Lens::Pinhole(Pinhole::read(Path::new(c))?))
+            }
+            (Some(c), _) => Some(Lens::Pinhole(Pinhole::parse(c).with_context(|| {
+                format!("--camera {c:?} is neither a file nor fx,fy,cx,cy")
+            })?)),
+            (None, Some(f)) => Some(Lens::Centred { focal_px: f }),
+            (None, None) => None,
+        })
+    }
 }
 
 #[derive(Args)]
@@ -170,20 +182,8 @@ struct IntegrateArgs {
     /// must have the map's size.
     #[arg(long)]
     mask: Option<PathBuf>,
-    /// A pinhole camera: a K.txt (3 × 3) or camera.json file, or fx,fy,cx,cy in pixels.
-    /// Perspective integration (depth along the optical axis) only with this flag or
-    /// --focal-length: a K.txt or camera.json beside the map is NOT used unless named here
-    /// (the run notes it). Without a camera: orthographic heights in pixels.
-    #[arg(long)]
-    camera: Option<String>,
-    /// A pinhole camera with this focal length in pixels and its principal point at the
-    /// image centre.
-    #[arg(long, conflicts_with = "camera")]
-    focal_length: Option<f64>,
-    /// With a camera: the working distance, the median depth over the mask (metric depth
-    /// in its unit); without it depth is relative, median 1.
-    #[arg(long, allow_hyphen_values = true)]
-    distance: Option<f64>,
+    #[command(flatten)]
+    camera: CameraArgs,
     /// How the map's green channel points: opengl (y up; also the project's normal.png and
     /// the benchmarks' x right, y up, z to the camera: aliases project, benchmark) or
     /// directx (y down).
@@ -199,10 +199,10 @@ fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
     use photostereo::core::normalmap;
     use photostereo::core::normals_in::{self, Settings};
     let start = std::time::Instant::now();
-    let lens = camera_flags(args.camera.as_deref(), args.focal_length)?;
+    let lens = args.camera.lens()?;
     let mut settings = Settings {
         integration: args.integration.unwrap_or_default(),
-        distance: args.distance,
+        distance: args.camera.distance,
         ..Settings::default()
     };
     if lens.is_none()
@@ -468,8 +468,8 @@ impl ReconstructArgs {
         if self.pixel_size.is_some() {
             o.mesh.pixel_size = self.pixel_size;
         }
-        if self.distance.is_some() {
-            o.distance = self.distance;
+        if self.camera.distance.is_some() {
+            o.distance = self.camera.distance;
         }
         o.check_values()?;
         Ok((o, chosen))
@@ -488,7 +488,7 @@ impl ReconstructArgs {
     /// The camera of a `width × height` set: `flags` (--camera or --focal-length), else the
     /// options file's, else the folder's own camera.json or K.txt. Returns the notes for
     /// `result.json`: which file was used, or left unused.
-    fn camera(
+    fn resolve_camera(
         &self,
         flags: Option<Lens>,
         opts: &mut Options,
@@ -521,7 +521,7 @@ impl ReconstructArgs {
 
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let (mut opts, chosen) = args.options()?;
-    let flags = camera_flags(args.camera.as_deref(), args.focal_length)?;
+    let flags = args.camera.lens()?;
     let start = std::time::Instant::now();
     let scratch = args.scratch_dir();
     let set = stream::open_dir(
@@ -536,7 +536,7 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     }
     let mut notes = set.info().notes.clone();
     let size = (set.info().width, set.info().height);
-    notes.extend(args.camera(flags, &mut opts, size)?);
+    notes.extend(args.resolve_camera(flags, &mut opts, size)?);
     for note in &notes {
         eprintln!("note: {note}");
     }
