@@ -129,22 +129,23 @@ fn check(name: &str, dir: &Path, auto_mean: f64, given_mean: f64) {
 }
 
 // The target is a mean of 0.6° at most and a max of 2°, with the outline found
-// automatically. psbox meets it. harvard does not (0.90°): its fitted outline lies 2 px
-// from the authors' hand-fitted circle, and their rule is pulled by a room light (below).
-// Its bound is today's figure, so that a change that makes it worse fails.
+// automatically. psbox meets it. harvard does not quite (0.64°): its rim is a faint ramp
+// 10 px wide, and the fitted outline lies 2.2 px from the authors' hand-fitted circle
+// (with theirs: 0.31°). Its bound is today's figure, so that a change that makes it worse
+// fails.
 
 #[test]
 fn real_psbox_ball_12_lights_within_2_degrees() {
     let dir = seed::real!("chrome/psbox-probe1");
-    check("psbox-probe1", &dir, 0.60, 0.40);
+    check("psbox-probe1", &dir, 0.60, 0.30);
 }
 
 #[test]
 fn real_harvard_ball_with_a_room_light_20_lights_within_2_degrees() {
-    // A room light's reflection, saturated, sits near (988, 560) in every image and moves
-    // a little with the rig's light: it must never be taken for the light. The authors'
-    // rule takes its pixels into their median, which pulls their lights about 0.7° towards
-    // it; the finder does not, so the given-circle bound is 0.7°, not 0.6°.
+    // Besides the light, each image clips where the light shines on something to the
+    // ball's right (near (985, 570), moving with the light): an echo of the light that the
+    // environment cannot explain. The median takes it in by its share of the light, as
+    // the authors' rule does.
     let dir = seed::real!("chrome/harvard-cat-probe1");
-    check("harvard-cat-probe1", &dir, 0.95, 0.70);
+    check("harvard-cat-probe1", &dir, 0.66, 0.35);
 }
