@@ -642,3 +642,204 @@ async fn a_job_with_a_calibration_matches_the_job_with_the_true_lights_within_ha
         "the two jobs must differ a little: the lights are measured"
     );
 }
+
+/// A `circle` part per ball of a rendered set, the first ball first.
+fn with_circles(form: Form, set: &ChromeSet) -> Form {
+    set.balls().iter().fold(form, |f, (c, r)| {
+        f.text("circle", format!("{},{},{r}", c[0], c[1]))
+    })
+}
+
+async fn get_text(s: &TestServer, path: &str) -> (String, String) {
+    let r = s.client.get(s.url(path)).send().await.unwrap();
+    assert_eq!(r.status(), 200, "GET {path}");
+    let content_type = r.headers()["content-type"].to_str().unwrap().to_string();
+    (content_type, r.text().await.unwrap())
+}
+
+/// The worst distance between a calibration's light positions and the true ones, as a
+/// fraction of the light's distance from between the balls; `per_radius` is the
+/// positions' unit per ball radius (1 in ball radii).
+fn position_errors(set: &ChromeSet, cal: &Value, per_radius: f64) -> f64 {
+    let truth = set.light_positions.as_ref().unwrap();
+    let balls = set.balls();
+    let radius = balls.iter().map(|b| b.1).sum::<f64>() / balls.len() as f64;
+    let c0 = set.centre;
+    let mid = [
+        (balls[0].0[0] + balls[1].0[0]) / 2.0,
+        (balls[0].0[1] + balls[1].0[1]) / 2.0,
+        0.0,
+    ];
+    let dist = |a: [f64; 3], b: [f64; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt();
+    let lights = cal["lights"].as_array().unwrap();
+    assert_eq!(lights.len(), truth.len(), "{cal}");
+    let mut worst = 0.0f64;
+    for l in lights {
+        let p = &l["position"];
+        assert!(p.is_object(), "two balls place every light: {l}");
+        let at = |k: &str| p[k].as_f64().unwrap() / per_radius * radius;
+        // Orthographic: from the first ball's centre, back to pixels.
+        let got = [at("x") + c0[0], at("y") + c0[1], at("z")];
+        let t = truth[l["number"].as_u64().unwrap() as usize - 1];
+        worst = worst.max(dist(got, t) / dist(t, mid));
+        let more = l["more_highlights"].as_array().unwrap();
+        assert_eq!(more.len(), 1, "{l}");
+        let confidence = more[0]["highlight"]["confidence"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&confidence), "{l}");
+        assert!(angle_deg(direction(&more[0]), direction(l)) > 1.0, "{l}");
+    }
+    worst
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_balls_place_each_light_within_2_percent_of_its_distance_and_keep_positions_csv() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let set = ChromeSet::near_dome(16, 77, 3.0);
+    let d = rendered(&set);
+    let balls = set.balls();
+
+    // In ball radii.
+    let cal = create(&s, with_circles(chrome_form(d.path()), &set), None).await;
+    let id = cal["id"].as_str().unwrap();
+    assert_eq!(cal["circle"]["source"], "given");
+    let more = cal["more_circles"].as_array().unwrap();
+    assert_eq!(more.len(), 1, "{cal}");
+    assert_eq!(more[0]["cx"].as_f64(), Some(balls[1].0[0]));
+    assert_eq!(more[0]["r"].as_f64(), Some(balls[1].1));
+    assert_eq!(cal["position_unit"], "ball_radii");
+    assert_eq!(cal["position_origin"], "first_ball");
+    assert!(cal["ball_diameter"].is_null(), "{cal}");
+    let worst = position_errors(&set, &cal, 1.0);
+    eprintln!(
+        "two balls over HTTP, near lights at 3 ball diameters: positions off by {:.2} % of the distance at most",
+        100.0 * worst
+    );
+    assert!(worst < 0.02, "{worst}");
+    assert_eq!(s.get_json(&format!("/v1/calibrations/{id}")).await, cal);
+
+    // positions.csv: the resource's positions, a row per light.
+    let url = format!("/v1/calibrations/{id}/positions.csv");
+    assert_eq!(cal["files"]["positions.csv"], url.as_str());
+    let (content_type, csv) = get_text(&s, &url).await;
+    assert!(content_type.starts_with("text/csv"), "{content_type}");
+    assert!(csv.starts_with("# light positions in ball radii"), "{csv}");
+    let rows: Vec<Vec<&str>> = (csv.lines())
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split(',').map(str::trim).collect())
+        .collect();
+    let lights = cal["lights"].as_array().unwrap();
+    assert_eq!(rows.len(), lights.len(), "{csv}");
+    for (row, l) in rows.iter().zip(lights) {
+        assert_eq!(row[0], l["name"].as_str().unwrap());
+        for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+            let v: f64 = row[k + 1].parse().unwrap();
+            assert!(
+                (v - l["position"][axis].as_f64().unwrap()).abs() < 1e-5,
+                "{row:?} vs {l}"
+            );
+        }
+    }
+
+    // The overlay rings the second ball too (each ring starts at angle 0: (cx + r, cy)).
+    let r = s
+        .client
+        .get(s.url(&format!("/v1/calibrations/{id}/overlay.png")))
+        .send()
+        .await
+        .unwrap();
+    let overlay = image::load_from_memory(&r.bytes().await.unwrap())
+        .unwrap()
+        .to_rgb8();
+    let ((c, radius), outline) = (balls[1], image::Rgb([40, 220, 90]));
+    let at = ((c[0] + radius).round() as u32, c[1].round() as u32);
+    assert_eq!(*overlay.get_pixel(at.0, at.1), outline, "{at:?}");
+
+    // With the balls' diameter (25.4 mm): positions in its unit, 12.7 per ball radius.
+    let form = with_circles(chrome_form(d.path()), &set).text("ball_diameter", "25.4");
+    let mm = create(&s, form, None).await;
+    assert_eq!(mm["position_unit"], "ball_diameter");
+    assert_eq!(mm["ball_diameter"].as_f64(), Some(25.4));
+    let worst = position_errors(&set, &mm, 12.7);
+    assert!(worst < 0.02, "{worst}");
+    let (a, b) = (&cal["lights"][0]["position"], &mm["lights"][0]["position"]);
+    for k in ["x", "y", "z", "residual"] {
+        let (a, b) = (a[k].as_f64().unwrap(), b[k].as_f64().unwrap());
+        assert!(
+            (b - 12.7 * a).abs() <= 1e-9 * b.abs().max(1.0),
+            "{k}: {a} vs {b}"
+        );
+    }
+    let mm_id = mm["id"].as_str().unwrap();
+    let (_, csv) = get_text(&s, &format!("/v1/calibrations/{mm_id}/positions.csv")).await;
+    assert!(
+        csv.starts_with("# light positions in the unit of the balls' diameter"),
+        "{csv}"
+    );
+
+    // One ball: no positions, and no positions.csv.
+    let one = create(&s, chrome_form(&repo_root().join("res/chrome")), None).await;
+    assert!(
+        one["position_unit"].is_null() && one["lights"][0]["position"].is_null(),
+        "{one}"
+    );
+    assert_eq!(one["more_circles"], serde_json::json!([]));
+    assert!(one["files"].get("positions.csv").is_none(), "{one}");
+    let r = s
+        .client
+        .get(s.url(&format!("{}/positions.csv", one["url"].as_str().unwrap())))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, &["positions.csv"]).await;
+    s.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_ball_diameters_and_too_many_circles_are_422_naming_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let chrome = repo_root().join("res/chrome");
+    let two = || {
+        chrome_form(&chrome)
+            .text("circle", "80,110,60")
+            .text("circle", "240,110,60")
+    };
+    for bad in ["0", "-25.4", "NaN", "inf", "1e400", "25mm", ""] {
+        let form = two().text("ball_diameter", bad);
+        let body = expect_problem(post(&s, form, None).await, 422, &["ball_diameter"]).await;
+        assert!(
+            body["detail"].as_str().unwrap().contains("positive number"),
+            "{bad}: {body}"
+        );
+    }
+    // Positions need two balls: one circle, or none, is refused as the CLI's --positions is.
+    for form in [
+        chrome_form(&chrome).text("circle", "187.3,109.6,93.4"),
+        chrome_form(&chrome),
+    ] {
+        let form = form.text("ball_diameter", "25.4");
+        expect_problem(
+            post(&s, form, None).await,
+            422,
+            &["ball_diameter", "two balls or more"],
+        )
+        .await;
+    }
+    // At most 16 balls, answered at the 17th circle.
+    let form = (0..17).fold(chrome_form(&chrome), |f, i| {
+        f.text("circle", format!("{},{},5", 10 + 15 * i, 20))
+    });
+    expect_problem(post(&s, form, None).await, 422, &["circle", "at most 16"]).await;
+    // Several circles and a mask are refused together, as one circle and a mask are.
+    let form = two().part("mask", file_part(&images_of(&chrome)[0]));
+    expect_problem(post(&s, form, None).await, 422, &["circle or as a mask"]).await;
+    assert_eq!(
+        s.get_json("/v1/calibrations").await["calibrations"]
+            .as_array()
+            .unwrap()
+            .len(),
+        0
+    );
+    s.stop().await;
+}

@@ -7,7 +7,7 @@
 //! jobs/{id}/output.partial/  a reconstruction being written
 //! jobs/{id}/output/          the finished artifacts (renamed from output.partial at once)
 //! calibrations/{id}/files.partial/  a calibration's upload and files being made
-//! calibrations/{id}/files/          its lights.csv, overlay.png, lights.png
+//! calibrations/{id}/files/          its lights.csv, overlay.png, lights.png[, positions.csv]
 //! ```
 //!
 //! The reconstruction core reads and writes local files, so every store stages uploads

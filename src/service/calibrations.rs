@@ -22,7 +22,8 @@ use uuid::Uuid;
 
 use crate::core::InputError;
 use crate::core::calibrate::{
-    self, Budget, Calibration, Camera, Circle, CircleSource, ImageFiles, Settings, Source,
+    self, Budget, CalibratedLight, Calibration, Camera, Circle, CircleSource, Highlight,
+    ImageFiles, Settings, Source,
 };
 use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
@@ -45,14 +46,19 @@ use super::util::{format_duration, now_ms, rfc3339, strong_etag};
 
 /// The `Idempotency-Key` scope of `POST /v1/calibrations`.
 const SCOPE: &str = "calibrations";
-/// Longest `circle`, `focal_length` or `skip_bad` part accepted (bytes).
+/// Longest `circle`, `ball_diameter`, `focal_length` or `skip_bad` part accepted (bytes).
 const MAX_VALUE_BYTES: usize = 256;
+/// Most `circle` parts (balls in the frame): every ball is a window of every image read,
+/// so the count is bounded like the images are.
+pub const MAX_CIRCLES: usize = 16;
 
-/// The files a calibration keeps, and their content types.
-pub const FILES: [(&str, &str); 3] = [
+/// The files a calibration keeps, and their content types (`positions.csv` only with
+/// several balls).
+pub const FILES: [(&str, &str); 4] = [
     ("lights.csv", "text/csv; charset=utf-8"),
     ("overlay.png", "image/png"),
     ("lights.png", "image/png"),
+    ("positions.csv", "text/csv; charset=utf-8"),
 ];
 
 /// A calibration: the circle used, the lights with their quality figures, the images left
@@ -69,9 +75,10 @@ pub struct CalibrationView {
     pub created_at: String,
     #[serde(flatten)]
     pub measured: Measured,
-    /// File name → download URL: `lights.csv` (the light table), `overlay.png` (circle
+    /// File name → download URL: `lights.csv` (the light table), `overlay.png` (circles
     /// and numbered highlights over the maximum image), `lights.png` (the directions on
-    /// the unit hemisphere).
+    /// the unit hemisphere) and, with several balls, `positions.csv` (the lights'
+    /// positions).
     #[schema(example = json!({"lights.csv": "/v1/calibrations/0b6f2a43-3c1e-4c51-9d1e-6c9f3a7d2e10/lights.csv"}))]
     pub files: BTreeMap<String, String>,
     /// This resource's URL.
@@ -88,7 +95,26 @@ pub struct Measured {
     pub image_count: u32,
     /// The pinhole camera's focal length in pixels; null for an orthographic camera.
     pub focal_length: Option<f64>,
+    /// The (first) ball's circle: the lights' `direction` and `highlight` are on it.
     pub circle: CircleView,
+    /// With several balls (`circle` given more than once): the other balls' circles, in
+    /// the order given; empty with one ball.
+    #[serde(default)]
+    pub more_circles: Vec<CircleView>,
+    /// The `ball_diameter` part, when given.
+    #[serde(default)]
+    pub ball_diameter: Option<f64>,
+    /// With several balls, the unit of the lights' `position`: `ball_radii`, or
+    /// `ball_diameter` (the unit `ball_diameter` was given in); null with one ball.
+    #[serde(default)]
+    #[schema(example = "ball_radii")]
+    pub position_unit: Option<String>,
+    /// With several balls, the origin of the lights' `position` (x = column right, y =
+    /// row down, z towards the camera): `first_ball` (its centre; orthographic) or
+    /// `camera` (with `focal_length`); null with one ball.
+    #[serde(default)]
+    #[schema(example = "first_ball")]
+    pub position_origin: Option<String>,
     /// One per sphere image with a usable highlight, in upload order.
     pub lights: Vec<LightView>,
     /// Images left out (`skip_bad`), and why.
@@ -101,7 +127,7 @@ pub struct CircleView {
     pub cx: f64,
     pub cy: f64,
     pub r: f64,
-    /// `fitted` (to the images' outline), `given` (the `circle` part) or `mask`.
+    /// `fitted` (to the images' outline), `given` (a `circle` part) or `mask`.
     #[schema(example = "fitted")]
     pub source: String,
     /// For a fitted circle: the fraction of the outline the fit found, and the RMS
@@ -132,6 +158,37 @@ pub struct LightView {
     pub elevation_deg: f64,
     pub azimuth_deg: f64,
     pub highlight: HighlightView,
+    /// With several balls: its highlight on each of the other balls, in the order of
+    /// `more_circles`; empty with one ball.
+    #[serde(default)]
+    pub more_highlights: Vec<MoreHighlightView>,
+    /// With several balls: where the balls' rays towards the light meet, in
+    /// `position_unit` from `position_origin`; null with one ball, or when the rays are
+    /// (near) parallel (a light far away).
+    #[serde(default)]
+    pub position: Option<PositionView>,
+}
+
+/// A light's highlight on another ball, and the direction it gives from there.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct MoreHighlightView {
+    /// Unit direction towards the light from that ball's highlight (as `direction`).
+    pub direction: [f64; 3],
+    pub highlight: HighlightView,
+}
+
+/// A light's position from several balls.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PositionView {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    /// RMS distance of the position from the balls' rays, in `position_unit`: large
+    /// against the distance means the highlights disagree.
+    pub residual: f64,
+    /// Largest angle between two of the rays, degrees: near 0 the distance is poorly
+    /// known.
+    pub spread_deg: f64,
 }
 
 /// The highlight the direction comes from, and how trustworthy it looks.
@@ -186,9 +243,16 @@ pub struct CalibrationUpload {
     #[schema(value_type = String, required = false)]
     names: Option<String>,
     /// The sphere's circle `cx,cy,r` in pixels (0-based, pixel centres at integers),
-    /// instead of fitting its outline.
-    #[schema(value_type = String, required = false, example = "187.3,109.6,93.4")]
-    circle: Option<String>,
+    /// instead of fitting its outline. Repeat the part once per ball when the frame holds
+    /// several (at most 16, of one size, the first one first): each ball is calibrated
+    /// (the light table holds the first ball's directions) and each light is placed where
+    /// the balls' rays meet (`position`, `positions.csv`).
+    #[schema(value_type = Vec<String>, required = false, example = json!(["120.4,119.6,70.3", "359.7,120.3,69.6"]))]
+    circle: Option<Vec<String>>,
+    /// With two `circle` parts or more: the balls' diameter, in the unit the positions
+    /// should be in (a positive number); without it, positions are in ball radii.
+    #[schema(value_type = String, required = false, example = "25.4")]
+    ball_diameter: Option<String>,
     /// A mask of the sphere (non-zero = sphere), the images' size, instead of fitting its
     /// outline.
     #[schema(value_type = super::routes::ImageFile, required = false)]
@@ -255,10 +319,12 @@ impl CalibrationView {
 /// Calibrate the lights from a chrome sphere.
 ///
 /// One image of a mirror ball per light; the sphere's outline is fitted to the images
-/// unless a `circle` or `mask` is given. The calibration runs within the request and the
-/// answer is 201 with the result: at most `--workers` are computed at once (one tenant at
-/// most `--tenant-max-calibrations`), each within the memory budget; the others wait.
-/// Give its id as a job's `calibration` part to reconstruct with its lights.
+/// unless a `circle` or `mask` is given. With a `circle` part per ball for several balls
+/// in the frame, each light is also placed where the balls' rays meet. The calibration
+/// runs within the request and the answer is 201 with the result: at most `--workers` are
+/// computed at once (one tenant at most `--tenant-max-calibrations`), each within the
+/// memory budget; the others wait. Give its id as a job's `calibration` part to
+/// reconstruct with its lights.
 #[utoipa::path(
     post,
     path = "/v1/calibrations",
@@ -275,7 +341,7 @@ impl CalibrationView {
         (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body, image, part count, image count or the stored input bytes over a limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "An image in an unsupported format", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image or not cx,cy,r, more than 16 circles, a ball_diameter that is not a positive number or without two circles, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "The tenant's submissions per minute (shared with jobs) are used up; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 503, description = "The most uploads at once are under way, or the tenant's share of them, or the service is stopping", body = Problem, content_type = "application/problem+json",
@@ -419,13 +485,16 @@ struct Form {
     matte: Vec<Stored>,
     mask: Option<Stored>,
     ambient: Option<Stored>,
-    circle: Option<Circle>,
+    /// One per ball, the first one first.
+    circles: Vec<Circle>,
+    ball_diameter: Option<f64>,
     names: Option<Vec<String>>,
     focal_length: Option<f64>,
     skip_bad: Option<bool>,
 }
 
-const PARTS: &str = "images, names, circle, mask, ambient, matte, focal_length or skip_bad";
+const PARTS: &str =
+    "images, names, circle, ball_diameter, mask, ambient, matte, focal_length or skip_bad";
 
 /// Read the multipart body into `dir`, checking what is cheap: the parts, each image's
 /// format and dimensions (from its header) against the limits and the first image.
@@ -522,10 +591,27 @@ async fn receive(
                 form.names = Some(parse_names(&text)?);
             }
             "circle" => {
-                upload::once(&form.circle, "circle")?;
+                if form.circles.len() >= MAX_CIRCLES {
+                    return Err(ApiError::invalid(format!(
+                        "circle: at most {MAX_CIRCLES} circle parts (one per ball) are accepted"
+                    )));
+                }
                 let text =
                     text_part(&mut field, MAX_VALUE_BYTES, "circle", tap, config, hash).await?;
-                form.circle = Some(parse_circle(&text)?);
+                form.circles.push(parse_circle(&text)?);
+            }
+            "ball_diameter" => {
+                upload::once(&form.ball_diameter, "ball_diameter")?;
+                let text = text_part(
+                    &mut field,
+                    MAX_VALUE_BYTES,
+                    "ball_diameter",
+                    tap,
+                    config,
+                    hash,
+                )
+                .await?;
+                form.ball_diameter = Some(parse_ball_diameter(&text)?);
             }
             "focal_length" => {
                 upload::once(&form.focal_length, "focal_length")?;
@@ -563,9 +649,15 @@ async fn receive(
             "no images parts: send each chrome-sphere image as a file part named images (curl -F images=@ball01.png)",
         ));
     }
-    if form.circle.is_some() && form.mask.is_some() {
+    if !form.circles.is_empty() && form.mask.is_some() {
         return Err(ApiError::invalid(
             "give the sphere either as a circle or as a mask, not both",
+        ));
+    }
+    // As the CLI's --positions: positions need the rays of two balls at least.
+    if form.ball_diameter.is_some() && form.circles.len() < 2 {
+        return Err(ApiError::invalid(
+            "ball_diameter needs two balls or more in the frame, each given by a circle part cx,cy,r",
         ));
     }
     Ok(form)
@@ -635,6 +727,17 @@ fn parse_circle(text: &str) -> Result<Circle, ApiError> {
     }
 }
 
+/// The balls' diameter: a positive finite number, in the unit the positions should be in.
+fn parse_ball_diameter(text: &str) -> Result<f64, ApiError> {
+    match text.trim().parse::<f64>() {
+        Ok(d) if d.is_finite() && d > 0.0 => Ok(d),
+        _ => Err(ApiError::invalid(format!(
+            "ball_diameter must be a positive number (the balls' diameter, in the unit the positions should be in), got {:?}",
+            text.trim()
+        ))),
+    }
+}
+
 fn parse_focal_length(text: &str) -> Result<f64, ApiError> {
     match text.trim().parse::<f64>() {
         Ok(f) if calibrate::FOCAL_PX.contains(&f) => Ok(f),
@@ -681,9 +784,10 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
         )
     };
     let images = files(&form.images);
-    let (circle, source) = match (form.circle, &form.mask) {
-        (Some(c), _) => (CircleSource::Given(c), "given"),
-        (None, Some(m)) => {
+    let (circle, source) = match (&form.circles[..], &form.mask) {
+        ([c], _) => (CircleSource::Given(*c), "given"),
+        ([_, _, ..], _) => (CircleSource::Balls(form.circles.clone()), "given"),
+        ([], Some(m)) => {
             let mask = files(std::slice::from_ref(m)).decode_all()?.remove(0);
             (
                 CircleSource::Mask {
@@ -693,7 +797,7 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
                 "mask",
             )
         }
-        (None, None) => (CircleSource::Fit, "fitted"),
+        ([], None) => (CircleSource::Fit, "fitted"),
     };
     let (w, h) = (
         form.images[0].width as usize,
@@ -734,12 +838,15 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
         std::fs::remove_file(dir.join(&s.file))?;
     }
     let table = cal.table();
+    let positions = cal.positions_table(form.ball_diameter);
     let mut files = Vec::new();
-    for (name, bytes) in [
+    let made = [
         ("lights.csv", table.clone().into_bytes()),
         ("overlay.png", cal.overlay_png()),
         ("lights.png", cal.lights_png()),
-    ] {
+    ];
+    let with_positions = positions.map(|p| ("positions.csv", p.into_bytes()));
+    for (name, bytes) in made.into_iter().chain(with_positions) {
         std::fs::write(dir.join(name), &bytes)?;
         files.push(ArtifactInfo {
             name: name.to_string(),
@@ -758,6 +865,9 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
 
 fn measured(cal: &Calibration, form: &Form, w: usize, h: usize, source: &str) -> Measured {
     let c = cal.circle;
+    let several = !cal.more_circles.is_empty();
+    // Positions are computed in ball radii; a diameter in some unit scales them to it.
+    let scale = form.ball_diameter.map_or(1.0, |d| d / 2.0);
     Measured {
         width: w as u32,
         height: h as u32,
@@ -771,34 +881,34 @@ fn measured(cal: &Calibration, form: &Form, w: usize, h: usize, source: &str) ->
             coverage: cal.outline.as_ref().map(|o| o.coverage),
             rms: cal.outline.as_ref().map(|o| o.rms),
         },
-        lights: cal
-            .lights
+        more_circles: cal
+            .more_circles
             .iter()
-            .map(|l| {
-                let hl = &l.highlight;
-                let d = hl.direction;
-                LightView {
-                    name: l.name.clone(),
-                    image: l.image.clone(),
-                    number: l.index as u32 + 1,
-                    direction: d,
-                    intensity: l.intensity,
-                    elevation_deg: d[2].clamp(-1.0, 1.0).asin().to_degrees(),
-                    azimuth_deg: d[1].atan2(d[0]).to_degrees(),
-                    highlight: HighlightView {
-                        x: hl.x,
-                        y: hl.y,
-                        pixels: hl.pixels as u64,
-                        peak: hl.peak,
-                        clipped: hl.clipped,
-                        rim_distance: hl.rim_distance,
-                        elongation: hl.elongation,
-                        radius_deg: hl.radius_deg,
-                        confidence: Some(hl.confidence),
-                    },
-                }
+            .map(|c| CircleView {
+                cx: c.cx,
+                cy: c.cy,
+                r: c.r,
+                source: source.to_string(),
+                coverage: None,
+                rms: None,
             })
             .collect(),
+        ball_diameter: form.ball_diameter,
+        position_unit: several.then(|| {
+            match form.ball_diameter {
+                Some(_) => "ball_diameter",
+                None => "ball_radii",
+            }
+            .to_string()
+        }),
+        position_origin: several.then(|| {
+            match cal.camera_is_pinhole {
+                true => "camera",
+                false => "first_ball",
+            }
+            .to_string()
+        }),
+        lights: cal.lights.iter().map(|l| light_view(l, scale)).collect(),
         skipped: cal
             .skipped
             .iter()
@@ -807,6 +917,50 @@ fn measured(cal: &Calibration, form: &Form, w: usize, h: usize, source: &str) ->
                 reason: s.reason.clone(),
             })
             .collect(),
+    }
+}
+
+/// A light as the resource shows it, its position (if any) multiplied by `scale`.
+fn light_view(l: &CalibratedLight, scale: f64) -> LightView {
+    let d = l.highlight.direction;
+    LightView {
+        name: l.name.clone(),
+        image: l.image.clone(),
+        number: l.index as u32 + 1,
+        direction: d,
+        intensity: l.intensity,
+        elevation_deg: d[2].clamp(-1.0, 1.0).asin().to_degrees(),
+        azimuth_deg: d[1].atan2(d[0]).to_degrees(),
+        highlight: highlight_view(&l.highlight),
+        more_highlights: l
+            .more
+            .iter()
+            .map(|hl| MoreHighlightView {
+                direction: hl.direction,
+                highlight: highlight_view(hl),
+            })
+            .collect(),
+        position: l.position.map(|p| PositionView {
+            x: scale * p.position[0],
+            y: scale * p.position[1],
+            z: scale * p.position[2],
+            residual: scale * p.residual,
+            spread_deg: p.spread_deg,
+        }),
+    }
+}
+
+fn highlight_view(hl: &Highlight) -> HighlightView {
+    HighlightView {
+        x: hl.x,
+        y: hl.y,
+        pixels: hl.pixels as u64,
+        peak: hl.peak,
+        clipped: hl.clipped,
+        rim_distance: hl.rim_distance,
+        elongation: hl.elongation,
+        radius_deg: hl.radius_deg,
+        confidence: Some(hl.confidence),
     }
 }
 
@@ -963,8 +1117,38 @@ pub async fn get_lights_csv(
     file(&state, &caller, id, "lights.csv", &headers).await
 }
 
-/// The overlay: the fitted circle and each highlight, numbered, over the per-pixel
-/// maximum of the sphere images (the images' size).
+/// With several balls: the lights' positions, `name, x, y, z` after a `#` line naming the
+/// unit and origin (those of the resource's `position_unit` and `position_origin`); a
+/// light whose rays are parallel has no row.
+#[utoipa::path(
+    get,
+    path = "/v1/calibrations/{id}/positions.csv",
+    tag = "calibrations",
+    params(
+        ("id" = Uuid, Path, description = "Calibration id"),
+        ("If-None-Match" = Option<String>, Header, description = "ETag(s) of a cached copy"),
+    ),
+    responses(
+        (status = 200, description = "The positions table", content_type = "text/csv", body = String,
+            headers(("ETag" = String, description = "Strong entity tag"))),
+        (status = 304, description = "Not modified (If-None-Match matched)"),
+        (status = 401, description = "Missing or invalid API key", body = Problem, content_type = "application/problem+json"),
+        (status = 404, description = "No such calibration, or one of a single ball (no positions)", body = Problem, content_type = "application/problem+json"),
+    ),
+    security((), ("bearer" = []))
+)]
+pub async fn get_positions_csv(
+    State(state): State<AppState>,
+    caller: Caller,
+    CalibrationId(id): CalibrationId,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    file(&state, &caller, id, "positions.csv", &headers).await
+}
+
+/// The overlay: the fitted circle (every ball's, with several) and each highlight on the
+/// first ball, numbered, over the per-pixel maximum of the sphere images (the images'
+/// size).
 #[utoipa::path(
     get,
     path = "/v1/calibrations/{id}/overlay.png",
@@ -1036,5 +1220,34 @@ mod tests {
         assert!(parse_flag("true").unwrap());
         assert!(!parse_flag(" 0 ").unwrap());
         assert!(parse_flag("maybe").is_err());
+        assert_eq!(parse_ball_diameter(" 25.4 ").unwrap(), 25.4);
+        for bad in ["0", "-1", "NaN", "inf", "1e400", "x", ""] {
+            let e = parse_ball_diameter(bad).unwrap_err();
+            assert_eq!(e.status(), 422, "{bad}");
+        }
+    }
+
+    /// A record stored before several balls were served reads back with none of their
+    /// fields, and the view says so.
+    #[test]
+    fn a_record_stored_before_several_balls_reads_back() {
+        let detail = serde_json::json!({
+            "width": 320, "height": 240, "image_count": 3, "focal_length": null,
+            "circle": {"cx": 1.0, "cy": 2.0, "r": 3.0, "source": "given"},
+            "lights": [{"name": "a.png", "image": "a.png", "number": 1,
+                "direction": [0.0, 0.0, 1.0], "elevation_deg": 90.0, "azimuth_deg": 0.0,
+                "highlight": {"x": 1.0, "y": 2.0, "pixels": 4, "peak": 0.9, "clipped": false,
+                    "rim_distance": 3.0, "elongation": 1.0, "radius_deg": 1.0}}],
+            "skipped": []
+        });
+        let m: Measured = serde_json::from_value(detail).unwrap();
+        assert!(m.more_circles.is_empty() && m.position_unit.is_none());
+        assert!(m.lights[0].more_highlights.is_empty() && m.lights[0].position.is_none());
+        let shown = serde_json::to_value(&m).unwrap();
+        assert_eq!(shown["more_circles"], serde_json::json!([]));
+        assert!(shown["lights"][0]["position"].is_null());
+        // And what is stored now round-trips.
+        let again: Measured = serde_json::from_value(shown.clone()).unwrap();
+        assert_eq!(serde_json::to_value(&again).unwrap(), shown);
     }
 }

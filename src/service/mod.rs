@@ -1013,6 +1013,7 @@ fn api_routes() -> OpenApiRouter<AppState> {
         .routes(routes!(calibrations::get_lights_csv))
         .routes(routes!(calibrations::get_overlay))
         .routes(routes!(calibrations::get_lights_png))
+        .routes(routes!(calibrations::get_positions_csv))
 }
 
 /// Health, readiness, metrics, the OpenAPI document (always open).

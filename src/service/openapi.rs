@@ -12,7 +12,8 @@ use crate::core::normalmap::Convention;
 use crate::core::outputs::{ALL, ARTIFACTS};
 
 use super::calibrations::{
-    CalibrationList, CalibrationView, CircleView, HighlightView, LightView, Measured, SkippedView,
+    CalibrationList, CalibrationView, CircleView, HighlightView, LightView, Measured,
+    MoreHighlightView, PositionView, SkippedView,
 };
 use super::problem::Problem;
 use super::repo::JobStatus;
@@ -41,6 +42,8 @@ use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
         CircleView,
         LightView,
         HighlightView,
+        MoreHighlightView,
+        PositionView,
         SkippedView
     )),
     modifiers(&BearerScheme),

@@ -188,7 +188,8 @@ pub struct CalibrationRecord {
     pub detail: serde_json::Value,
     /// The light table (`name, x, y, z[, intensity]`), as jobs take it.
     pub table: String,
-    /// Its stored files (`lights.csv`, `overlay.png`, `lights.png`).
+    /// Its stored files (`lights.csv`, `overlay.png`, `lights.png`, `positions.csv` with
+    /// several balls).
     pub artifacts: Vec<ArtifactInfo>,
 }
 

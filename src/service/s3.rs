@@ -5,7 +5,7 @@
 //! ```text
 //! {prefix}/jobs/{id}/input/{file}              a job's inputs (manifest.json uploaded last)
 //! {prefix}/jobs/{id}/outputs/{attempt}/{name}  an attempt's artifacts (the record keeps each key)
-//! {prefix}/calibrations/{id}/{name}            a calibration's lights.csv, overlay.png, lights.png
+//! {prefix}/calibrations/{id}/{name}            a calibration's lights.csv, overlay.png, lights.png[, positions.csv]
 //! ```
 //!
 //! Uploads and reconstructions are staged in a local scratch directory

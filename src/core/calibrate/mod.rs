@@ -517,7 +517,7 @@ impl Calibration {
             return None;
         }
         let (k, unit) = match ball_diameter {
-            Some(d) => (d / 2.0, "the unit of --ball-diameter"),
+            Some(d) => (d / 2.0, "the unit of the balls' diameter"),
             None => (1.0, "ball radii"),
         };
         let mut out = format!(

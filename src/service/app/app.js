@@ -537,6 +537,32 @@ function askForKey(err) {
 
 // Calibrations are offered only when the server documents the route.
 let hasCalibrations = false;
+// The listed calibrations by id, for the positions of the one picked.
+const calibrations = new Map();
+
+// With several balls a calibration places its lights: list them under the picker.
+function showPositions() {
+  const table = $("calibration-positions");
+  const c = calibrations.get($("calibration").value);
+  table.hidden = !(c && c.position_unit);
+  if (table.hidden) return;
+  const unit = c.position_unit === "ball_diameter" ? `the unit of the balls' diameter, ${c.ball_diameter}` : "ball radii";
+  const origin = c.position_origin === "camera" ? "the camera" : "the first ball's centre";
+  table.caption.textContent = `Light positions in ${unit}, from ${origin}`;
+  const fmt = (v) => v.toFixed(3);
+  const rows = c.lights.map((l) => {
+    const tr = document.createElement("tr");
+    const p = l.position;
+    const cells = p ? [l.name, fmt(p.x), fmt(p.y), fmt(p.z), fmt(p.residual)] : [l.name, "rays parallel", "", "", ""];
+    for (const text of cells) {
+      const td = document.createElement("td");
+      td.textContent = text;
+      tr.append(td);
+    }
+    return tr;
+  });
+  table.tBodies[0].replaceChildren(...rows);
+}
 
 async function loadCalibrations() {
   if (!hasCalibrations || (access.keyRequired && !getKey())) return;
@@ -545,7 +571,9 @@ async function loadCalibrations() {
     const list = answer.calibrations || [];
     const select = $("calibration");
     select.replaceChildren(select.options[0]);
+    calibrations.clear();
     for (const c of list) {
+      calibrations.set(c.id, c);
       const o = document.createElement("option");
       o.value = c.id;
       // e.g. "2025-11-25 19:34 · 12 lights, least confidence 0.78 (5d1c2f0a)"
@@ -554,10 +582,12 @@ async function loadCalibrations() {
         .map((l) => l.highlight && l.highlight.confidence)
         .filter((v) => typeof v === "number");
       const least = confidences.length ? `, least confidence ${Math.min(...confidences).toFixed(2)}` : "";
-      o.textContent = `${when} · ${c.lights.length} lights${least} (${c.id.slice(0, 8)})`;
+      const balls = c.more_circles && c.more_circles.length ? `, ${c.more_circles.length + 1} balls` : "";
+      o.textContent = `${when} · ${c.lights.length} lights${balls}${least} (${c.id.slice(0, 8)})`;
       select.append(o);
     }
     $("calibration-field").hidden = false;
+    showPositions();
   } catch {
     $("calibration-field").hidden = true;
   }
@@ -575,6 +605,7 @@ async function start() {
   wireDrop();
   wireLight();
   $("job-form").addEventListener("submit", submit);
+  $("calibration").addEventListener("change", showPositions);
   $("refresh-jobs").addEventListener("click", () => jobs.load());
   light.apply();
   try {
