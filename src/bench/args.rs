@@ -93,6 +93,10 @@ pub struct BenchArgs {
     /// `mask.png` and `K.txt` (e.g. ../shared/real/normals), integrated perspective.
     #[arg(long, requires = "integrators")]
     pub normal_maps: Option<PathBuf>,
+    /// Instead of the other measurements: a chrome-ball calibration of 24 images of 27
+    /// megapixels (`photostereo calibrate` in a child process), its time and peak memory.
+    #[arg(long, conflicts_with_all = ["integrators", "hostile"])]
+    pub calibration: bool,
     /// Where to create the temporary directory [default: the system's temp dir].
     #[arg(long)]
     pub tmp_dir: Option<PathBuf>,

@@ -12,11 +12,13 @@
 //! [`timing`] times the core jobs on them (and measures their memory through [`memory`]),
 //! [`http`] drives the in-process server with the small client in [`client`], [`sweep`]
 //! runs the light-count sweep in child processes, [`integrators`] times the integrators
-//! alone on normal maps, [`hostile`] probes a `serve` child process
+//! alone on normal maps, [`calibration`] times a chrome-ball calibration of camera-sized
+//! images, [`hostile`] probes a `serve` child process
 //! ([`child`]) with [`probe`] under hostile loads, and [`tables`] prints what was measured;
 //! [`stats`] holds the medians and percentiles they share.
 
 mod args;
+mod calibration;
 mod child;
 mod client;
 mod hostile;
@@ -57,6 +59,15 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         print!(
             "{}",
             tables::hostile_table(&args, &machine, (loads.0, &loads.1), &run)
+        );
+        return Ok(());
+    }
+    if args.calibration {
+        let measured = calibration::run(args.runs, &tmp.0)?;
+        let loads = (load_at_start.as_str(), load_average());
+        print!(
+            "{}",
+            tables::calibration_table(&args, &machine, (loads.0, &loads.1), &measured)
         );
         return Ok(());
     }

@@ -903,3 +903,69 @@ pub(super) fn integrators_table(
     }
     o
 }
+
+/// `bench --calibration`: time and peak memory of one calibration, against the targets.
+pub(super) fn calibration_table(
+    args: &BenchArgs,
+    machine: &str,
+    (load_at_start, load_at_end): (&str, &str),
+    m: &super::calibration::Measured,
+) -> String {
+    use super::calibration::{HEIGHT, WIDTH};
+    let mut o = String::new();
+    let _ = writeln!(o, "## photostereo bench: calibration\n");
+    let _ = writeln!(
+        o,
+        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
+         the end"
+    );
+    let _ = writeln!(
+        o,
+        "- command: `photostereo bench --calibration --runs {}`",
+        args.runs
+    );
+    let _ = writeln!(
+        o,
+        "- `photostereo calibrate` in a child process, the ball's true circle given (median \
+         of {} run(s)) and its outline found automatically (one run): wall clock, peak \
+         resident memory, the lights' error against the rendered truth\n",
+        args.runs
+    );
+    let _ = writeln!(
+        o,
+        "| images | size | outline | seconds | target s | peak MB | target MB | lights mean / max ° |"
+    );
+    let _ = writeln!(o, "|---:|---|---|---:|---:|---:|---:|---|");
+    let size = format!("{WIDTH}×{HEIGHT} ({:.0} MP, 8-bit JPEG)", m.megapixels);
+    let (seconds, peak) = m.given_medians();
+    let lights = |r: &super::calibration::Run| format!("{:.3} / {:.3}", r.mean_deg, r.max_deg);
+    let _ = writeln!(
+        o,
+        "| {} | {size} | given, median of {} | {seconds:.2} | 15 | {:.0} | 1500 | {} |",
+        m.images,
+        m.given.len(),
+        peak / MB,
+        m.given.last().map_or("–".into(), lights)
+    );
+    match &m.automatic {
+        Ok(r) => {
+            let _ = writeln!(
+                o,
+                "| {} | {size} | found, 1 run | {:.2} | 15 | {:.0} | 1500 | {} |",
+                m.images,
+                r.seconds,
+                r.peak_bytes.unwrap_or(f64::NAN) / MB,
+                lights(r)
+            );
+        }
+        Err(e) => {
+            let _ = writeln!(
+                o,
+                "| {} | {size} | found: **failed** | – | 15 | – | 1500 | {} |",
+                m.images,
+                e.replace('|', "/")
+            );
+        }
+    }
+    o
+}

@@ -100,20 +100,26 @@ fn residual(plane: &Array2<u16>, env: &Array2<u16>, p: (usize, usize)) -> f64 {
     plane[p].saturating_sub(env[p]) as f64
 }
 
-/// The residual's significance threshold in one image: above its noise and a quarter of
-/// its peak on the ball; an error when nothing on the ball stands out.
-fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String> {
+/// The residual's significance threshold in one image (above its noise and a quarter of
+/// its peak on the ball) and its peak, which is above it; an error when nothing on the
+/// ball stands out.
+fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<Significant, String> {
     // The median neighbour difference by counting (no copy of the disc's pixels).
     let mut diffs = vec![0u32; 1 << 16];
     let mut count = 0usize;
     let mut peak = 0.0f64;
     let mut n = 0usize;
-    for (r, c) in disc.pixels() {
-        n += 1;
-        peak = peak.max(residual(plane, ctx.env, (r, c)));
-        if c > disc.c0 && disc.contains(r, c - 1) {
-            diffs[plane[[r, c]].abs_diff(plane[[r, c - 1]]) as usize] += 1;
-            count += 1;
+    for (r, cols) in disc.rows() {
+        let (row, env) = (plane.row(r), ctx.env.row(r));
+        let first = *cols.start();
+        for c in cols {
+            n += 1;
+            peak = peak.max(row[c].saturating_sub(env[c]) as f64);
+            // A row's span is contiguous: its left neighbour is on the ball too.
+            if c > first {
+                diffs[row[c].abs_diff(row[c - 1]) as usize] += 1;
+                count += 1;
+            }
         }
     }
     if n < 20 {
@@ -127,7 +133,10 @@ fn floor(plane: &Array2<u16>, ctx: &Context, disc: &Disc) -> Result<f64, String>
             peak / 65535.0
         ));
     }
-    Ok((6.0 * noise).max(0.01 * 65535.0).max(0.25 * peak))
+    Ok(Significant {
+        floor: (6.0 * noise).max(0.01 * 65535.0).max(0.25 * peak),
+        peak,
+    })
 }
 
 /// An image's significant residual: the level it starts at and its largest value.
@@ -140,13 +149,7 @@ pub struct Significant {
 /// or why nothing is.
 pub fn significant(plane: &Array2<u16>, ctx: &Context) -> Result<Significant, String> {
     let disc = Disc::new(ctx.circle, plane.dim());
-    let floor = floor(plane, ctx, &disc)?;
-    let peak = disc
-        .pixels()
-        .map(|p| residual(plane, ctx.env, p))
-        .filter(|&e| e >= floor)
-        .fold(0.0, f64::max);
-    Ok(Significant { floor, peak })
+    floor(plane, ctx, &disc)
 }
 
 /// Count `plane`'s significant pixels in `recurrence` (see [`super::environment`]).
@@ -157,9 +160,12 @@ pub fn add_recurrence(
     recurrence: &mut Array2<u16>,
 ) {
     let disc = Disc::new(ctx.circle, plane.dim());
-    for p in disc.pixels() {
-        if residual(plane, ctx.env, p) >= sig.floor {
-            recurrence[p] = recurrence[p].saturating_add(1);
+    for (r, cols) in disc.rows() {
+        let (row, env, mut counts) = (plane.row(r), ctx.env.row(r), recurrence.row_mut(r));
+        for c in cols {
+            if row[c].saturating_sub(env[c]) as f64 >= sig.floor {
+                counts[c] = counts[c].saturating_add(1);
+            }
         }
     }
 }
@@ -195,7 +201,7 @@ pub fn find(
     recurrence: &Array2<u16>,
 ) -> Result<Highlight, String> {
     let disc = Disc::new(ctx.circle, plane.dim());
-    let floor = floor(plane, ctx, &disc)?;
+    let floor = floor(plane, ctx, &disc)?.floor;
     let keep = |p: (usize, usize)| disc.contains(p.0, p.1) && residual(plane, ctx.env, p) >= floor;
     let others = (ctx.count.max(2) - 1) as f64;
     let labels = Labels::of(&disc, &keep);
