@@ -50,12 +50,12 @@ impl Disc {
         self.rows().flat_map(|(r, cols)| cols.map(move |c| (r, c)))
     }
 
-    /// Each row's span of pixels on the ball: solved for, then its ends checked against
-    /// [`Self::contains`]. Every stage walks the disc several times per image, and a
-    /// 24-megapixel ball's box is most of 10 million pixels.
+    /// Each row's span of pixels on the ball (rows without any are left out): solved for,
+    /// then its ends checked against [`Self::contains`]. Every stage walks the disc several
+    /// times per image, and a 24-megapixel ball's box is most of 10 million pixels.
     pub fn rows(&self) -> impl Iterator<Item = (usize, std::ops::RangeInclusive<usize>)> + '_ {
         let inner = (self.circle.r - 0.5).max(0.0);
-        (self.r0..=self.r1).map(move |r| {
+        (self.r0..=self.r1).filter_map(move |r| {
             let dy = r as f64 - self.circle.cy;
             let half = (inner * inner - dy * dy).max(0.0).sqrt();
             let mut a = ((self.circle.cx - half).floor() - 1.0).max(self.c0 as f64) as usize;
@@ -63,13 +63,10 @@ impl Disc {
             while a <= b && !self.contains(r, a) {
                 a += 1;
             }
-            while b >= a && !self.contains(r, b) {
-                if b == 0 {
-                    return (r, 1..=0);
-                }
+            while b > a && !self.contains(r, b) {
                 b -= 1;
             }
-            (r, a..=b)
+            (a <= b && self.contains(r, b)).then_some((r, a..=b))
         })
     }
 }
@@ -97,4 +94,31 @@ pub fn estimate(planes: &[&Array2<u16>], ambient: Option<&Array2<u16>>) -> Array
             .for_each(|e, &a| *e = (*e).max(a));
     }
     env
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Circle, Disc};
+
+    #[test]
+    fn the_row_spans_hold_exactly_the_pixels_the_disc_contains() {
+        for (cx, cy, r, w, h) in [
+            (20.3, 17.8, 11.6, 40, 36),
+            (3.0, 4.5, 9.0, 20, 20),
+            (30.7, 2.2, 5.1, 32, 16),
+            (5.0, 5.0, 0.4, 10, 10),
+        ] {
+            let disc = Disc::new(&Circle { cx, cy, r }, (h, w));
+            let spans: Vec<(usize, usize)> = disc.pixels().collect();
+            let mut brute = Vec::new();
+            for row in disc.r0..=disc.r1 {
+                for c in disc.c0..=disc.c1 {
+                    if disc.contains(row, c) {
+                        brute.push((row, c));
+                    }
+                }
+            }
+            assert_eq!(spans, brute, "circle ({cx}, {cy}, {r}) in {w}×{h}");
+        }
+    }
 }
