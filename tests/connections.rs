@@ -7,10 +7,13 @@
 //! latencies on two cores.
 
 mod binserver;
+#[path = "common/raw_http.rs"]
+mod raw_http;
 
 use std::time::{Duration, Instant};
 
 use binserver::BinServer;
+use raw_http::{RawAnswer, read_answer};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -38,47 +41,6 @@ fn raise_own_file_limit() -> u64 {
     limit.rlim_cur
 }
 
-struct Answer {
-    status: u16,
-    head: String,
-    body: String,
-}
-
-/// Read one HTTP/1.1 answer (its head, then Content-Length bytes or up to EOF).
-async fn read_answer(stream: &mut TcpStream) -> Option<Answer> {
-    let mut buf = Vec::new();
-    let mut chunk = [0u8; 4096];
-    let end = loop {
-        if let Some(p) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
-            break p;
-        }
-        let n = stream.read(&mut chunk).await.ok()?;
-        if n == 0 {
-            return None;
-        }
-        buf.extend_from_slice(&chunk[..n]);
-    };
-    let head = String::from_utf8_lossy(&buf[..end]).into_owned();
-    let status = head.split_whitespace().nth(1)?.parse().ok()?;
-    let length: Option<usize> = head.lines().find_map(|l| {
-        let (k, v) = l.split_once(':')?;
-        k.eq_ignore_ascii_case("content-length")
-            .then(|| v.trim().parse().ok())?
-    });
-    let mut body = buf[end + 4..].to_vec();
-    while length.is_none_or(|n| body.len() < n) {
-        match stream.read(&mut chunk).await {
-            Ok(0) | Err(_) => break,
-            Ok(n) => body.extend_from_slice(&chunk[..n]),
-        }
-    }
-    Some(Answer {
-        status,
-        head,
-        body: String::from_utf8_lossy(&body).into_owned(),
-    })
-}
-
 fn get(addr: &str, path: &str, key: Option<&str>, close: bool) -> String {
     let auth = key
         .map(|k| format!("Authorization: Bearer {k}\r\n"))
@@ -89,7 +51,7 @@ fn get(addr: &str, path: &str, key: Option<&str>, close: bool) -> String {
 
 /// `GET path` on a new connection: the answer (None: none within 10 s) and the time from
 /// connect to answer.
-async fn probe(addr: &str, path: &str, key: Option<&str>) -> (Option<Answer>, Duration) {
+async fn probe(addr: &str, path: &str, key: Option<&str>) -> (Option<RawAnswer>, Duration) {
     let started = Instant::now();
     let answer = tokio::time::timeout(Duration::from_secs(10), async {
         let mut s = TcpStream::connect(addr).await.ok()?;
@@ -130,7 +92,7 @@ async fn probes_answer(s: &BinServer, case: &str) -> Duration {
 /// A value of the server's /metrics (a line starting with `series`).
 async fn metric(s: &BinServer, series: &str) -> f64 {
     let (answer, _) = probe(s.addr(), "/metrics", None).await;
-    let text = answer.expect("/metrics answers").body;
+    let text = answer.expect("/metrics answers").text();
     text.lines()
         .find_map(|l| l.strip_prefix(series)?.trim().parse().ok())
         .unwrap_or_else(|| panic!("no {series} in /metrics:\n{text}"))
@@ -409,11 +371,8 @@ async fn past_the_cap_an_idle_connection_makes_room_and_busy_ones_get_503() {
     let head = answer.head.to_ascii_lowercase();
     assert!(head.contains("retry-after: "), "{head}");
     assert!(head.contains("connection: close"), "{head}");
-    assert!(
-        head.contains("content-type: application/problem+json"),
-        "{head}"
-    );
-    let problem: serde_json::Value = serde_json::from_str(&answer.body).unwrap();
+    assert!(answer.is_problem(), "{head}");
+    let problem = answer.json();
     assert_eq!(problem["status"], 503);
     assert!(
         problem["detail"].as_str().unwrap().contains("connections"),

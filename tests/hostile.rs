@@ -14,6 +14,7 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use binserver::BinServer;
+use common::raw_http::read_answer;
 use common::{
     archive_form, expect_problem, file_part, folder_form, images_of, palette_png, png, png_chunk,
     repo_root,
@@ -208,60 +209,6 @@ fn lie_about_sizes(mut zip: Vec<u8>, size: u32) -> Vec<u8> {
 
 // ---------------------------------------------------------------------------------------
 // A raw HTTP/1.1 client, for bodies no well-behaved client sends.
-
-struct RawAnswer {
-    status: u16,
-    headers: String,
-    body: Vec<u8>,
-}
-
-impl RawAnswer {
-    fn json(&self) -> Value {
-        serde_json::from_slice(&self.body)
-            .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&self.body)))
-    }
-
-    fn is_problem(&self) -> bool {
-        self.headers
-            .to_ascii_lowercase()
-            .contains("content-type: application/problem+json")
-    }
-}
-
-/// Read one HTTP answer (headers, then Content-Length bytes or up to EOF).
-async fn read_answer(stream: &mut (impl AsyncReadExt + Unpin)) -> Option<RawAnswer> {
-    let mut buf = Vec::new();
-    let mut chunk = [0u8; 8192];
-    let head_end = loop {
-        if let Some(p) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
-            break p;
-        }
-        let n = stream.read(&mut chunk).await.ok()?;
-        if n == 0 {
-            return None;
-        }
-        buf.extend_from_slice(&chunk[..n]);
-    };
-    let headers = String::from_utf8_lossy(&buf[..head_end]).into_owned();
-    let status = headers.split_whitespace().nth(1)?.parse().ok()?;
-    let length: Option<usize> = headers.lines().find_map(|l| {
-        let (k, v) = l.split_once(':')?;
-        k.eq_ignore_ascii_case("content-length")
-            .then(|| v.trim().parse().ok())?
-    });
-    let mut body = buf[head_end + 4..].to_vec();
-    while length.is_none_or(|n| body.len() < n) {
-        match stream.read(&mut chunk).await {
-            Ok(0) | Err(_) => break,
-            Ok(n) => body.extend_from_slice(&chunk[..n]),
-        }
-    }
-    Some(RawAnswer {
-        status,
-        headers,
-        body,
-    })
-}
 
 const BOUNDARY: &str = "hostile-boundary-7d1f";
 
@@ -622,7 +569,7 @@ async fn thousands_of_parts_and_broken_multipart_bodies() {
         .expect("an answer to a truncated body")
         .expect("an HTTP answer");
     assert_eq!(answer.status, 400);
-    assert!(answer.is_problem(), "{}", answer.headers);
+    assert!(answer.is_problem(), "{}", answer.head);
     let detail = answer.json()["detail"].as_str().unwrap().to_string();
     assert!(detail.contains("multipart"), "{detail}");
     assert_alive(&s, "truncated multipart").await;
@@ -637,12 +584,7 @@ async fn thousands_of_parts_and_broken_multipart_bodies() {
         .await
         .expect("the server answers or closes within 10 s");
     if let Some(a) = answer {
-        assert!(
-            a.status == 400 && a.is_problem(),
-            "{} {}",
-            a.status,
-            a.headers
-        );
+        assert!(a.status == 400 && a.is_problem(), "{} {}", a.status, a.head);
     }
     assert_alive(&s, "half-closed upload").await;
 
@@ -745,7 +687,7 @@ async fn a_slow_upload_gets_408_and_its_connection_is_closed() {
         .expect("an answer within 8 s")
         .expect("an HTTP answer");
     let answered = started.elapsed();
-    assert_eq!(answer.status, 408, "{}", answer.headers);
+    assert_eq!(answer.status, 408, "{}", answer.head);
     assert!(answer.is_problem());
     let detail = answer.json()["detail"].as_str().unwrap().to_string();
     assert!(detail.contains("within 2s"), "{detail}");

@@ -3,6 +3,8 @@
 
 #![allow(dead_code)]
 
+pub mod raw_http;
+
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
