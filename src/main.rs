@@ -262,10 +262,14 @@ struct CalibrateArgs {
     /// The sphere's circle in pixels, as cx,cy,r (0-based, pixel centres at integers: the
     /// first pixel's centre is 0,0) instead of fitting its outline. Give it once per ball
     /// when the frame holds several: each is calibrated and the lights are placed where
-    /// the balls' rays meet (--positions).
+    /// the balls' rays meet (--positions). Without it every ball in the frame is found
+    /// (round outlines of one size side by side, each showing the lights' highlights),
+    /// the first ball being the leftmost.
     #[arg(long, value_parser = circle_arg, allow_hyphen_values = true)]
     circle: Vec<[f64; 3]>,
-    /// With several balls: write the lights' positions (`name, x, y, z`) here.
+    /// With two balls or more (each given by --circle, or found when none is given):
+    /// write the lights' positions (`name, x, y, z`) here; an error when one ball is
+    /// given or found.
     #[arg(long)]
     positions: Option<PathBuf>,
     /// The balls' diameter, in the unit the positions should be in (default: ball radii).
@@ -314,9 +318,9 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
     {
         anyhow::bail!("--ball-diameter must be a positive number, got {d}");
     }
-    if args.positions.is_some() && args.circle.len() < 2 {
+    if args.positions.is_some() && (args.circle.len() == 1 || args.sphere_mask.is_some()) {
         anyhow::bail!(
-            "--positions needs two balls or more in the frame, each given by --circle cx,cy,r"
+            "--positions needs two balls or more in the frame: give each by --circle cx,cy,r, or none to have them found"
         );
     }
     let camera = match args.focal_length {
@@ -353,21 +357,16 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
     if let Some(matte) = &args.matte {
         cal.fit_intensities(&calibrate::load_images(matte)?, &settings)?;
     }
-    let c = cal.circle;
-    match &cal.outline {
-        Some(fit) => eprintln!(
-            "sphere: centre ({:.2}, {:.2}), radius {:.2} px (outline fitted along {:.0} % of the circle, RMS {:.2} px)",
+    if args.positions.is_some() && cal.more_circles.is_empty() {
+        let c = cal.circle;
+        anyhow::bail!(
+            "--positions needs two balls or more in the frame, but one ball was found (centre ({:.1}, {:.1}), radius {:.1} px): give each ball by --circle cx,cy,r",
             c.cx,
             c.cy,
-            c.r,
-            100.0 * fit.coverage,
-            fit.rms
-        ),
-        None => eprintln!(
-            "sphere: centre ({:.2}, {:.2}), radius {:.2} px (given)",
-            c.cx, c.cy, c.r
-        ),
+            c.r
+        );
     }
+    print_balls(&cal);
     eprint!("{}", cal.quality_table());
     for s in &cal.skipped {
         eprintln!("skipped {}: {}", s.image, s.reason);
@@ -412,6 +411,42 @@ fn calibrate(args: CalibrateArgs) -> anyhow::Result<()> {
     }
     println!("{}", args.out.display());
     Ok(())
+}
+
+/// The balls' circles as the calibration used them (`sphere` with one ball, `sphere 1`,
+/// `sphere 2`… with several, the first being the positions' origin), and the round
+/// outlines found that were no balls.
+fn print_balls(cal: &photostereo::core::calibrate::Calibration) {
+    let several = !cal.more_circles.is_empty();
+    let circles = std::iter::once(&cal.circle).chain(&cal.more_circles);
+    for (k, c) in circles.enumerate() {
+        let fit = match k {
+            0 => cal.outline.as_ref(),
+            k => cal.more_outlines.get(k - 1),
+        };
+        let label = match several {
+            true => format!("sphere {}", k + 1),
+            false => "sphere".to_string(),
+        };
+        let how = match fit {
+            Some(fit) => format!(
+                "outline fitted along {:.0} % of the circle, RMS {:.2} px",
+                100.0 * fit.coverage,
+                fit.rms
+            ),
+            None => "given".to_string(),
+        };
+        eprintln!(
+            "{label}: centre ({:.2}, {:.2}), radius {:.2} px ({how})",
+            c.cx, c.cy, c.r
+        );
+    }
+    for c in &cal.not_balls {
+        eprintln!(
+            "left out the round outline at ({:.1}, {:.1}), radius {:.1} px: it shows no highlight in most images, so it is no ball",
+            c.cx, c.cy, c.r
+        );
+    }
 }
 
 /// Parse a flag value by the same kebab-case names the JSON options use.

@@ -39,9 +39,14 @@ fn run(
 }
 
 /// Mean and max direction error (degrees) against the set's true lights, and the circle's
-/// centre and radius errors (pixels).
+/// centre and radius errors (pixels). The set has one ball: exactly one is found.
 fn errors(set: &ChromeSet, cal: &Calibration) -> (f64, f64, f64, f64) {
     assert_eq!(cal.lights.len(), set.lights.len());
+    assert!(
+        cal.more_circles.is_empty(),
+        "a second ball: {:?}",
+        cal.more_circles
+    );
     let e: Vec<f64> = cal
         .lights
         .iter()
@@ -383,50 +388,55 @@ fn near(distance: f64) -> (ChromeSet, Calibration) {
     (set, cal.unwrap())
 }
 
+/// The worst light position's distance from the true one, as a fraction of the light's
+/// distance from between the balls, and the worst direction of a light from a ball (each
+/// ball's own: from the point of the ball that shows the highlight to the light), degrees.
+fn position_errors(set: &ChromeSet, cal: &Calibration) -> (f64, f64) {
+    let positions = set.light_positions.as_ref().unwrap();
+    let c0 = set.centre;
+    let scale = set.balls().iter().map(|b| b.1).sum::<f64>() / 2.0;
+    let mid = {
+        let b = set.balls();
+        [
+            (b[0].0[0] + b[1].0[0]) / 2.0,
+            (b[0].0[1] + b[1].0[1]) / 2.0,
+            0.0,
+        ]
+    };
+    let mut worst = 0.0f64;
+    let mut dir_err = 0.0f64;
+    for l in &cal.lights {
+        let truth = positions[l.index];
+        let p = l.position.expect("two balls place every light").position;
+        // Ball radii from the first ball's centre, back to pixels.
+        let got = [p[0] * scale + c0[0], p[1] * scale + c0[1], p[2] * scale];
+        let dist = |a: [f64; 3], b: [f64; 3]| {
+            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+        };
+        worst = worst.max(dist(got, truth) / dist(truth, mid));
+        for (hl, (c, r)) in std::iter::once(&l.highlight)
+            .chain(&l.more)
+            .zip(set.balls())
+        {
+            let (u, v) = ((hl.x - c[0]) / r, (hl.y - c[1]) / r);
+            let point = [hl.x, hl.y, r * (1.0 - u * u - v * v).max(0.0).sqrt()];
+            let to = [
+                truth[0] - point[0],
+                truth[1] - point[1],
+                truth[2] - point[2],
+            ];
+            let n = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).sqrt();
+            dir_err = dir_err.max(angle_deg(hl.direction, to.map(|t| t / n)));
+        }
+    }
+    (worst, dir_err)
+}
+
 #[test]
 fn two_balls_under_near_leds_place_each_light_within_2_percent_of_its_distance() {
     for distance in [2.0, 3.0, 4.0] {
         let (set, cal) = near(distance);
-        let positions = set.light_positions.as_ref().unwrap();
-        let c0 = set.centre;
-        let scale = set.balls().iter().map(|b| b.1).sum::<f64>() / 2.0;
-        let mid = {
-            let b = set.balls();
-            [
-                (b[0].0[0] + b[1].0[0]) / 2.0,
-                (b[0].0[1] + b[1].0[1]) / 2.0,
-                0.0,
-            ]
-        };
-        let mut worst = 0.0f64;
-        let mut dir_err = 0.0f64;
-        for l in &cal.lights {
-            let truth = positions[l.index];
-            let p = l.position.expect("two balls place every light").position;
-            // Ball radii from the first ball's centre, back to pixels.
-            let got = [p[0] * scale + c0[0], p[1] * scale + c0[1], p[2] * scale];
-            let dist = |a: [f64; 3], b: [f64; 3]| {
-                ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
-            };
-            worst = worst.max(dist(got, truth) / dist(truth, mid));
-            // Each ball's direction is its own: from the point of the ball that shows the
-            // highlight to the light.
-            for ((hl, (c, r)), _) in std::iter::once(&l.highlight)
-                .chain(&l.more)
-                .zip(set.balls())
-                .zip(0..)
-            {
-                let (u, v) = ((hl.x - c[0]) / r, (hl.y - c[1]) / r);
-                let point = [hl.x, hl.y, r * (1.0 - u * u - v * v).max(0.0).sqrt()];
-                let to = [
-                    truth[0] - point[0],
-                    truth[1] - point[1],
-                    truth[2] - point[2],
-                ];
-                let n = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).sqrt();
-                dir_err = dir_err.max(angle_deg(hl.direction, to.map(|t| t / n)));
-            }
-        }
+        let (worst, dir_err) = position_errors(&set, &cal);
         eprintln!(
             "near lights at {distance} ball diameters: positions off by {:.2} % of the distance at most; directions per ball within {dir_err:.2}°",
             100.0 * worst
@@ -435,6 +445,85 @@ fn two_balls_under_near_leds_place_each_light_within_2_percent_of_its_distance()
         assert!(worst < 0.02, "{distance}: {worst}");
         assert!(dir_err < 1.0, "{distance}: {dir_err}°");
     }
+}
+
+#[test]
+fn two_balls_are_found_in_the_frame_and_place_each_light_within_2_percent() {
+    for distance in [2.0, 3.0, 4.0] {
+        let set = ChromeSet::near_dome(16, 77, distance);
+        let (_dir, cal) = run(&set, &auto());
+        let cal = cal.unwrap();
+        // Both balls, left to right as the set lists them, each with its outline fit.
+        let found: Vec<calibrate::Circle> = std::iter::once(cal.circle)
+            .chain(cal.more_circles.iter().copied())
+            .collect();
+        assert_eq!(found.len(), 2, "{found:?}");
+        assert_eq!(cal.more_outlines.len(), 1);
+        assert!(cal.outline.is_some() && cal.not_balls.is_empty());
+        let mut circle_err = (0.0f64, 0.0f64);
+        for (c, (centre, r)) in found.iter().zip(set.balls()) {
+            circle_err.0 = circle_err.0.max((c.cx - centre[0]).hypot(c.cy - centre[1]));
+            circle_err.1 = circle_err.1.max((c.r - r).abs());
+        }
+        let (worst, dir_err) = position_errors(&set, &cal);
+        let coverage: Vec<String> = std::iter::once(cal.outline.unwrap())
+            .chain(cal.more_outlines.iter().copied())
+            .map(|o| format!("{:.0} %", 100.0 * o.coverage))
+            .collect();
+        eprintln!(
+            "two balls found, near lights at {distance} ball diameters: circles' centres within {:.3} px, radii within {:.3} px (outlines traced along {}); positions off by {:.2} % of the distance at most; directions per ball within {dir_err:.2}°",
+            circle_err.0,
+            circle_err.1,
+            coverage.join(" and "),
+            100.0 * worst
+        );
+        assert!(
+            circle_err.0 < 0.3 && circle_err.1 < 0.3,
+            "{distance}: {circle_err:?}"
+        );
+        assert_eq!(cal.lights.len(), set.lights.len());
+        assert!(worst < 0.02, "{distance}: {worst}");
+        assert!(dir_err < 1.0, "{distance}: {dir_err}°");
+        assert!(cal.positions_table(None).is_some());
+    }
+}
+
+#[test]
+fn a_round_patch_beside_the_ball_that_shows_no_highlight_is_no_ball() {
+    // The near dome's left ball alone, and where its right ball was a disc of that size
+    // on the backdrop (a plate, a lens cap): a round outline as strong as a ball's, alike
+    // in every image.
+    let mut set = ChromeSet::near_dome(16, 77, 3.0);
+    let (c, r) = set.extra_balls.pop().unwrap();
+    let (_dir, mut images) = images_of(&set);
+    let disc = ndarray::Array2::from_shape_fn((set.height, set.width), |(y, x)| {
+        let inside = |i: usize, j: usize| {
+            let (sx, sy) = (
+                x as f64 - 0.375 + 0.25 * i as f64,
+                y as f64 - 0.375 + 0.25 * j as f64,
+            );
+            (sx - c[0]).hypot(sy - c[1]) <= r
+        };
+        (0..16).filter(|k| inside(k % 4, k / 4)).count() as f64 / 16.0
+    });
+    for im in &mut images {
+        im.plane.zip_mut_with(&disc, |p, &k| {
+            *p = (k * 0.8 * 65535.0 + (1.0 - k) * *p as f64).round() as u16
+        });
+    }
+    let cal = calibrate::calibrate(&images, None, None, &auto()).unwrap();
+    let [patch] = cal.not_balls[..] else {
+        panic!("{:?}", cal.not_balls);
+    };
+    eprintln!(
+        "a disc beside the ball: left out at ({:.2}, {:.2}), radius {:.2} px; the ball at ({:.2}, {:.2}), radius {:.2} px",
+        patch.cx, patch.cy, patch.r, cal.circle.cx, cal.circle.cy, cal.circle.r
+    );
+    assert!((patch.cx - c[0]).hypot(patch.cy - c[1]) < 0.5 && (patch.r - r).abs() < 0.5);
+    assert!(cal.more_circles.is_empty() && cal.positions_table(None).is_none());
+    let ball = (cal.circle.cx - set.centre[0]).hypot(cal.circle.cy - set.centre[1]);
+    assert!(ball < 0.3 && (cal.circle.r - set.radius).abs() < 0.3);
+    assert_eq!(cal.lights.len(), set.lights.len());
 }
 
 /// 1 MiB for the copies: the outline is fitted on 2× downscaled images and refined at

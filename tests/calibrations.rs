@@ -777,6 +777,29 @@ async fn two_balls_place_each_light_within_2_percent_of_its_distance_and_keep_po
         "{csv}"
     );
 
+    // No circle part: both balls are found (the left one first, each with its outline
+    // fit), and ball_diameter is taken.
+    let form = chrome_form(d.path()).text("ball_diameter", "25.4");
+    let found = create(&s, form, None).await;
+    let more = found["more_circles"].as_array().unwrap();
+    assert_eq!(more.len(), 1, "{found}");
+    let mut circle_err = 0.0f64;
+    for (view, (c, r)) in [&found["circle"], &more[0]].into_iter().zip(&balls) {
+        assert_eq!(view["source"], "fitted", "{view}");
+        assert!(view["coverage"].as_f64().unwrap() > 0.5, "{view}");
+        let at = |k: &str| view[k].as_f64().unwrap();
+        circle_err = circle_err
+            .max((at("cx") - c[0]).hypot(at("cy") - c[1]))
+            .max((at("r") - r).abs());
+    }
+    let worst = position_errors(&set, &found, 12.7);
+    eprintln!(
+        "two balls found over HTTP: circles within {circle_err:.3} px; positions off by {:.2} % of the distance at most",
+        100.0 * worst
+    );
+    assert!(circle_err < 0.3 && worst < 0.02, "{circle_err} px, {worst}");
+    assert!(found["files"]["positions.csv"].is_string(), "{found}");
+
     // One ball: no positions, and no positions.csv.
     let one = create(&s, chrome_form(&repo_root().join("res/chrome")), None).await;
     assert!(
@@ -813,10 +836,11 @@ async fn bad_ball_diameters_and_too_many_circles_are_422_naming_them() {
             "{bad}: {body}"
         );
     }
-    // Positions need two balls: one circle, or none, is refused as the CLI's --positions is.
+    // Positions need two balls, as the CLI's --positions does: one circle or a mask is
+    // refused, and so is no circle when one ball is found.
     for form in [
         chrome_form(&chrome).text("circle", "187.3,109.6,93.4"),
-        chrome_form(&chrome),
+        chrome_form(&chrome).part("mask", file_part(&images_of(&chrome)[0])),
     ] {
         let form = form.text("ball_diameter", "25.4");
         expect_problem(
@@ -826,6 +850,13 @@ async fn bad_ball_diameters_and_too_many_circles_are_422_naming_them() {
         )
         .await;
     }
+    let form = chrome_form(&chrome).text("ball_diameter", "25.4");
+    expect_problem(
+        post(&s, form, None).await,
+        422,
+        &["ball_diameter", "two balls or more", "one ball was found"],
+    )
+    .await;
     // At most 16 balls, answered at the 17th circle.
     let form = (0..17).fold(chrome_form(&chrome), |f, i| {
         f.text("circle", format!("{},{},5", 10 + 15 * i, 20))

@@ -515,3 +515,89 @@ fn calibrate_measures_the_lights_of_the_committed_chrome_set() {
         "{stderr}"
     );
 }
+
+#[test]
+fn calibrate_finds_two_balls_by_itself_and_writes_the_lights_positions() {
+    let set = photostereo::core::synth::ChromeSet::near_dome(16, 77, 3.0);
+    let dir = tempfile::tempdir().unwrap();
+    set.write(dir.path(), None).unwrap();
+    let out = tempfile::tempdir().unwrap();
+    let (table, positions) = (out.path().join("lights.csv"), out.path().join("p.csv"));
+    let run = bin()
+        .arg("calibrate")
+        .arg(dir.path())
+        .arg("--out")
+        .arg(&table)
+        .arg("--positions")
+        .arg(&positions)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("sphere 1: centre (120.") && stderr.contains("sphere 2: centre (359."),
+        "{stderr}"
+    );
+    // Each light where it is, within 2 % of its distance from between the balls: in ball
+    // radii from the first (left) ball's centre.
+    let csv = std::fs::read_to_string(&positions).unwrap();
+    assert!(csv.starts_with("# light positions in ball radii"), "{csv}");
+    let balls = set.balls();
+    let radius = (balls[0].1 + balls[1].1) / 2.0;
+    let mid = [
+        (balls[0].0[0] + balls[1].0[0]) / 2.0,
+        (balls[0].0[1] + balls[1].0[1]) / 2.0,
+        0.0,
+    ];
+    let dist = |a: [f64; 3], b: [f64; 3]| (0..3).map(|k| (a[k] - b[k]).powi(2)).sum::<f64>().sqrt();
+    let rows: Vec<&str> = csv.lines().filter(|l| !l.starts_with('#')).collect();
+    assert_eq!(rows.len(), set.lights.len(), "{csv}");
+    for (row, truth) in rows.iter().zip(set.light_positions.as_ref().unwrap()) {
+        let v: Vec<f64> = row
+            .split(',')
+            .skip(1)
+            .map(|f| f.trim().parse().unwrap())
+            .collect();
+        let got = [
+            v[0] * radius + balls[0].0[0],
+            v[1] * radius + balls[0].0[1],
+            v[2] * radius,
+        ];
+        assert!(
+            dist(got, *truth) < 0.02 * dist(*truth, mid),
+            "{row} vs {truth:?}"
+        );
+    }
+
+    // One ball found: --positions is refused, saying so, and nothing is written.
+    let one = out.path().join("one.csv");
+    let run = bin()
+        .arg("calibrate")
+        .arg(res("chrome"))
+        .arg("--out")
+        .arg(&one)
+        .arg("--positions")
+        .arg(out.path().join("one-positions.csv"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        !run.status.success() && stderr.contains("one ball was found"),
+        "{stderr}"
+    );
+    assert!(!one.exists());
+    // One ball given: refused before anything is read.
+    let run = bin()
+        .arg("calibrate")
+        .arg(res("chrome"))
+        .arg("--out")
+        .arg(&one)
+        .args(["--circle", "187.3,109.6,93.4", "--positions", "p.csv"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        !run.status.success() && stderr.contains("two balls or more"),
+        "{stderr}"
+    );
+}

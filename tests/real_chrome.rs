@@ -85,6 +85,11 @@ fn errors(name: &str, how: &str, dir: &Path, cal: &Calibration) -> (f64, f64) {
         c.cx, c.cy, c.r
     );
     assert!(least >= 0.7, "{name}: a light's confidence is {least}");
+    assert!(
+        cal.more_circles.is_empty(),
+        "{name}: one ball, not {:?} beside it",
+        cal.more_circles
+    );
     (mean, max)
 }
 

@@ -97,8 +97,9 @@ pub struct Measured {
     pub focal_length: Option<f64>,
     /// The (first) ball's circle: the lights' `direction` and `highlight` are on it.
     pub circle: CircleView,
-    /// With several balls (`circle` given more than once): the other balls' circles, in
-    /// the order given; empty with one ball.
+    /// With several balls (`circle` given more than once, or found when no circle is
+    /// given): the other balls' circles, in the order given or, when found, left to right
+    /// (the first ball, `circle`, is then the leftmost); empty with one ball.
     #[serde(default)]
     pub more_circles: Vec<CircleView>,
     /// The `ball_diameter` part, when given.
@@ -246,11 +247,14 @@ pub struct CalibrationUpload {
     /// instead of fitting its outline. Repeat the part once per ball when the frame holds
     /// several (at most 16, of one size, the first one first): each ball is calibrated
     /// (the light table holds the first ball's directions) and each light is placed where
-    /// the balls' rays meet (`position`, `positions.csv`).
+    /// the balls' rays meet (`position`, `positions.csv`). Without it every ball in the
+    /// frame is found, the first being the leftmost.
     #[schema(value_type = Vec<String>, required = false, example = json!(["120.4,119.6,70.3", "359.7,120.3,69.6"]))]
     circle: Option<Vec<String>>,
-    /// With two `circle` parts or more: the balls' diameter, in the unit the positions
-    /// should be in (a positive number); without it, positions are in ball radii.
+    /// With two balls or more (two `circle` parts or more, or none and the balls found):
+    /// the balls' diameter, in the unit the positions should be in (a positive number);
+    /// without it, positions are in ball radii. Refused with one `circle` part or a
+    /// `mask`, or when only one ball is found.
     #[schema(value_type = String, required = false, example = "25.4")]
     ball_diameter: Option<String>,
     /// A mask of the sphere (non-zero = sphere), the images' size, instead of fitting its
@@ -319,8 +323,9 @@ impl CalibrationView {
 /// Calibrate the lights from a chrome sphere.
 ///
 /// One image of a mirror ball per light; the sphere's outline is fitted to the images
-/// unless a `circle` or `mask` is given. With a `circle` part per ball for several balls
-/// in the frame, each light is also placed where the balls' rays meet. The calibration
+/// unless a `circle` or `mask` is given. With several balls in the frame (a `circle` part
+/// per ball, or none and the balls found), each light is also placed where the balls'
+/// rays meet. The calibration
 /// runs within the request and the answer is 201 with the result: at most `--workers` are
 /// computed at once (one tenant at most `--tenant-max-calibrations`), each within the
 /// memory budget; the others wait. Give its id as a job's `calibration` part to
@@ -341,7 +346,7 @@ impl CalibrationView {
         (status = 408, description = "The upload took longer than the upload time limit", body = Problem, content_type = "application/problem+json"),
         (status = 413, description = "Body, image, part count, image count or the stored input bytes over a limit", body = Problem, content_type = "application/problem+json"),
         (status = 415, description = "An image in an unsupported format", body = Problem, content_type = "application/problem+json"),
-        (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image or not cx,cy,r, more than 16 circles, a ball_diameter that is not a positive number or without two circles, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
+        (status = 422, description = "No sphere found, an image without a usable highlight, a circle outside the image or not cx,cy,r, more than 16 circles, a ball_diameter that is not a positive number, with one circle or a mask, or with one ball found, images of different sizes, fewer than 3 images, names or matte images not one per image; an Idempotency-Key already used for a different request. The detail names the image", body = Problem, content_type = "application/problem+json"),
         (status = 429, description = "The tenant's submissions per minute (shared with jobs) are used up; retry after Retry-After seconds", body = Problem, content_type = "application/problem+json",
             headers(("Retry-After" = u64, description = "Seconds to wait"))),
         (status = 503, description = "The most uploads at once are under way, or the tenant's share of them, or the service is stopping", body = Problem, content_type = "application/problem+json",
@@ -654,10 +659,11 @@ async fn receive(
             "give the sphere either as a circle or as a mask, not both",
         ));
     }
-    // As the CLI's --positions: positions need the rays of two balls at least.
-    if form.ball_diameter.is_some() && form.circles.len() < 2 {
+    // As the CLI's --positions: positions need the rays of two balls at least, given or
+    // found (then checked once the calibration has found them).
+    if form.ball_diameter.is_some() && (form.circles.len() == 1 || form.mask.is_some()) {
         return Err(ApiError::invalid(
-            "ball_diameter needs two balls or more in the frame, each given by a circle part cx,cy,r",
+            "ball_diameter needs two balls or more in the frame: send a circle part cx,cy,r for each, or none to have them found",
         ));
     }
     Ok(form)
@@ -827,6 +833,13 @@ fn compute(dir: &Path, form: Form, limits: &Limits) -> Result<Made, ApiError> {
         ambient.as_ref().map(|a| a as &dyn Source),
         &settings,
     )?;
+    if form.ball_diameter.is_some() && cal.more_circles.is_empty() {
+        let c = cal.circle;
+        return Err(ApiError::invalid(format!(
+            "ball_diameter needs two balls or more in the frame, but one ball was found (centre ({:.1}, {:.1}), radius {:.1} px): send a circle part cx,cy,r for each ball",
+            c.cx, c.cy, c.r
+        )));
+    }
     if !form.matte.is_empty() {
         cal.fit_intensities(&files(&form.matte), &settings)?;
     }
@@ -884,13 +897,17 @@ fn measured(cal: &Calibration, form: &Form, w: usize, h: usize, source: &str) ->
         more_circles: cal
             .more_circles
             .iter()
-            .map(|c| CircleView {
-                cx: c.cx,
-                cy: c.cy,
-                r: c.r,
-                source: source.to_string(),
-                coverage: None,
-                rms: None,
+            .enumerate()
+            .map(|(k, c)| {
+                let fit = cal.more_outlines.get(k);
+                CircleView {
+                    cx: c.cx,
+                    cy: c.cy,
+                    r: c.r,
+                    source: source.to_string(),
+                    coverage: fit.map(|o| o.coverage),
+                    rms: fit.map(|o| o.rms),
+                }
             })
             .collect(),
         ball_diameter: form.ball_diameter,

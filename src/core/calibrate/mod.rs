@@ -1,16 +1,23 @@
 //! Light calibration from a chrome sphere: one image of a mirror ball per light → the light
 //! table (`name, x, y, z[, intensity]`) that `reconstruct` reads.
 //!
-//! `sphere` finds the ball's outline (or takes a given circle or mask), `highlight` finds
-//! each image's highlight and its direction through `mirror` (orthographic or pinhole
-//! camera), `matte` fits relative intensities from a matte sphere, `draw` makes the
-//! pictures a person checks it by. Pure functions over decoded planes; [`load_dir`] and
+//! `sphere` finds the balls' outlines (or a given circle or mask is taken), `balls` finds
+//! every ball in the frame with it and keeps those the images confirm, `highlight` finds
+//! each image's highlight on each ball and its direction through `mirror` (orthographic
+//! or pinhole camera), `positions` places near lights where several balls' rays meet,
+//! `matte` fits relative intensities from a matte sphere, `draw` makes the pictures a
+//! person checks it by. Pure functions over decoded planes; [`load_dir`] and
 //! [`read_mask`] are the only file I/O.
+//!
+//! With several balls, given or found, the first ball is the one the light table's
+//! directions are on and the positions' origin (orthographic): the first circle given or,
+//! found, the leftmost ball.
 //!
 //! Pixel coordinates are 0-based with pixel centres at integers: the first pixel's centre
 //! is (0, 0). Directions are in the project's frame (x = column right, y = row down,
 //! z towards the camera).
 
+mod balls;
 mod draw;
 mod environment;
 mod highlight;
@@ -34,6 +41,7 @@ pub use reading::{COARSE_BYTES, CROP_BYTES, FIT_PIXELS, READERS, peak_bytes};
 pub use source::{ImageFiles, Source};
 pub use sphere::{OutlineFit, circle_of_mask, fit_outline};
 
+use balls::{Ball, Highlights, locate};
 use reading::{Pass, Plan, Window, Windows};
 
 use super::InputError;
@@ -52,7 +60,7 @@ pub struct Circle {
 /// Where the sphere's circle comes from.
 #[derive(Debug, Clone)]
 pub enum CircleSource {
-    /// Fitted to the images' outline.
+    /// Fitted to the images' outlines: every ball in the frame (see [`balls`]).
     Fit,
     Given(Circle),
     /// Several balls in the frame, each its circle: each ball is calibrated, and each
@@ -145,6 +153,12 @@ pub struct Calibration {
     pub camera_is_pinhole: bool,
     /// How the outline fit went, when the circle was fitted to the images.
     pub outline: Option<OutlineFit>,
+    /// The other balls' outline fits, in the order of `more_circles`, when they were
+    /// found in the images; empty when given.
+    pub more_outlines: Vec<OutlineFit>,
+    /// Round outlines found beside the ball that show no highlight in most images: not
+    /// balls, left out.
+    pub not_balls: Vec<Circle>,
     pub lights: Vec<CalibratedLight>,
     pub skipped: Vec<Skipped>,
     /// Per pixel, the brightest of the images as the overlay shows it (gamma ½, 8 bits).
@@ -196,9 +210,10 @@ pub enum CalibrationError {
 /// light table's names, one per image (default: the image names); `ambient` is the ball
 /// with the rig's lights off (a source of one image), when there is one.
 ///
-/// The images are read a few at a time, twice at most (see [`reading`]): the outline is
-/// fitted on the per-pixel median of downscaled copies and refined at full resolution on
-/// the median of the ball's window, and each highlight is found in its own image's
+/// The images are read a few at a time, twice at most (see [`reading`]): with
+/// [`CircleSource::Fit`] the outlines of every ball in the frame are fitted on the
+/// per-pixel median of downscaled copies and refined at full resolution on the median of
+/// each ball's window (see [`balls`]), and each highlight is found in its own image's
 /// window, so the memory held is [`peak_bytes`] whatever the number of images.
 pub fn calibrate(
     images: &dyn Source,
@@ -259,7 +274,7 @@ pub fn calibrate(
         }
     };
     let scratch = settings.scratch.clone().unwrap_or_else(std::env::temp_dir);
-    let (circles, outline, pass, env) = match given {
+    let (circles, outlines, pass, envs) = match given {
         Some(circles) => {
             for c in &circles {
                 check_circle(c, w, h)?;
@@ -275,21 +290,22 @@ pub fn calibrate(
                 scratch: &scratch,
                 crop_bytes: settings.budget.crop_bytes,
             };
-            (circles, None, reading::read_all(images, dim, &plan)?, None)
-        }
-        None => {
-            let found = locate(images, ambient, dim, &settings.budget, &scratch)
-                .map_err(|e| e.into_error(CalibrationError::NoSphere))?;
+            let envs = vec![None; circles.len()];
             (
-                vec![found.fit.circle],
-                Some(found.fit),
-                found.pass,
-                Some(found.env),
+                circles,
+                Vec::new(),
+                reading::read_all(images, dim, &plan)?,
+                envs,
             )
         }
+        None => {
+            let found = locate(images, ambient, dim, &settings.budget, &scratch, true)
+                .map_err(|e| e.into_error(CalibrationError::NoSphere))?;
+            let circles = found.fits.iter().map(|f| f.circle).collect();
+            let envs = found.envs.into_iter().map(Some).collect();
+            (circles, found.fits, found.pass, envs)
+        }
     };
-    let more_circles = circles[1..].to_vec();
-    let circle = circles[0];
     let clip = pass
         .maxima
         .iter()
@@ -315,63 +331,51 @@ pub fn calibrate(
         }
         None => vec![None; circles.len()],
     };
-    let mut env = env;
-    let per_ball: Vec<Vec<Result<Highlight, String>>> = circles
-        .iter()
-        .zip(&pass.windows)
-        .zip(&ambient_windows)
-        .map(|((c, windows), amb)| {
-            let win = windows.window();
-            let env = match env.take() {
-                Some(e) => e,
-                None => windows.median(amb.as_ref())?,
-            };
-            let local = win.local(c);
-            let camera = match settings.camera {
-                Camera::Perspective {
-                    focal_px,
-                    principal,
-                } => Camera::Perspective {
-                    focal_px,
-                    principal: [principal[0] - win.c0 as f64, principal[1] - win.r0 as f64],
-                },
-                Camera::Orthographic => Camera::Orthographic,
-            };
-            let ctx = highlight::Context {
-                circle: &local,
-                camera: &camera,
-                env: &env,
-                count: images.count(),
-                clip,
-                typical_rise: 0.0,
-            };
-            let found = find_highlights(windows, &ctx)?;
-            Ok(found
-                .into_iter()
-                .map(|r| {
-                    r.map(|hl| Highlight {
-                        x: hl.x + win.c0 as f64,
-                        y: hl.y + win.r0 as f64,
-                        ..hl
-                    })
-                })
-                .collect())
-        })
-        .collect::<Result<_, CalibrationError>>()?;
     let Pass {
         overlay, windows, ..
     } = pass;
-    drop(windows);
+    let per_ball = circles
+        .iter()
+        .zip(windows)
+        .zip(ambient_windows)
+        .zip(envs)
+        .map(|(((c, windows), amb), env)| {
+            let view = BallView {
+                circle: c,
+                windows: &windows,
+                env,
+                ambient: amb.as_ref(),
+            };
+            ball_highlights(view, &settings.camera, clip)
+        });
+    let (balls, not_balls) = match outlines.is_empty() {
+        true => {
+            let balls = circles
+                .iter()
+                .zip(per_ball)
+                .map(|(c, highlights)| {
+                    Ok(Ball {
+                        circle: *c,
+                        outline: None,
+                        highlights: highlights?,
+                    })
+                })
+                .collect::<Result<Vec<Ball>, CalibrationError>>()?;
+            (balls, Vec::new())
+        }
+        false => balls::confirm(outlines.into_iter().zip(per_ball).collect())?,
+    };
+    let circles: Vec<Circle> = balls.iter().map(|b| b.circle).collect();
     let max_image = overlay.unwrap_or_default();
     let mut lights = Vec::new();
     let mut skipped = Vec::new();
     for i in 0..images.count() {
         let image = images.name(i);
-        let found: Result<Vec<Highlight>, String> = per_ball
+        let found: Result<Vec<Highlight>, String> = balls
             .iter()
             .enumerate()
             .map(|(b, ball)| {
-                ball[i].clone().map_err(|reason| {
+                ball.highlights[i].clone().map_err(|reason| {
                     if circles.len() > 1 {
                         format!("ball {}: {reason}", b + 1)
                     } else {
@@ -419,10 +423,12 @@ pub fn calibrate(
     }
     check_spread(&lights)?;
     Ok(Calibration {
-        circle,
-        more_circles,
+        circle: circles[0],
+        more_circles: circles[1..].to_vec(),
         camera_is_pinhole: matches!(settings.camera, Camera::Perspective { .. }),
-        outline,
+        outline: balls[0].outline,
+        more_outlines: balls[1..].iter().filter_map(|b| b.outline).collect(),
+        not_balls,
         lights,
         skipped,
         max_image,
@@ -447,13 +453,15 @@ impl Calibration {
         }
         let (w, h) = check_images(matte)?;
         let scratch = settings.scratch.clone().unwrap_or_else(std::env::temp_dir);
-        let found = locate(matte, None, (w, h), &settings.budget, &scratch).map_err(|e| {
-            e.into_error(|reason| CalibrationError::Matte {
-                name: matte.name(0).to_string(),
-                reason: format!("no sphere outline found: {reason}"),
-            })
-        })?;
-        let circle = found.fit.circle;
+        // One matte ball: the best-fitting outline.
+        let found =
+            locate(matte, None, (w, h), &settings.budget, &scratch, false).map_err(|e| {
+                e.into_error(|reason| CalibrationError::Matte {
+                    name: matte.name(0).to_string(),
+                    reason: format!("no sphere outline found: {reason}"),
+                })
+            })?;
+        let circle = found.fits[0].circle;
         check_circle(&circle, w, h)?;
         let clip = found
             .pass
@@ -598,149 +606,57 @@ impl Calibration {
     }
 }
 
-/// Where the ball is, fitted to the images: the outline, the pass that read its window of
-/// every image, and the environment over that window.
-struct Located {
-    fit: OutlineFit,
-    pass: Pass,
-    env: Array2<u16>,
+/// One ball's pixels as a pass read them: its circle (in the image), every image's window
+/// around it, the environment there when already known, and the ambient image's window.
+struct BallView<'a> {
+    circle: &'a Circle,
+    windows: &'a Windows,
+    env: Option<Array2<u16>>,
+    ambient: Option<&'a Array2<u16>>,
 }
 
-/// Why [`locate`] found no ball (a reason for the caller's error), or another error.
-enum LocateError {
-    NoOutline(String),
-    Other(CalibrationError),
-}
-
-impl LocateError {
-    fn into_error(self, no_outline: impl FnOnce(String) -> CalibrationError) -> CalibrationError {
-        match self {
-            Self::NoOutline(reason) => no_outline(reason),
-            Self::Other(e) => e,
-        }
-    }
-}
-
-impl From<CalibrationError> for LocateError {
-    fn from(e: CalibrationError) -> Self {
-        Self::Other(e)
-    }
-}
-
-/// Fit the ball's outline: on the per-pixel median of the images (raised to `ambient`)
-/// downscaled to fit the budget, then, when they were downscaled, refined at full
-/// resolution on the median of a second pass over the ball's window.
-fn locate(
-    images: &dyn Source,
-    ambient: Option<&dyn Source>,
-    dim: (usize, usize),
-    budget: &Budget,
-    scratch: &Path,
-) -> Result<Located, LocateError> {
-    let f = reading::coarse_factor(images.count(), dim, budget.coarse_bytes);
-    fn plan<'a>(
-        factor: Option<usize>,
-        windows: &'a [Window],
-        overlay: bool,
-        scratch: &'a Path,
-        budget: &Budget,
-    ) -> Plan<'a> {
-        Plan {
-            factor,
-            windows,
-            overlay,
-            scratch,
-            crop_bytes: budget.crop_bytes,
-        }
-    }
-    let first = reading::read_all(images, dim, &plan(Some(f), &[], true, scratch, budget))?;
-    let ambient_coarse = match ambient {
-        Some(a) => Some(
-            reading::read_all(a, dim, &plan(Some(f), &[], false, scratch, budget))?
-                .coarse
-                .remove(0),
-        ),
-        None => None,
+/// Each image's highlight on one ball, in the image's coordinates (see
+/// [`find_highlights`]).
+fn ball_highlights(
+    ball: BallView,
+    camera: &Camera,
+    clip: u16,
+) -> Result<Highlights, CalibrationError> {
+    let win = ball.windows.window();
+    let env = match ball.env {
+        Some(e) => e,
+        None => ball.windows.median(ball.ambient)?,
     };
-    let env = {
-        let refs: Vec<&Array2<u16>> = first.coarse.iter().collect();
-        environment::estimate(&refs, ambient_coarse.as_ref())
-    };
-    let rough = sphere::fit_outline_downscaled(&env.mapv(|v| v as f32 / 65535.0), f)
-        .map_err(LocateError::NoOutline)?;
-    let (w, h) = dim;
-    if f == 1 {
-        // The copies are the images: the ball's window is cut from them, one at a time.
-        check_circle(&rough.circle, w, h)?;
-        let win = Window::around(&rough.circle, 0.0, dim);
-        let cut = |p: &Array2<u16>| {
-            p.slice(ndarray::s![win.r0..win.r0 + win.h, win.c0..win.c0 + win.w])
-                .to_owned()
-        };
-        let env = cut(&env);
-        let windows = Windows::Memory(win, first.coarse.iter().map(cut).collect());
-        return Ok(Located {
-            fit: rough,
-            pass: Pass {
-                coarse: Vec::new(),
-                windows: vec![windows],
-                maxima: first.maxima,
-                overlay: first.overlay,
-            },
-            env,
-        });
-    }
-    drop(env);
-    let Pass {
-        maxima, overlay, ..
-    } = first;
-    // A coarse pixel's centre is the mean of the pixels it averages.
-    let k = f as f64;
-    let up = Circle {
-        cx: rough.circle.cx * k + (k - 1.0) / 2.0,
-        cy: rough.circle.cy * k + (k - 1.0) / 2.0,
-        r: rough.circle.r * k,
-    };
-    check_circle(&up, w, h)?;
-    // The rough circle may be off by a coarse pixel or two.
-    let off = 2.0 * k;
-    let win = Window::around(&up, sphere::refine_margin(up.r, off), dim);
-    let second = reading::read_all(images, dim, &plan(None, &[win], false, scratch, budget))?;
-    let ambient_window = match ambient {
-        Some(a) => Some(
-            reading::read_all(a, dim, &plan(None, &[win], false, scratch, budget))?.windows[0]
-                .image(0)?
-                .into_owned(),
-        ),
-        None => None,
-    };
-    let env = second.windows[0].median(ambient_window.as_ref())?;
-    drop(ambient_window);
-    let fine = sphere::refine_outline(&env, win.local(&up), off).map_err(LocateError::NoOutline)?;
-    let circle = Circle {
-        cx: fine.circle.cx + win.c0 as f64,
-        cy: fine.circle.cy + win.r0 as f64,
-        r: fine.circle.r,
-    };
-    check_circle(&circle, w, h)?;
-    if !win.holds(&circle, dim) {
-        return Err(LocateError::NoOutline(format!(
-            "the outline traced at full resolution ({:.1}, {:.1}, radius {:.1}) lies far from the one found on the {f}× downscaled images",
-            circle.cx, circle.cy, circle.r
-        )));
-    }
-    // The highlights are searched within the ball's own box.
-    let Pass { windows, .. } = second;
-    Ok(Located {
-        fit: OutlineFit { circle, ..fine },
-        pass: Pass {
-            coarse: Vec::new(),
-            windows,
-            maxima,
-            overlay,
+    let local = win.local(ball.circle);
+    let camera = match *camera {
+        Camera::Perspective {
+            focal_px,
+            principal,
+        } => Camera::Perspective {
+            focal_px,
+            principal: [principal[0] - win.c0 as f64, principal[1] - win.r0 as f64],
         },
-        env,
-    })
+        Camera::Orthographic => Camera::Orthographic,
+    };
+    let ctx = highlight::Context {
+        circle: &local,
+        camera: &camera,
+        env: &env,
+        count: ball.windows.count(),
+        clip,
+        typical_rise: 0.0,
+    };
+    let found = find_highlights(ball.windows, &ctx)?;
+    Ok(found
+        .into_iter()
+        .map(|r| {
+            r.map(|hl| Highlight {
+                x: hl.x + win.c0 as f64,
+                y: hl.y + win.r0 as f64,
+                ..hl
+            })
+        })
+        .collect())
 }
 
 /// Each image's highlight within the ball's window (`ctx` in the window's coordinates):

@@ -17,11 +17,22 @@
 //! 4. Refinement: along 720 rays from the centre, the strongest intensity step within a
 //!    few pixels of the circle, to sub-pixel by a parabola; a geometric circle fit with
 //!    Tukey weights over those points; repeated with a narrowing window.
+//! 5. More balls ([`fit_outlines_downscaled`]; a dome's rig holds two or more): the same
+//!    search among the candidate centres outside the balls found, again and again. One
+//!    more ball is a round outline as strong as a ball's: traced along at least half its
+//!    circle both by the refinement's rays and by the edge points (within 1.5 px of it,
+//!    their gradient across it: the rays find a step near any circle drawn over a
+//!    textured backdrop, the edge points lie on a ball's outline only); of the first
+//!    ball's size within 1.5× (a rig's balls are alike, and positions are in their
+//!    radii); crossing no other ball's outline (side by side, one cannot overlap
+//!    another). The first ball found is the best outline, as with one ball.
 //!
 //! Limits: the outline must differ in brightness from what surrounds it over a good part
 //! of its length (a chrome ball that mirrors a backdrop identical to the one around it
 //! has no outline to find), at least a fifth of it must lie in the frame, and a lens that
-//! stretches the ball into a visible ellipse is fitted by a circle.
+//! stretches the ball into a visible ellipse is fitted by a circle. A further ball's
+//! outline must stand out along half its length: one that fades into its surroundings
+//! (a dark ball on a dark backdrop) is not found, and must be given.
 
 use ndarray::Array2;
 
@@ -34,6 +45,17 @@ const RAYS: usize = 720;
 const SECTORS: usize = 360;
 /// Most edge points kept (the strongest).
 const MAX_EDGES: usize = 60_000;
+/// Candidate centres tried per ball.
+const CANDIDATES: usize = 12;
+/// Most balls looked for in one frame (as many circles as the service takes).
+pub const MAX_BALLS: usize = 16;
+/// A further ball's outline is traced along at least this share of its circle: most of
+/// it, as a ball's is (see [`is_another_ball`]).
+const MORE_COVERAGE: f64 = 0.5;
+/// Balls' radii differ by at most this factor: a rig's balls are alike.
+const SIZE_RATIO: f64 = 1.5;
+/// Two balls' outlines may cross by this much (pixels): touching, to the fits' accuracy.
+const TOUCH: f64 = 2.0;
 
 /// A fitted outline and how well the images support it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -62,52 +84,178 @@ pub fn fit_outline(image: &Array2<f32>) -> Result<OutlineFit, String> {
 /// and candidate centres are kept 6 pixels of the image apart, as at full resolution, but
 /// at least 3 of the copy's.
 pub fn fit_outline_downscaled(image: &Array2<f32>, factor: usize) -> Result<OutlineFit, String> {
-    let factor = factor.max(1) as f64;
-    let smooth = gaussian(image, 1.0);
-    let (gx, gy) = gradients(&smooth);
-    let (edges, threshold) = edge_points(&gx, &gy, factor as f32);
-    if edges.len() < 20 {
-        return Err("the images have almost no edges".into());
-    }
-    let (h, w) = image.dim();
-    let max_radius = w.max(h) as f64;
-    let mut best: Option<(usize, Circle)> = None;
-    let apart = (6.0 / factor).max(3.0);
-    for (cx, cy) in centre_candidates(&edges, w, h, max_radius, apart) {
-        if let Some((cover, r)) = best_radius(&edges, cx, cy, max_radius)
-            && best.is_none_or(|b| cover > b.0)
-        {
-            best = Some((cover, Circle { cx, cy, r }));
+    Search::new(image, factor)?.first()
+}
+
+/// Every ball's outline in `image`, downscaled `factor` times (see
+/// [`fit_outline_downscaled`] and the module's notes, step 5): the best one first (the one
+/// that gives), then each further ball's, the most traced first. Holds what one fit holds
+/// and the accumulator's ranked pixels (24 bytes a pixel).
+pub fn fit_outlines_downscaled(
+    image: &Array2<f32>,
+    factor: usize,
+) -> Result<Vec<OutlineFit>, String> {
+    let search = Search::new(image, factor)?;
+    let mut balls = vec![search.first()?];
+    while balls.len() < MAX_BALLS {
+        match search.another(&balls) {
+            Some(fit) => balls.push(fit),
+            None => break,
         }
     }
-    let Some((cover, rough)) = best else {
-        return Err("no round outline among the edges".into());
+    Ok(balls)
+}
+
+/// Whether a refined outline may be one more ball beside `balls` (the first one first):
+/// traced by the refinement along at least [`MORE_COVERAGE`] of its rays, as a ball's
+/// outline is wherever it lies in the frame (a partial arc is not), and [`beside`] them.
+/// The search asks besides that its edge points trace as much of its circle; this part
+/// is asked again of the outline refined at full resolution.
+pub fn is_another_ball(fit: &OutlineFit, balls: &[OutlineFit]) -> bool {
+    fit.coverage >= MORE_COVERAGE && beside(&fit.circle, balls)
+}
+
+/// Whether a circle could be one more ball beside `balls` (the first one first): of the
+/// first ball's size within [`SIZE_RATIO`] (a dome's balls are alike, and the positions
+/// are in their radii), and crossing no ball's outline (balls lie side by side; in the
+/// image one cannot overlap another).
+fn beside(c: &Circle, balls: &[OutlineFit]) -> bool {
+    let Some(first) = balls.first() else {
+        return false;
     };
-    if cover < SECTORS / 5 {
-        return Err(format!(
-            "the roundest outline found covers only {:.0} % of a circle",
-            100.0 * cover as f64 / SECTORS as f64
-        ));
+    let r0 = first.circle.r;
+    c.r <= SIZE_RATIO * r0
+        && c.r * SIZE_RATIO >= r0
+        && balls.iter().all(|b| {
+            let d = (c.cx - b.circle.cx).hypot(c.cy - b.circle.cy);
+            d >= c.r + b.circle.r - TOUCH
+        })
+}
+
+/// The outline search over one image: its smoothed copy, its edge points and their
+/// threshold, and the centres their gradient lines vote for.
+struct Search {
+    smooth: Array2<f32>,
+    edges: Vec<Edge>,
+    threshold: f32,
+    /// The smoothed accumulator's pixels, strongest first.
+    peaks: Vec<(u32, usize, usize)>,
+    /// Candidate centres are kept this far apart, pixels of the image searched.
+    apart: f64,
+    max_radius: f64,
+}
+
+impl Search {
+    fn new(image: &Array2<f32>, factor: usize) -> Result<Self, String> {
+        let factor = factor.max(1) as f64;
+        let smooth = gaussian(image, 1.0);
+        let (gx, gy) = gradients(&smooth);
+        let (edges, threshold) = edge_points(&gx, &gy, factor as f32);
+        if edges.len() < 20 {
+            return Err("the images have almost no edges".into());
+        }
+        let (h, w) = image.dim();
+        let max_radius = w.max(h) as f64;
+        let peaks = ranked_peaks(&edges, w, h, max_radius);
+        Ok(Self {
+            smooth,
+            edges,
+            threshold,
+            peaks,
+            apart: (6.0 / factor).max(3.0),
+            max_radius,
+        })
     }
-    let mut fit = OutlineFit {
-        circle: rough,
-        coverage: 0.0,
-        rms: 0.0,
-    };
-    // Windows from wide to narrow: a real ball's rim can be a ramp several pixels wide
-    // (defocus, JPEG), and a rough circle a few pixels off must still see all of it.
-    let wide = (0.03 * rough.r).max(4.0);
-    for window in [wide, (0.5 * wide).max(4.0), 4.0, 3.0, 2.0, 2.0] {
-        fit = refine(&smooth, fit.circle, window, threshold)
-            .ok_or("the outline could not be traced to sub-pixel accuracy")?;
+
+    /// The best outline: of the strongest candidate centres, the one whose best radius
+    /// covers the most sectors, refined; an error when it is not round enough.
+    fn first(&self) -> Result<OutlineFit, String> {
+        let centres = pick_centres(&self.peaks, self.apart, |_, _| false);
+        let Some((cover, rough)) = self.roundest(&centres).into_iter().next() else {
+            return Err("no round outline among the edges".into());
+        };
+        if cover < SECTORS / 5 {
+            return Err(format!(
+                "the roundest outline found covers only {:.0} % of a circle",
+                100.0 * cover as f64 / SECTORS as f64
+            ));
+        }
+        let fit = self.refined(rough)?;
+        if fit.coverage < 0.2 {
+            return Err(format!(
+                "the outline was traced along only {:.0} % of the circle",
+                100.0 * fit.coverage
+            ));
+        }
+        Ok(fit)
     }
-    if fit.coverage < 0.2 {
-        return Err(format!(
-            "the outline was traced along only {:.0} % of the circle",
-            100.0 * fit.coverage
-        ));
+
+    /// One more ball beside `balls`: of the strongest candidate centres outside them, those
+    /// round enough to be tried (as [`first`](Self::first) asks) and [`beside`] them,
+    /// refined; of the outlines that [`is_another_ball`] and whose edge points trace at
+    /// least [`MORE_COVERAGE`] of their circle ([`traced_share`]), the one they trace the
+    /// most of (the earlier candidate among equals).
+    ///
+    /// Both measures are needed: the refinement's rays find a step near any circle drawn
+    /// over a textured backdrop, only not on it (a share of its rays, not of its circle);
+    /// the edge points must lie on the circle and point across it.
+    fn another(&self, balls: &[OutlineFit]) -> Option<OutlineFit> {
+        // A further ball's centre lies outside every ball found, by its own radius.
+        let inside = |x: f64, y: f64| {
+            balls
+                .iter()
+                .any(|b| (x - b.circle.cx).hypot(y - b.circle.cy) < b.circle.r + MIN_RADIUS)
+        };
+        let centres = pick_centres(&self.peaks, self.apart, inside);
+        let mut best: Option<(f64, OutlineFit)> = None;
+        for (cover, rough) in self.roundest(&centres) {
+            if cover < SECTORS / 5 || !beside(&rough, balls) {
+                continue;
+            }
+            let Ok(fit) = self.refined(rough) else {
+                continue;
+            };
+            let traced = traced_share(&self.edges, &fit.circle);
+            if is_another_ball(&fit, balls)
+                && traced >= MORE_COVERAGE
+                && best.is_none_or(|b| traced > b.0)
+            {
+                best = Some((traced, fit));
+            }
+        }
+        best.map(|b| b.1)
     }
-    Ok(fit)
+
+    /// Per centre, the radius whose edge points cover the most sectors: (sectors, circle),
+    /// the most first (the earlier centre first among equals).
+    fn roundest(&self, centres: &[(f64, f64)]) -> Vec<(usize, Circle)> {
+        let mut found: Vec<(usize, Circle)> = centres
+            .iter()
+            .filter_map(|&(cx, cy)| {
+                best_radius(&self.edges, cx, cy, self.max_radius)
+                    .map(|(cover, r)| (cover, Circle { cx, cy, r }))
+            })
+            .collect();
+        found.sort_by_key(|f| std::cmp::Reverse(f.0));
+        found
+    }
+
+    /// A rough circle refined to sub-pixel, from wide windows to narrow: a real ball's rim
+    /// can be a ramp several pixels wide (defocus, JPEG), and a rough circle a few pixels
+    /// off must still see all of it.
+    fn refined(&self, rough: Circle) -> Result<OutlineFit, String> {
+        let mut fit = OutlineFit {
+            circle: rough,
+            coverage: 0.0,
+            rms: 0.0,
+        };
+        let wide = (0.03 * rough.r).max(4.0);
+        for window in [wide, (0.5 * wide).max(4.0), 4.0, 3.0, 2.0, 2.0] {
+            fit = refine(&self.smooth, fit.circle, window, self.threshold)
+                .ok_or("the outline could not be traced to sub-pixel accuracy")?;
+        }
+        Ok(fit)
+    }
 }
 
 /// Refine a rough outline (e.g. one fitted on a downscaled image) on the full-resolution
@@ -343,15 +491,10 @@ fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>, downscaled: f32) -> (Vec<Edge
     (edges.into_iter().map(|e| e.1).collect(), threshold)
 }
 
-/// Centres voted for by the edge points' gradient lines: the strongest peaks of the
-/// (3×3-smoothed) accumulator, at least `apart` px apart.
-fn centre_candidates(
-    edges: &[Edge],
-    w: usize,
-    h: usize,
-    max_radius: f64,
-    apart: f64,
-) -> Vec<(f64, f64)> {
+/// The pixels of the (3×3-smoothed) accumulator of the edge points' gradient lines, each
+/// voting for the centres of the circles it could lie on: (votes, row, column), the most
+/// first.
+fn ranked_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(u32, usize, usize)> {
     let mut acc = Array2::<u32>::zeros((h, w));
     for e in edges {
         for sign in [-1.0f32, 1.0] {
@@ -378,26 +521,59 @@ fn centre_candidates(
             smooth[[r, c]] = s;
         }
     }
+    drop(acc);
     let mut peaks: Vec<(u32, usize, usize)> = smooth
         .indexed_iter()
         .filter(|&(_, &v)| v > 0)
         .map(|((r, c), &v)| (v, r, c))
         .collect();
     peaks.sort_unstable_by_key(|p| std::cmp::Reverse(p.0));
+    peaks
+}
+
+/// Candidate centres: the strongest [`CANDIDATES`] peaks at least `apart` px apart,
+/// leaving out those `skip` says (x, y).
+fn pick_centres(
+    peaks: &[(u32, usize, usize)],
+    apart: f64,
+    skip: impl Fn(f64, f64) -> bool,
+) -> Vec<(f64, f64)> {
     let mut chosen: Vec<(f64, f64)> = Vec::new();
-    for (_, r, c) in peaks {
+    for &(_, r, c) in peaks {
         let (x, y) = (c as f64, r as f64);
-        if chosen
-            .iter()
-            .all(|&(px, py)| (px - x).hypot(py - y) >= apart)
+        if !skip(x, y)
+            && chosen
+                .iter()
+                .all(|&(px, py)| (px - x).hypot(py - y) >= apart)
         {
             chosen.push((x, y));
-            if chosen.len() == 12 {
+            if chosen.len() == CANDIDATES {
                 break;
             }
         }
     }
     chosen
+}
+
+/// The share of `circle`'s outline its edge points trace: of its sectors (1° or, on a
+/// small circle, about a pixel of its circumference each), those holding an edge point
+/// within 1.5 px of it whose gradient points radially (as [`best_radius`] counts them).
+fn traced_share(edges: &[Edge], circle: &Circle) -> f64 {
+    let n = ((std::f64::consts::TAU * circle.r) as usize).clamp(1, SECTORS);
+    let mut hit = vec![false; n];
+    for e in edges {
+        let (dx, dy) = (e.x as f64 - circle.cx, e.y as f64 - circle.cy);
+        let d = dx.hypot(dy);
+        if (d - circle.r).abs() > 1.5 || d == 0.0 {
+            continue;
+        }
+        if ((e.ux as f64 * dx + e.uy as f64 * dy) / d).abs() < 0.9 {
+            continue;
+        }
+        let angle = dy.atan2(dx).rem_euclid(std::f64::consts::TAU);
+        hit[((angle / std::f64::consts::TAU * n as f64) as usize).min(n - 1)] = true;
+    }
+    hit.iter().filter(|&&h| h).count() as f64 / n as f64
 }
 
 /// The radius about (cx, cy) whose radially oriented edge points cover the most 1°
