@@ -34,11 +34,11 @@ pub(super) fn tables(
 ) -> String {
     let mut o = String::new();
     let sizes: Vec<String> = args.sizes.iter().map(|s| s.to_string()).collect();
-    let _ = writeln!(o, "## photostereo bench\n");
-    let _ = writeln!(
-        o,
-        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
-         the end"
+    heading(
+        &mut o,
+        "photostereo bench",
+        machine,
+        (load_at_start, load_at_end),
     );
     let _ = writeln!(
         o,
@@ -563,11 +563,11 @@ pub(super) fn sweep_table(
             .collect::<Vec<_>>()
             .join(",")
     };
-    let _ = writeln!(o, "## photostereo bench: light-count sweep\n");
-    let _ = writeln!(
-        o,
-        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
-         the end"
+    heading(
+        &mut o,
+        "photostereo bench: light-count sweep",
+        machine,
+        (load_at_start, load_at_end),
     );
     let _ = writeln!(
         o,
@@ -728,11 +728,11 @@ pub(super) fn hostile_table(
         format!(" --serve-args '{}'", args.serve_args.join(" "))
     };
     let timeout_ms = PROBE_TIMEOUT.as_millis();
-    let _ = writeln!(o, "## photostereo bench --hostile\n");
-    let _ = writeln!(
-        o,
-        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
-         the end"
+    heading(
+        &mut o,
+        "photostereo bench --hostile",
+        machine,
+        (load_at_start, load_at_end),
     );
     let _ = writeln!(
         o,
@@ -819,11 +819,11 @@ pub(super) fn integrators_table(
     use super::integrators::METHODS;
     let mut o = String::new();
     let sizes: Vec<String> = args.sizes.iter().map(|s| s.to_string()).collect();
-    let _ = writeln!(o, "## photostereo bench: integrators\n");
-    let _ = writeln!(
-        o,
-        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
-         the end"
+    heading(
+        &mut o,
+        "photostereo bench: integrators",
+        machine,
+        (load_at_start, load_at_end),
     );
     let _ = writeln!(
         o,
@@ -913,11 +913,11 @@ pub(super) fn calibration_table(
 ) -> String {
     use super::calibration::{HEIGHT, WIDTH};
     let mut o = String::new();
-    let _ = writeln!(o, "## photostereo bench: calibration\n");
-    let _ = writeln!(
-        o,
-        "- machine: {machine}; load average {load_at_start} at the start, {load_at_end} at \
-         the end"
+    heading(
+        &mut o,
+        "photostereo bench: calibration",
+        machine,
+        (load_at_start, load_at_end),
     );
     let _ = writeln!(
         o,
@@ -968,4 +968,13 @@ pub(super) fn calibration_table(
         }
     }
     o
+}
+
+/// A table's title and the machine line: what ran it, and its load before and after.
+fn heading(o: &mut String, title: &str, machine: &str, (start, end): (&str, &str)) {
+    let _ = writeln!(o, "## {title}\n");
+    let _ = writeln!(
+        o,
+        "- machine: {machine}; load average {start} at the start, {end} at the end"
+    );
 }
