@@ -278,8 +278,8 @@ async fn one_tenants_slow_uploads_leave_room_for_another() {
 }
 
 /// With --workers 1, a calibration whose client went away keeps the only calibration
-/// slot until its work ends: a second calibration waits for it, and never two compute
-/// at once.
+/// slot, and its uploaded images, until its work ends: a second calibration waits for
+/// it, and never two compute at once; the first's files go when its work ends.
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_calibration_keeps_its_slot_after_its_client_goes_away() {
     const DELAY: Duration = Duration::from_secs(4);
@@ -300,9 +300,21 @@ async fn a_calibration_keeps_its_slot_after_its_client_goes_away() {
     }
     let first_started = Instant::now();
     assert!(gone.await.unwrap().is_err(), "the client was to give up");
-    // Its client is gone; its work is not, and neither is its slot.
+    // Its client is gone; its work is not, and neither are its slot and its images.
     assert_eq!(metric(&s, "photostereo_calibrations_computing").await, 1);
     assert_eq!(metric(&s, "photostereo_calibration_slots_taken").await, 1);
+    // Time for the server to see the client gone and drop what the request held.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let calibrations = dir.path().join("calibrations");
+    let staged = calibration_dirs(&calibrations);
+    assert_eq!(staged.len(), 1, "{staged:?}");
+    let images = std::fs::read_dir(staged[0].join("files.partial"))
+        .map(|d| d.count())
+        .unwrap_or(0);
+    assert!(
+        images > 0,
+        "the work's uploaded images were removed under it"
+    );
 
     let second = {
         let (client, url) = (s.client.clone(), s.url("/v1/calibrations"));
@@ -333,6 +345,23 @@ async fn a_calibration_keeps_its_slot_after_its_client_goes_away() {
         metric(&s, "photostereo_calibrations_computing_max").await,
         1
     );
+    // The first's files go once its work has ended; the second's stay.
+    let start = Instant::now();
+    while calibration_dirs(&calibrations).contains(&staged[0]) {
+        assert!(start.elapsed() < Duration::from_secs(5), "{}", s.logs());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(calibration_dirs(&calibrations).len(), 1);
+}
+
+/// The calibrations' directories under `root`.
+fn calibration_dirs(root: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut dirs: Vec<_> = std::fs::read_dir(root)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    dirs.sort();
+    dirs
 }
 
 /// A job whose estimated peak does not fit beside a calibration's reservation waits in

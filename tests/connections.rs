@@ -1,7 +1,8 @@
 //! Connections against the real binary: thousands of idle and trickling sockets while
 //! `/healthz`, `/readyz` and an authenticated API call each answer within a second; idle,
-//! trickling and kept-alive connections closed after their timeouts; the cap, where an
-//! idle connection makes room and busy ones get a 503; the server's memory through it all.
+//! trickling and kept-alive connections closed after their timeouts (HTTP/1.1 and h2c);
+//! the cap, where an idle connection makes room and busy ones get a 503; the server's
+//! memory through it all.
 //!
 //! The tests take turns ([`SERIAL`]): each opens thousands of sockets and measures
 //! latencies on two cores.
@@ -452,4 +453,127 @@ async fn a_client_that_reads_nothing_is_closed_after_the_send_timeout() {
     )
     .await;
     assert_eq!(send, 1.0);
+}
+
+/// The HTTP/2 client preface and an empty SETTINGS frame: what an h2c client (prior
+/// knowledge) sends first.
+fn h2_preface() -> Vec<u8> {
+    let mut bytes = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n".to_vec();
+    bytes.extend_from_slice(&[0, 0, 0, 4, 0, 0, 0, 0, 0]);
+    bytes
+}
+
+/// A HEADERS frame (stream 1, END_STREAM | END_HEADERS) for `GET path`: HPACK with
+/// literals that are never indexed, so no table state is needed.
+fn h2_get(addr: &str, path: &str) -> Vec<u8> {
+    let mut block = vec![0x82, 0x86]; // :method GET, :scheme http (static table)
+    for (index, value) in [(4u8, path), (1, addr)] {
+        // Literal, never indexed, name from the static table (:path 4, :authority 1).
+        block.push(0x10 | index);
+        block.push(value.len() as u8);
+        block.extend_from_slice(value.as_bytes());
+    }
+    let len = block.len();
+    let mut frame = vec![
+        (len >> 16) as u8,
+        (len >> 8) as u8,
+        len as u8,
+        1,
+        0x05,
+        0,
+        0,
+        0,
+        1,
+    ];
+    frame.extend(block);
+    frame
+}
+
+/// The frames a server sent until the `:status` of stream 1 (None: none before EOF or
+/// 5 s): that status, from the HEADERS frame's first byte (an indexed static-table status).
+async fn h2_status(c: &mut TcpStream) -> Option<u16> {
+    let read = async {
+        loop {
+            let mut head = [0u8; 9];
+            c.read_exact(&mut head).await.ok()?;
+            let len = (head[0] as usize) << 16 | (head[1] as usize) << 8 | head[2] as usize;
+            let mut payload = vec![0u8; len];
+            c.read_exact(&mut payload).await.ok()?;
+            let stream = u32::from_be_bytes([head[5], head[6], head[7], head[8]]) & 0x7fff_ffff;
+            if head[3] == 1 && stream == 1 {
+                // Static table: 0x88 is :status 200, 0x8d 404, 0x8e 500.
+                return Some(match payload.first()? {
+                    0x88 => 200,
+                    0x8d => 404,
+                    0x8e => 500,
+                    other => 1000 + *other as u16,
+                });
+            }
+        }
+    };
+    tokio::time::timeout(Duration::from_secs(5), read)
+        .await
+        .ok()
+        .flatten()
+}
+
+/// HTTP/2 with prior knowledge (h2c) is held to the same clocks: a connection that sends
+/// its preface and nothing more is closed at the header timeout, one idle after its
+/// request at the keep-alive timeout; 1,000 such silent ones leave the probes answering.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn h2c_connections_close_after_their_timeouts() {
+    let _turn = SERIAL.lock().await;
+    raise_own_file_limit();
+    let dir = tempfile::tempdir().unwrap();
+    let flags = [
+        "--api-key",
+        API_KEY,
+        "--header-timeout",
+        "2s",
+        "--keep-alive-timeout",
+        "4s",
+        "--max-connections",
+        "10000",
+    ];
+    let s = BinServer::start(dir.path(), &flags);
+
+    let mut served = TcpStream::connect(s.addr()).await.unwrap();
+    served.write_all(&h2_preface()).await.unwrap();
+    served
+        .write_all(&h2_get(s.addr(), "/healthz"))
+        .await
+        .unwrap();
+    assert_eq!(h2_status(&mut served).await, Some(200), "{}", s.logs());
+    let answered = Instant::now();
+    let served = tokio::spawn(closed_after(
+        vec![served],
+        answered,
+        Duration::from_secs(15),
+    ));
+
+    let opened = Instant::now();
+    let mut silent = Vec::new();
+    for _ in 0..1000 {
+        let mut c = TcpStream::connect(s.addr()).await.unwrap();
+        c.write_all(&h2_preface()).await.unwrap();
+        silent.push(c);
+    }
+    let silent = tokio::spawn(closed_after(silent, opened, Duration::from_secs(15)));
+    let mut slowest = Duration::ZERO;
+    while opened.elapsed() < Duration::from_millis(1500) {
+        slowest = slowest.max(probes_answer(&s, "1,000 silent h2c connections").await);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let (silent_n, silent_min, silent_max) = summary(&silent.await.unwrap());
+    let (served_n, served_min, _) = summary(&served.await.unwrap());
+    println!(
+        "h2c: {silent_n}/1000 silent closed after {silent_min:?}..{silent_max:?} (header timeout 2s); the served one {served_min:?} after its answer (keep-alive 4s); probes within {slowest:?}"
+    );
+    assert_eq!(silent_n, 1000, "silent h2c connections still open");
+    assert!(silent_min >= Duration::from_millis(1900), "{silent_min:?}");
+    assert!(silent_max < Duration::from_secs(6), "{silent_max:?}");
+    assert_eq!(served_n, 1, "the served h2c connection is still open");
+    assert!(served_min >= Duration::from_millis(3900), "{served_min:?}");
+    assert!(served_min < Duration::from_secs(7), "{served_min:?}");
+    assert_eq!(metric(&s, "photostereo_connections_open").await, 1.0);
 }

@@ -389,7 +389,7 @@ async fn accept(
     }
 
     let id = Uuid::new_v4();
-    let mut staging = state.stage_calibration(id).await?;
+    let staging = state.stage_calibration(id).await?;
     let mut hash = PartHasher::new(idempotency_key.is_some());
     let form = tokio::time::timeout(
         config.upload_timeout,
@@ -407,12 +407,17 @@ async fn accept(
         return idempotency::replay(earlier, &body_hash);
     }
 
-    // The slot and the memory move into the blocking task: a client that goes away does
-    // not free them while the work goes on.
+    // The slot, the memory and the uploaded files move into the blocking task: a client
+    // that goes away frees none of them while the work goes on (its files are removed
+    // when the work ends).
     let computing = state.calibration_slot(&caller.tenant).await;
-    let (dir, limits) = (staging.path().to_path_buf(), config.limits());
-    let made = tokio::task::spawn_blocking(move || computing.run(|| compute(&dir, form, &limits)))
-        .await??;
+    let limits = config.limits();
+    let (mut staging, made) = tokio::task::spawn_blocking(move || {
+        let made = computing.run(|| compute(staging.path(), form, &limits));
+        (staging, made)
+    })
+    .await?;
+    let made = made?;
     staging.commit().await?;
 
     let record = CalibrationRecord {
