@@ -85,6 +85,21 @@ fn chrome_16_bit_within_03_degree_mean_1_max() {
     check_accuracy("16-bit", &ChromeSet::standard(16, 43));
 }
 
+/// The usual capture rendered four times larger (1280 × 960, a ball 374 px across its
+/// radius): at that size the backdrop's texture bends the outline's gradients enough to
+/// scatter its centre votes, and only the votes counted per octave of distance find it.
+#[test]
+fn a_large_ball_on_a_textured_backdrop_within_03_degree_mean_1_max() {
+    let mut set = ChromeSet::standard(8, 67);
+    let k = 4.0;
+    set.width *= 4;
+    set.height *= 4;
+    // Pixel centres at integers: a pixel's centre x maps to k (x + ½) − ½.
+    set.centre = set.centre.map(|v| k * (v + 0.5) - 0.5);
+    set.radius *= k;
+    check_accuracy("4× larger, 8-bit", &set);
+}
+
 #[test]
 fn chrome_ball_filling_a_dark_frame_within_03_degree_mean_1_max() {
     for bits in [8, 16] {

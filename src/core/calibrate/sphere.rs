@@ -9,7 +9,14 @@
 //!    threshold relative to the image's own gradients.
 //! 2. Candidates: each edge point votes along its gradient line, both ways, for the centres
 //!    of circles it could lie on (a Hough transform over centres); the strongest
-//!    accumulator peaks are candidate centres.
+//!    accumulator peaks are candidate centres. A large ball needs a second look: a
+//!    textured backdrop bends the outline's gradients by several degrees, which at a
+//!    radius of hundreds of pixels scatters its votes over many pixels while the
+//!    backdrop's pile up everywhere. So the votes cast from 64 px away or more are also
+//!    counted per octave of distance in cells an eighth of the octave's start wide (a
+//!    constant angle), and the strongest cells of each octave are candidates too, their
+//!    centre then found from coarse to fine as in step 3 with a radius band as wide as
+//!    the step.
 //! 3. Per candidate, the radius whose edge points (at that distance, gradient pointing
 //!    radially) cover the most of the circumference, in 1° sectors. Counting sectors, not
 //!    points, is what keeps a textured backdrop's many short or straight edges from
@@ -47,6 +54,13 @@ const SECTORS: usize = 360;
 const MAX_EDGES: usize = 60_000;
 /// Candidate centres tried per ball.
 const CANDIDATES: usize = 12;
+/// Distance octaves from this far are also voted in coarse cells (the module's notes,
+/// step 2), pixels.
+const OCTAVES_FROM: f64 = 64.0;
+/// An octave's cells are its start divided by this.
+const OCTAVE_CELLS: f64 = 16.0;
+/// Candidates kept per octave.
+const OCTAVE_CANDIDATES: usize = 4;
 /// Most balls looked for in one frame (as many circles as the service takes).
 pub const MAX_BALLS: usize = 16;
 /// A further ball's outline is traced along at least this share of its circle: most of
@@ -140,6 +154,8 @@ struct Search {
     threshold: f32,
     /// The smoothed accumulator's pixels, strongest first.
     peaks: Vec<(u32, usize, usize)>,
+    /// The octaves' strongest cells: (x, y, cell width).
+    octave_peaks: Vec<(f64, f64, f64)>,
     /// Candidate centres are kept this far apart, pixels of the image searched.
     apart: f64,
     max_radius: f64,
@@ -157,11 +173,13 @@ impl Search {
         let (h, w) = image.dim();
         let max_radius = w.max(h) as f64;
         let peaks = ranked_peaks(&edges, w, h, max_radius);
+        let octave_peaks = octave_peaks(&edges, w, h, max_radius);
         Ok(Self {
             smooth,
             edges,
             threshold,
             peaks,
+            octave_peaks,
             apart: (6.0 / factor).max(3.0),
             max_radius,
         })
@@ -170,8 +188,7 @@ impl Search {
     /// The best outline: of the strongest candidate centres, the one whose best radius
     /// covers the most sectors, refined; an error when it is not round enough.
     fn first(&self) -> Result<OutlineFit, String> {
-        let centres = pick_centres(&self.peaks, self.apart, |_, _| false);
-        let Some((cover, rough)) = self.roundest(&centres).into_iter().next() else {
+        let Some((cover, rough)) = self.roundest(|_, _| false).into_iter().next() else {
             return Err("no round outline among the edges".into());
         };
         if cover < SECTORS / 5 {
@@ -206,9 +223,8 @@ impl Search {
                 .iter()
                 .any(|b| (x - b.circle.cx).hypot(y - b.circle.cy) < b.circle.r + MIN_RADIUS)
         };
-        let centres = pick_centres(&self.peaks, self.apart, inside);
         let mut best: Option<(f64, OutlineFit)> = None;
-        for (cover, rough) in self.roundest(&centres) {
+        for (cover, rough) in self.roundest(inside) {
             if cover < SECTORS / 5 || !beside(&rough, balls) {
                 continue;
             }
@@ -226,16 +242,25 @@ impl Search {
         best.map(|b| b.1)
     }
 
-    /// Per centre, the radius whose edge points cover the most sectors: (sectors, circle),
-    /// the most first (the earlier centre first among equals).
-    fn roundest(&self, centres: &[(f64, f64)]) -> Vec<(usize, Circle)> {
+    /// Per candidate centre (those `skip` leaves, x and y), the radius whose edge points
+    /// cover the most sectors: (sectors, circle), the most first (the earlier candidate
+    /// first among equals); the octaves' candidates after the accumulator's, each centred
+    /// first ([`centred`]).
+    fn roundest(&self, skip: impl Fn(f64, f64) -> bool) -> Vec<(usize, Circle)> {
+        let centres = pick_centres(&self.peaks, self.apart, &skip);
         let mut found: Vec<(usize, Circle)> = centres
             .iter()
             .filter_map(|&(cx, cy)| {
-                best_radius(&self.edges, cx, cy, self.max_radius)
+                best_radius(&self.edges, cx, cy, self.max_radius, 1)
                     .map(|(cover, r)| (cover, Circle { cx, cy, r }))
             })
             .collect();
+        found.extend(
+            self.octave_peaks
+                .iter()
+                .filter(|&&(x, y, _)| !skip(x, y))
+                .filter_map(|&(x, y, cell)| centred(&self.edges, x, y, cell, self.max_radius)),
+        );
         found.sort_by_key(|f| std::cmp::Reverse(f.0));
         found
     }
@@ -531,12 +556,109 @@ fn ranked_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(u32
     peaks
 }
 
+/// The octaves' candidate centres (the module's notes, step 2): per octave of distance
+/// from [`OCTAVES_FROM`], the edge points' votes cast from that far counted in cells
+/// 1/[`OCTAVE_CELLS`] of the octave's start wide, summed over 2 × 2 cells; the strongest
+/// [`OCTAVE_CANDIDATES`] local maxima, as (x, y, cell width).
+fn octave_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64, f64, f64)> {
+    let mut found = Vec::new();
+    let mut start = OCTAVES_FROM;
+    while start < max_radius {
+        let end = (2.0 * start).min(max_radius);
+        let cell = start / OCTAVE_CELLS;
+        let (cw, ch) = (
+            (w as f64 / cell) as usize + 1,
+            (h as f64 / cell) as usize + 1,
+        );
+        let mut acc = Array2::<u32>::zeros((ch, cw));
+        for e in edges {
+            for sign in [-1.0f32, 1.0] {
+                let mut t = start as f32;
+                while t < end as f32 {
+                    let (x, y) = (e.x + sign * t * e.ux, e.y + sign * t * e.uy);
+                    if x < 0.0 || y < 0.0 || x > (w - 1) as f32 || y > (h - 1) as f32 {
+                        break;
+                    }
+                    acc[[(y as f64 / cell) as usize, (x as f64 / cell) as usize]] += 1;
+                    t += 1.0;
+                }
+            }
+        }
+        // sums[i, j] covers cells i..=i + 1, j..=j + 1: centred at (i + 1, j + 1) cells.
+        let sums = Array2::from_shape_fn((ch - 1, cw - 1), |(i, j)| {
+            acc[[i, j]] + acc[[i + 1, j]] + acc[[i, j + 1]] + acc[[i + 1, j + 1]]
+        });
+        let (sh, sw) = sums.dim();
+        let mut maxima: Vec<(u32, usize, usize)> = sums
+            .indexed_iter()
+            .filter(|&((i, j), &v)| {
+                v > 0
+                    && (i.saturating_sub(1)..(i + 2).min(sh))
+                        .all(|a| (j.saturating_sub(1)..(j + 2).min(sw)).all(|b| sums[[a, b]] <= v))
+            })
+            .map(|((i, j), &v)| (v, i, j))
+            .collect();
+        maxima.sort_unstable_by_key(|m| std::cmp::Reverse(m.0));
+        found.extend(
+            maxima
+                .iter()
+                .take(OCTAVE_CANDIDATES)
+                .map(|&(_, i, j)| ((j + 1) as f64 * cell, (i + 1) as f64 * cell, cell)),
+        );
+        start *= 2.0;
+    }
+    found
+}
+
+/// An octave's candidate (x, y) centred from coarse to fine: on a 5 × 5 grid of steps
+/// from half its `cell` down to a pixel, each time the point whose best radius covers the
+/// most sectors (counting a band as wide as the step); the last (sectors, circle). Only
+/// the edge points that could lie on a circle of the octave about the cell count: within
+/// its distances (and a margin of two cells), their gradient within about 37° of radial
+/// (the centre moves by a cell at most, 3.6° as seen from the octave's start).
+fn centred(edges: &[Edge], x: f64, y: f64, cell: f64, max_radius: f64) -> Option<(usize, Circle)> {
+    let start = cell * OCTAVE_CELLS;
+    let (near, far) = (start - 2.0 * cell, 2.0 * start + 2.0 * cell);
+    let edges: Vec<Edge> = edges
+        .iter()
+        .filter(|e| {
+            let (dx, dy) = (e.x as f64 - x, e.y as f64 - y);
+            let d = dx.hypot(dy);
+            d >= near && d <= far && (e.ux as f64 * dx + e.uy as f64 * dy).abs() >= 0.8 * d
+        })
+        .copied()
+        .collect();
+    let edges = &edges[..];
+    let mut step = (0.5 * cell).max(1.0);
+    let (mut cx, mut cy) = (x, y);
+    loop {
+        let band = step.round().max(1.0) as usize;
+        let mut best: Option<(usize, Circle)> = None;
+        for i in -2..=2 {
+            for j in -2..=2 {
+                let (px, py) = (cx + j as f64 * step, cy + i as f64 * step);
+                if let Some((cover, r)) = best_radius(edges, px, py, max_radius, band)
+                    && best.is_none_or(|(b, _)| cover > b)
+                {
+                    best = Some((cover, Circle { cx: px, cy: py, r }));
+                }
+            }
+        }
+        let (_, c) = best?;
+        (cx, cy) = (c.cx, c.cy);
+        if step <= 1.0 {
+            return best;
+        }
+        step = (0.5 * step).max(1.0);
+    }
+}
+
 /// Candidate centres: the strongest [`CANDIDATES`] peaks at least `apart` px apart,
 /// leaving out those `skip` says (x, y).
 fn pick_centres(
     peaks: &[(u32, usize, usize)],
     apart: f64,
-    skip: impl Fn(f64, f64) -> bool,
+    skip: &impl Fn(f64, f64) -> bool,
 ) -> Vec<(f64, f64)> {
     let mut chosen: Vec<(f64, f64)> = Vec::new();
     for &(_, r, c) in peaks {
@@ -577,9 +699,15 @@ fn traced_share(edges: &[Edge], circle: &Circle) -> f64 {
 }
 
 /// The radius about (cx, cy) whose radially oriented edge points cover the most 1°
-/// sectors (counting a ±1 px band), and that count.
-fn best_radius(edges: &[Edge], cx: f64, cy: f64, max_radius: f64) -> Option<(usize, f64)> {
-    let bins = max_radius.ceil() as usize + 2;
+/// sectors (counting a ±`band` px band), and that count.
+fn best_radius(
+    edges: &[Edge],
+    cx: f64,
+    cy: f64,
+    max_radius: f64,
+    band: usize,
+) -> Option<(usize, f64)> {
+    let bins = max_radius.ceil() as usize + 1 + 2 * band;
     let mut sectors = vec![[0u64; SECTORS.div_ceil(64)]; bins];
     let mut sums = vec![(0.0f64, 0usize); bins];
     for e in edges {
@@ -599,17 +727,17 @@ fn best_radius(edges: &[Edge], cx: f64, cy: f64, max_radius: f64) -> Option<(usi
         sums[bin].1 += 1;
     }
     let mut best: Option<(usize, f64)> = None;
-    for bin in 1..bins - 1 {
+    for bin in band..bins - band {
         let mut words = [0u64; SECTORS.div_ceil(64)];
-        for b in bin - 1..=bin + 1 {
+        for b in bin - band..=bin + band {
             for (w, s) in words.iter_mut().zip(&sectors[b]) {
                 *w |= s;
             }
         }
         let cover = words.iter().map(|w| w.count_ones() as usize).sum();
         if best.is_none_or(|b| cover > b.0) {
-            let (s, n) =
-                (bin - 1..=bin + 1).fold((0.0, 0), |acc, b| (acc.0 + sums[b].0, acc.1 + sums[b].1));
+            let (s, n) = (bin - band..=bin + band)
+                .fold((0.0, 0), |acc, b| (acc.0 + sums[b].0, acc.1 + sums[b].1));
             best = Some((cover, s / n.max(1) as f64));
         }
     }
