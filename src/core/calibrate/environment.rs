@@ -81,9 +81,10 @@ pub fn estimate(planes: &[&Array2<u16>], ambient: Option<&Array2<u16>>) -> Array
         .enumerate()
         .for_each(|(r, mut row)| {
             let mut v = Vec::with_capacity(planes.len());
+            let rows: Vec<ndarray::ArrayView1<u16>> = planes.iter().map(|p| p.row(r)).collect();
             for (c, o) in row.iter_mut().enumerate() {
                 v.clear();
-                v.extend(planes.iter().map(|p| p[[r, c]]));
+                v.extend(rows.iter().map(|p| p[c]));
                 let k = v.len() / 2;
                 *o = *v.select_nth_unstable(k).1;
             }

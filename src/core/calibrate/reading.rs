@@ -310,8 +310,17 @@ impl Shrink {
             self.flush(out);
             self.at = r / self.f;
         }
-        for (c, &v) in row.iter().enumerate() {
-            self.sums[c / self.f] += v as u32;
+        match row.as_slice() {
+            Some(row) => {
+                for (s, cols) in self.sums.iter_mut().zip(row.chunks(self.f)) {
+                    *s += cols.iter().map(|&v| v as u32).sum::<u32>();
+                }
+            }
+            None => {
+                for (c, &v) in row.iter().enumerate() {
+                    self.sums[c / self.f] += v as u32;
+                }
+            }
         }
         self.rows += 1;
     }
@@ -451,4 +460,40 @@ pub fn bounded<T: Send>(
         return Err(CalibrationError::Names("reading stopped early".into()));
     }
     Ok(done)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Box averages of a 7 × 11 image by 3 (ragged last row and column), fed contiguous
+    /// rows and strided ones, against the means computed directly.
+    #[test]
+    fn shrink_is_the_rounded_mean_of_each_box() {
+        let img = Array2::from_shape_fn((7, 11), |(r, c)| (r * 997 + c * 131) as u16 * 7);
+        let f = 3;
+        let expected = Array2::from_shape_fn((3, 4), |(i, j)| {
+            let cells: Vec<u32> = (i * f..(i * f + f).min(7))
+                .flat_map(|r| (j * f..(j * f + f).min(11)).map(move |c| (r, c)))
+                .map(|(r, c)| img[[r, c]] as u32)
+                .collect();
+            let n = cells.len() as u32;
+            ((cells.iter().sum::<u32>() + n / 2) / n) as u16
+        });
+        let transposed = Array2::from_shape_fn((11, 7), |(c, r)| img[[r, c]]);
+        for strided in [false, true] {
+            let mut out = Array2::zeros((3, 4));
+            let mut shrink = Shrink::new(f, 11);
+            for r in 0..7 {
+                let row = match strided {
+                    false => img.row(r),
+                    true => transposed.column(r),
+                };
+                assert_eq!(row.as_slice().is_none(), strided);
+                shrink.row(r, row, &mut out);
+            }
+            shrink.flush(&mut out);
+            assert_eq!(out, expected, "strided rows: {strided}");
+        }
+    }
 }

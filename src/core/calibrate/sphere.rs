@@ -373,7 +373,7 @@ fn sampled_threshold(smooth: &Array2<f32>) -> f32 {
                 (p(-1, 1) + 2.0 * p(0, 1) + p(1, 1) - p(-1, -1) - 2.0 * p(0, -1) - p(1, -1)) / 8.0;
             let gy =
                 (p(1, -1) + 2.0 * p(1, 0) + p(1, 1) - p(-1, -1) - 2.0 * p(-1, 0) - p(-1, 1)) / 8.0;
-            let m = gx.hypot(gy);
+            let m = (gx * gx + gy * gy).sqrt();
             if m > 0.0 {
                 mags.push(m);
             }
@@ -469,7 +469,7 @@ struct Edge {
 /// resolution; see [`fit_outline_downscaled`]).
 fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>, downscaled: f32) -> (Vec<Edge>, f32) {
     let (h, w) = gx.dim();
-    let mag = Array2::from_shape_fn((h, w), |i| gx[i].hypot(gy[i]));
+    let mag = Array2::from_shape_fn((h, w), |i| (gx[i] * gx[i] + gy[i] * gy[i]).sqrt());
     let mut sorted: Vec<f32> = mag.iter().cloned().filter(|&m| m > 0.0).collect();
     if sorted.is_empty() {
         return (Vec::new(), 0.0);
@@ -623,7 +623,7 @@ fn centred(edges: &[Edge], x: f64, y: f64, cell: f64, max_radius: f64) -> Option
         .iter()
         .filter(|e| {
             let (dx, dy) = (e.x as f64 - x, e.y as f64 - y);
-            let d = dx.hypot(dy);
+            let d = (dx * dx + dy * dy).sqrt();
             d >= near && d <= far && (e.ux as f64 * dx + e.uy as f64 * dy).abs() >= 0.8 * d
         })
         .copied()
@@ -712,7 +712,7 @@ fn best_radius(
     let mut sums = vec![(0.0f64, 0usize); bins];
     for e in edges {
         let (dx, dy) = (e.x as f64 - cx, e.y as f64 - cy);
-        let d = dx.hypot(dy);
+        let d = (dx * dx + dy * dy).sqrt();
         if d < MIN_RADIUS || d > max_radius {
             continue;
         }
