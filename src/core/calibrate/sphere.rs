@@ -251,7 +251,7 @@ impl Search {
         let mut found: Vec<(usize, Circle)> = centres
             .iter()
             .filter_map(|&(cx, cy)| {
-                best_radius(&self.edges, cx, cy, self.max_radius, 1)
+                best_radius(&self.edges, cx, cy, (MIN_RADIUS, self.max_radius), 1)
                     .map(|(cover, r)| (cover, Circle { cx, cy, r }))
             })
             .collect();
@@ -529,7 +529,8 @@ fn ranked_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(u32
                 if x < 0.0 || y < 0.0 || x > (w - 1) as f32 || y > (h - 1) as f32 {
                     break;
                 }
-                acc[[y.round() as usize, x.round() as usize]] += 1;
+                // Rounded (both are at least 0).
+                acc[[(y + 0.5) as usize, (x + 0.5) as usize]] += 1;
                 t += 1.0;
             }
         }
@@ -557,8 +558,8 @@ fn ranked_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(u32
 }
 
 /// The octaves' candidate centres (the module's notes, step 2): per octave of distance
-/// from [`OCTAVES_FROM`], the edge points' votes cast from that far counted in cells
-/// 1/[`OCTAVE_CELLS`] of the octave's start wide, summed over 2 × 2 cells; the strongest
+/// from [`OCTAVES_FROM`], the edge points' votes cast from that far (every quarter cell)
+/// counted in cells 1/[`OCTAVE_CELLS`] of the octave's start wide, summed over 2 × 2 cells; the strongest
 /// [`OCTAVE_CANDIDATES`] local maxima, as (x, y, cell width).
 fn octave_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64, f64, f64)> {
     let mut found = Vec::new();
@@ -573,14 +574,16 @@ fn octave_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64
         let mut acc = Array2::<u32>::zeros((ch, cw));
         for e in edges {
             for sign in [-1.0f32, 1.0] {
-                let mut t = start as f32;
+                // A vote every quarter cell: about four in each cell the line crosses.
+                let (mut t, step) = (start as f32, (cell as f32 / 4.0).max(1.0));
+                let per_cell = 1.0 / cell as f32;
                 while t < end as f32 {
                     let (x, y) = (e.x + sign * t * e.ux, e.y + sign * t * e.uy);
                     if x < 0.0 || y < 0.0 || x > (w - 1) as f32 || y > (h - 1) as f32 {
                         break;
                     }
-                    acc[[(y as f64 / cell) as usize, (x as f64 / cell) as usize]] += 1;
-                    t += 1.0;
+                    acc[[(y * per_cell) as usize, (x * per_cell) as usize]] += 1;
+                    t += step;
                 }
             }
         }
@@ -610,9 +613,10 @@ fn octave_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64
     found
 }
 
-/// An octave's candidate (x, y) centred from coarse to fine: on a 5 × 5 grid of steps
-/// from half its `cell` down to a pixel, each time the point whose best radius covers the
-/// most sectors (counting a band as wide as the step); the last (sectors, circle). Only
+/// An octave's candidate (x, y) centred from coarse to fine: on a grid of steps from half
+/// its `cell` down to a pixel (5 × 5 at first, then 3 × 3 about the last best), each
+/// time the point whose best radius covers the most sectors (counting a band as wide as
+/// the step); the last (sectors, circle). Only
 /// the edge points that could lie on a circle of the octave about the cell count: within
 /// its distances (and a margin of two cells), their gradient within about 37° of radial
 /// (the centre moves by a cell at most, 3.6° as seen from the octave's start).
@@ -631,13 +635,15 @@ fn centred(edges: &[Edge], x: f64, y: f64, cell: f64, max_radius: f64) -> Option
     let edges = &edges[..];
     let mut step = (0.5 * cell).max(1.0);
     let (mut cx, mut cy) = (x, y);
+    let mut reach = 2;
     loop {
         let band = step.round().max(1.0) as usize;
         let mut best: Option<(usize, Circle)> = None;
-        for i in -2..=2 {
-            for j in -2..=2 {
+        for i in -reach..=reach {
+            for j in -reach..=reach {
                 let (px, py) = (cx + j as f64 * step, cy + i as f64 * step);
-                if let Some((cover, r)) = best_radius(edges, px, py, max_radius, band)
+                if let Some((cover, r)) =
+                    best_radius(edges, px, py, (near, far.min(max_radius)), band)
                     && best.is_none_or(|(b, _)| cover > b)
                 {
                     best = Some((cover, Circle { cx: px, cy: py, r }));
@@ -650,6 +656,7 @@ fn centred(edges: &[Edge], x: f64, y: f64, cell: f64, max_radius: f64) -> Option
             return best;
         }
         step = (0.5 * step).max(1.0);
+        reach = 1;
     }
 }
 
@@ -698,30 +705,40 @@ fn traced_share(edges: &[Edge], circle: &Circle) -> f64 {
     hit.iter().filter(|&&h| h).count() as f64 / n as f64
 }
 
-/// The radius about (cx, cy) whose radially oriented edge points cover the most 1°
-/// sectors (counting a ±`band` px band), and that count.
+/// The radius about (cx, cy), between `radii` (and at least [`MIN_RADIUS`]), whose
+/// radially oriented edge points cover the most 1° sectors (counting a ±`band` px band),
+/// and that count.
 fn best_radius(
     edges: &[Edge],
     cx: f64,
     cy: f64,
-    max_radius: f64,
+    radii: (f64, f64),
     band: usize,
 ) -> Option<(usize, f64)> {
-    let bins = max_radius.ceil() as usize + 1 + 2 * band;
+    let (near, far) = (radii.0.max(MIN_RADIUS), radii.1);
+    if far < near {
+        return None;
+    }
+    // Bin i holds the distances that round to first + i.
+    let first = (near.round() as usize).saturating_sub(band);
+    let bins = far.round() as usize + band + 1 - first;
     let mut sectors = vec![[0u64; SECTORS.div_ceil(64)]; bins];
     let mut sums = vec![(0.0f64, 0usize); bins];
     for e in edges {
         let (dx, dy) = (e.x as f64 - cx, e.y as f64 - cy);
         let d = (dx * dx + dy * dy).sqrt();
-        if d < MIN_RADIUS || d > max_radius {
+        if d < near || d > far {
             continue;
         }
         if ((e.ux as f64 * dx + e.uy as f64 * dy) / d).abs() < 0.9 {
             continue;
         }
-        let bin = d.round() as usize;
-        let angle = dy.atan2(dx).rem_euclid(std::f64::consts::TAU);
-        let s = ((angle / std::f64::consts::TAU * SECTORS as f64) as usize).min(SECTORS - 1);
+        let bin = d.round() as usize - first;
+        // Single precision is ample for 1° sectors, and twice as fast.
+        let angle = (dy as f32)
+            .atan2(dx as f32)
+            .rem_euclid(std::f32::consts::TAU);
+        let s = ((angle / std::f32::consts::TAU * SECTORS as f32) as usize).min(SECTORS - 1);
         sectors[bin][s / 64] |= 1 << (s % 64);
         sums[bin].0 += d;
         sums[bin].1 += 1;
