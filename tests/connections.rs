@@ -245,14 +245,9 @@ async fn thousands_of_idle_and_trickling_connections_leave_probes_answering() {
     probes_answer(&s, "after").await;
 }
 
-/// Short timeouts: silent and trickling connections are closed at the header timeout
-/// (trickling does not extend it), kept-alive ones at the keep-alive timeout after their
-/// answer, and probes answer throughout.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn idle_trickling_and_kept_alive_connections_close_after_their_timeouts() {
-    let _turn = SERIAL.lock().await;
-    raise_own_file_limit();
-    let dir = tempfile::tempdir().unwrap();
+/// A server with a 2 s header timeout, a 4 s keep-alive timeout, one worker and room for
+/// 10,000 connections.
+fn start_with_short_timeouts(dir: &std::path::Path) -> BinServer {
     let flags = [
         "--api-key",
         API_KEY,
@@ -265,7 +260,18 @@ async fn idle_trickling_and_kept_alive_connections_close_after_their_timeouts() 
         "--max-connections",
         "10000",
     ];
-    let s = BinServer::start(dir.path(), &flags);
+    BinServer::start(dir, &flags)
+}
+
+/// Short timeouts: silent and trickling connections are closed at the header timeout
+/// (trickling does not extend it), kept-alive ones at the keep-alive timeout after their
+/// answer, and probes answer throughout.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_trickling_and_kept_alive_connections_close_after_their_timeouts() {
+    let _turn = SERIAL.lock().await;
+    raise_own_file_limit();
+    let dir = tempfile::tempdir().unwrap();
+    let s = start_with_short_timeouts(dir.path());
     let before = s.memory_kb("VmRSS") / 1024;
 
     let mut kept = Vec::new();
@@ -525,17 +531,7 @@ async fn h2c_connections_close_after_their_timeouts() {
     let _turn = SERIAL.lock().await;
     raise_own_file_limit();
     let dir = tempfile::tempdir().unwrap();
-    let flags = [
-        "--api-key",
-        API_KEY,
-        "--header-timeout",
-        "2s",
-        "--keep-alive-timeout",
-        "4s",
-        "--max-connections",
-        "10000",
-    ];
-    let s = BinServer::start(dir.path(), &flags);
+    let s = start_with_short_timeouts(dir.path());
 
     let mut served = TcpStream::connect(s.addr()).await.unwrap();
     served.write_all(&h2_preface()).await.unwrap();

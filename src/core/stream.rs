@@ -730,6 +730,8 @@ fn rows_of(img: &DynamicImage, first: u32, n: u32) -> DynamicImage {
 mod tests {
     use super::*;
 
+    use crate::core::lights::{Intensity, make_light};
+
     /// A band cut from a decoded image is the cropped view's pixels, for every layout.
     #[test]
     fn rows_of_matches_a_cropped_copy() {
@@ -754,7 +756,6 @@ mod tests {
             }
         }
     }
-    use crate::core::lights::{Intensity, make_light};
 
     /// Images of every kind the reader handles: 8- and 16-bit gray PNG, 8- and 16-bit RGB
     /// PNG (colour), 16-bit RGBA PNG (read by rows); palette PNG, TIFF and BMP (decoded

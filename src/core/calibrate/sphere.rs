@@ -13,7 +13,7 @@
 //!    textured backdrop bends the outline's gradients by several degrees, which at a
 //!    radius of hundreds of pixels scatters its votes over many pixels while the
 //!    backdrop's pile up everywhere. So the votes cast from 64 px away or more are also
-//!    counted per octave of distance in cells an eighth of the octave's start wide (a
+//!    counted per octave of distance in cells a sixteenth of the octave's start wide (a
 //!    constant angle), and the strongest cells of each octave are candidates too, their
 //!    centre then found from coarse to fine as in step 3 with a radius band as wide as
 //!    the step.
@@ -559,8 +559,8 @@ fn ranked_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(u32
 
 /// The octaves' candidate centres (the module's notes, step 2): per octave of distance
 /// from [`OCTAVES_FROM`], the edge points' votes cast from that far (every quarter cell)
-/// counted in cells 1/[`OCTAVE_CELLS`] of the octave's start wide, summed over 2 × 2 cells; the strongest
-/// [`OCTAVE_CANDIDATES`] local maxima, as (x, y, cell width).
+/// counted in cells 1/[`OCTAVE_CELLS`] of the octave's start wide, summed over 2 × 2
+/// cells; the strongest [`OCTAVE_CANDIDATES`] local maxima, as (x, y, cell width).
 fn octave_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64, f64, f64)> {
     let mut found = Vec::new();
     let mut start = OCTAVES_FROM;
@@ -616,10 +616,10 @@ fn octave_peaks(edges: &[Edge], w: usize, h: usize, max_radius: f64) -> Vec<(f64
 /// An octave's candidate (x, y) centred from coarse to fine: on a grid of steps from half
 /// its `cell` down to a pixel (5 × 5 at first, then 3 × 3 about the last best), each
 /// time the point whose best radius covers the most sectors (counting a band as wide as
-/// the step); the last (sectors, circle). Only
-/// the edge points that could lie on a circle of the octave about the cell count: within
-/// its distances (and a margin of two cells), their gradient within about 37° of radial
-/// (the centre moves by a cell at most, 3.6° as seen from the octave's start).
+/// the step); the last (sectors, circle). Only the edge points that could lie on a
+/// circle of the octave about the cell count: within its distances (and a margin of two
+/// cells), their gradient within about 37° of radial (the centre moves by a cell at most,
+/// 3.6° as seen from the octave's start).
 fn centred(edges: &[Edge], x: f64, y: f64, cell: f64, max_radius: f64) -> Option<(usize, Circle)> {
     let start = cell * OCTAVE_CELLS;
     let (near, far) = (start - 2.0 * cell, 2.0 * start + 2.0 * cell);
