@@ -2,12 +2,18 @@
 //! `file name, x, y, z, r, g, b` per row (the seed's CSV), or the same as JSON with
 //! `"intensity": 0.8` or `"intensity": [r, g, b]`, or the relighting tools' `.lp` ([`lp`]).
 //! Vectors are normalised here; the intensity (default 1) is kept apart.
+//!
+//! A JSON light may give its `position` instead of a direction (a near light: an LED of a
+//! dome or a ring; [`Emitter`]), with an optional `axis` and `anisotropy`; the table's top
+//! level may then carry the `camera`, the working `distance` and the positions' `unit`
+//! ([`Rig`], read by [`parse_table`]).
 
 pub mod lp;
 
 use serde::{Deserialize, Serialize};
 
 use super::InputError;
+use super::camera::Pinhole;
 
 /// Rec. 709 luminance weights for R, G, B.
 pub const LUMA_WEIGHTS: [f32; 3] = [0.2126, 0.7152, 0.0722];
@@ -24,6 +30,8 @@ pub enum Intensity {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Light {
     pub name: String,
+    /// For a near light, the direction from the scene's centre (on the optical axis at the
+    /// working distance) to the light: what a distant table would say.
     pub direction: [f64; 3],
     /// The scalar the solve uses. For an RGB intensity this is the Rec. 709 luminance of
     /// `rgb` (right for a gray image), until intake meets the image in colour: it then
@@ -32,6 +40,45 @@ pub struct Light {
     pub intensity: f64,
     /// The per-channel intensities, when the table gives them.
     pub rgb: Option<[f64; 3]>,
+    /// Where the light is, when the table gives its position (a near light).
+    pub emitter: Option<Emitter>,
+}
+
+/// A light at a finite distance: its direction and irradiance change across the scene.
+/// Radiance towards a point `X` is `intensity · max(0, −l·axis)^anisotropy / r²` with
+/// `r = |position − X|`, `l = (position − X) / r`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Emitter {
+    /// Camera frame (x right, y down, z towards the camera; the scene lies at z < 0), in
+    /// the table's unit.
+    pub position: [f64; 3],
+    /// The LED's unit principal direction, towards the scene; None: isotropic.
+    pub axis: Option<[f64; 3]>,
+    /// μ ≥ 0 of the falloff off the axis (0 without an axis).
+    pub anisotropy: f64,
+}
+
+/// What a near-light table says beside its lights: the camera, the working distance to
+/// the object along the optical axis and the unit of positions and distance.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Rig {
+    pub camera: Option<Pinhole>,
+    pub distance: Option<f64>,
+    pub unit: Option<String>,
+}
+
+/// A light table with what its top level says.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Table {
+    pub lights: Vec<Light>,
+    pub rig: Rig,
+}
+
+impl Table {
+    /// Whether any light is given by its position.
+    pub fn is_near(&self) -> bool {
+        self.lights.iter().any(|l| l.emitter.is_some())
+    }
 }
 
 impl Light {
@@ -45,18 +92,37 @@ impl Light {
 pub const MAX_ROWS: usize = 10_000;
 
 /// Parse a light table: JSON (detected by a leading `[` or `{`), `.lp` (a first line
-/// that is a whole number, [`lp::is_lp`]) or CSV.
+/// that is a whole number, [`lp::is_lp`]) or CSV. A near-light table's rig is refused
+/// here (its lights need it): read it with [`parse_table`].
 pub fn parse(text: &str) -> Result<Vec<Light>, InputError> {
+    let table = parse_table(text)?;
+    if table.is_near() {
+        return Err(InputError::Lights(
+            "lights given by position (near lights) are not taken here: give directions".into(),
+        ));
+    }
+    Ok(table.lights)
+}
+
+/// Parse a light table with its top level: [`parse`]'s layouts, and JSON lights given by
+/// position with the rig's camera, distance and unit.
+pub fn parse_table(text: &str) -> Result<Table, InputError> {
     let trimmed = text.trim_start_matches('\u{feff}').trim_start();
-    let lights = if trimmed.starts_with('[') || trimmed.starts_with('{') {
+    let table = if trimmed.starts_with('[') || trimmed.starts_with('{') {
         parse_json(trimmed)?
     } else if lp::is_lp(text) {
-        return lp::parse(".lp", text);
+        return Ok(Table {
+            lights: lp::parse(".lp", text)?,
+            rig: Rig::default(),
+        });
     } else {
-        parse_csv(trimmed)?
+        Table {
+            lights: parse_csv(trimmed)?,
+            rig: Rig::default(),
+        }
     };
-    check_table(&lights)?;
-    Ok(lights)
+    check_table(&table.lights)?;
+    Ok(table)
 }
 
 /// What every table must be, whatever its layout: no name twice, at least 3 rows.
@@ -157,7 +223,14 @@ fn parse_csv(text: &str) -> Result<Vec<Light>, InputError> {
 #[serde(deny_unknown_fields)]
 struct JsonLight {
     name: String,
-    direction: [f64; 3],
+    #[serde(default)]
+    direction: Option<[f64; 3]>,
+    #[serde(default)]
+    position: Option<[f64; 3]>,
+    #[serde(default)]
+    axis: Option<[f64; 3]>,
+    #[serde(default)]
+    anisotropy: Option<f64>,
     #[serde(default)]
     intensity: Option<Intensity>,
 }
@@ -166,25 +239,151 @@ struct JsonLight {
 #[serde(untagged)]
 enum JsonTable {
     List(Vec<JsonLight>),
-    Object { lights: Vec<JsonLight> },
+    Object {
+        lights: Vec<JsonLight>,
+        #[serde(default)]
+        camera: Option<Pinhole>,
+        #[serde(default)]
+        distance: Option<f64>,
+        #[serde(default)]
+        unit: Option<String>,
+    },
 }
 
-fn parse_json(text: &str) -> Result<Vec<Light>, InputError> {
+/// Longest `unit` text (bytes).
+const MAX_UNIT_BYTES: usize = 32;
+
+fn parse_json(text: &str) -> Result<Table, InputError> {
     let table: JsonTable = serde_json::from_str(text).map_err(|e| {
         InputError::Lights(format!(
-            "invalid JSON (expected [{{\"name\", \"direction\": [x, y, z], \"intensity\"?: i or [r, g, b]}}, ...]): {e}"
+            "invalid JSON (expected [{{\"name\", \"direction\": [x, y, z] or \"position\": [x, y, z], \"intensity\"?: i or [r, g, b]}}, ...], or {{\"lights\": [...], \"camera\"?, \"distance\"?, \"unit\"?}}): {e}"
         ))
     })?;
-    let rows = match table {
-        JsonTable::List(rows) | JsonTable::Object { lights: rows } => rows,
+    let (rows, rig) = match table {
+        JsonTable::List(rows) => (rows, Rig::default()),
+        JsonTable::Object {
+            lights,
+            camera,
+            distance,
+            unit,
+        } => (
+            lights,
+            Rig {
+                camera,
+                distance,
+                unit,
+            },
+        ),
     };
     if rows.len() > MAX_ROWS {
         return Err(InputError::Lights(format!("more than {MAX_ROWS} rows")));
     }
-    rows.into_iter()
-        .enumerate()
-        .map(|(i, r)| make_light(i + 1, &r.name, r.direction, r.intensity))
-        .collect()
+    check_rig(&rig)?;
+    let lights = (rows.into_iter().enumerate())
+        .map(|(i, r)| json_light(i + 1, r, &rig))
+        .collect::<Result<Vec<_>, _>>()?;
+    let near = lights.iter().filter(|l| l.emitter.is_some()).count();
+    if near > 0 && near < lights.len() {
+        return Err(InputError::Lights(format!(
+            "{near} of {} lights are given by position and the others by direction: give \
+             every light the same way",
+            lights.len()
+        )));
+    }
+    if near > 0 && rig.camera.is_none() {
+        return Err(InputError::Lights(
+            "lights given by position need the camera: add \"camera\": {\"fx\", \"fy\", \
+             \"cx\", \"cy\"} (pixels) to the table, or give one with the job"
+                .into(),
+        ));
+    }
+    Ok(Table { lights, rig })
+}
+
+fn check_rig(rig: &Rig) -> Result<(), InputError> {
+    if let Some(d) = rig.distance
+        && !(d.is_finite() && d > 0.0 && d < 1e12)
+    {
+        return Err(InputError::Lights(format!(
+            "distance must be a positive number (the working distance along the optical axis), got {d}"
+        )));
+    }
+    if let Some(unit) = &rig.unit
+        && (unit.len() > MAX_UNIT_BYTES || unit.chars().any(char::is_control))
+    {
+        return Err(InputError::Lights(format!(
+            "unit must be short text without control characters (at most {MAX_UNIT_BYTES} bytes), got {unit:?}"
+        )));
+    }
+    if let Some(c) = &rig.camera {
+        c.check_values()
+            .map_err(|e| InputError::Lights(e.to_string()))?;
+    }
+    Ok(())
+}
+
+/// One JSON row: a direction, or a position with its axis and anisotropy.
+fn json_light(row: usize, r: JsonLight, rig: &Rig) -> Result<Light, InputError> {
+    let bad = |reason: String| InputError::LightRow { row, reason };
+    let name = &r.name;
+    let Some(position) = r.position else {
+        if r.axis.is_some() || r.anisotropy.is_some() {
+            return Err(bad(format!(
+                "{name:?} has an axis or anisotropy but no position: only near lights have them"
+            )));
+        }
+        let Some(direction) = r.direction else {
+            return Err(bad(format!(
+                "{name:?} has neither a direction nor a position"
+            )));
+        };
+        return make_light(row, name, direction, r.intensity);
+    };
+    if r.direction.is_some() {
+        return Err(bad(format!(
+            "{name:?} has both a direction and a position: give one"
+        )));
+    }
+    if position.iter().any(|c| !c.is_finite() || c.abs() > 1e12) {
+        return Err(bad(format!(
+            "position of {name:?} is not finite: {position:?}"
+        )));
+    }
+    if position[2] > 0.0 {
+        return Err(bad(format!(
+            "{name:?} is behind the camera (z = {} > 0; the scene lies at negative z)",
+            position[2]
+        )));
+    }
+    let axis = match r.axis {
+        None => None,
+        Some(a) => {
+            let len = a.iter().map(|c| c * c).sum::<f64>().sqrt();
+            if !(len.is_finite() && len > 1e-12) {
+                return Err(bad(format!("axis of {name:?} is not a direction: {a:?}")));
+            }
+            Some(a.map(|c| c / len))
+        }
+    };
+    let anisotropy = r.anisotropy.unwrap_or(0.0);
+    if !(anisotropy.is_finite() && (0.0..=1000.0).contains(&anisotropy)) {
+        return Err(bad(format!(
+            "anisotropy of {name:?} must be between 0 and 1000, got {anisotropy}"
+        )));
+    }
+    if anisotropy > 0.0 && axis.is_none() {
+        return Err(bad(format!("{name:?} has an anisotropy but no axis")));
+    }
+    // The direction a distant table would give: from the scene's centre to the light.
+    let centre = [0.0, 0.0, -rig.distance.unwrap_or(0.0)];
+    let towards = [0, 1, 2].map(|k| position[k] - centre[k]);
+    let mut light = make_light(row, name, towards, r.intensity)?;
+    light.emitter = Some(Emitter {
+        position,
+        axis,
+        anisotropy,
+    });
+    Ok(light)
 }
 
 /// A table as JSON that [`parse`] reads back to the same lights (for tables read from
@@ -256,6 +455,7 @@ pub fn make_light(
         direction: v.map(|c| c / norm),
         intensity,
         rgb,
+        emitter: None,
     })
 }
 
@@ -406,6 +606,96 @@ mod tests {
         assert!(e.contains("row 1") && e.contains("6 fields"), "{e}");
         let e = err(r#"[{"name":"a.png","direction":[0,0,1],"intensity":[1,0,1]}]"#);
         assert!(e.contains("row 1") && e.contains("intensity g"), "{e}");
+    }
+
+    const CAMERA: &str = r#""camera": {"fx": 800, "fy": 800, "cx": 320, "cy": 240}"#;
+
+    fn near_table(lights: &str) -> String {
+        format!(r#"{{"lights": [{lights}], {CAMERA}, "distance": 300, "unit": "mm"}}"#)
+    }
+
+    #[test]
+    fn near_lights_keep_their_positions_and_rig() {
+        let t = parse_table(&near_table(
+            r#"{"name": "a.png", "position": [0, 0, 0], "axis": [0, 0, -2], "anisotropy": 1.5, "intensity": 0.9},
+               {"name": "b.png", "position": [100, 0, -50]},
+               {"name": "c.png", "position": [0, -100, -50]}"#,
+        ))
+        .unwrap();
+        assert!(t.is_near());
+        assert_eq!(t.rig.distance, Some(300.0));
+        assert_eq!(t.rig.unit.as_deref(), Some("mm"));
+        assert_eq!(t.rig.camera.map(|c| c.fx), Some(800.0));
+        let a = t.lights[0].emitter.unwrap();
+        assert_eq!((a.axis, a.anisotropy), (Some([0.0, 0.0, -1.0]), 1.5));
+        assert_eq!(t.lights[0].intensity, 0.9);
+        // The direction a distant table would give: from the scene's centre (0, 0, −300).
+        assert_eq!(t.lights[0].direction, [0.0, 0.0, 1.0]);
+        let b = t.lights[1].direction;
+        assert!((b[0] / b[2] - 100.0 / 250.0).abs() < 1e-12, "{b:?}");
+        assert_eq!(t.lights[1].emitter.unwrap().axis, None);
+        // `parse` takes directions only.
+        let e = parse(&near_table(
+            r#"{"name": "a.png", "position": [0, 0, 0]}, {"name": "b.png", "position": [1, 0, 0]}, {"name": "c.png", "position": [0, 1, 0]}"#,
+        ))
+        .unwrap_err();
+        assert!(e.to_string().contains("by position"), "{e}");
+    }
+
+    #[test]
+    fn bad_near_tables_are_named() {
+        let rows = |first: &str| {
+            format!(
+                r#"{first}, {{"name": "b.png", "position": [1, 0, -1]}}, {{"name": "c.png", "position": [0, 1, -1]}}"#
+            )
+        };
+        for (first, needle) in [
+            (
+                r#"{"name": "a.png", "position": [0, 0, 5]}"#,
+                "behind the camera",
+            ),
+            (r#"{"name": "a.png", "direction": [0, 0, 1]}"#, "same way"),
+            (
+                r#"{"name": "a.png", "position": [0, 0, -1], "direction": [0, 0, 1]}"#,
+                "both",
+            ),
+            (r#"{"name": "a.png"}"#, "neither"),
+            (
+                r#"{"name": "a.png", "position": [0, 0, -1], "anisotropy": 2}"#,
+                "no axis",
+            ),
+            (
+                r#"{"name": "a.png", "position": [0, 0, -1], "axis": [0, 0, 0]}"#,
+                "axis",
+            ),
+            (
+                r#"{"name": "a.png", "position": [0, 0, -1], "axis": [0, 0, -1], "anisotropy": -1}"#,
+                "anisotropy",
+            ),
+            (
+                r#"{"name": "a.png", "position": [0, 0, -1], "intensity": 0}"#,
+                "intensity",
+            ),
+        ] {
+            let e = parse_table(&near_table(&rows(first)))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{first}: {e}");
+        }
+        let e = parse_table(&format!(
+            r#"{{"lights": [{}]}}"#,
+            rows(r#"{"name": "a.png", "position": [0, 0, -1]}"#)
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("need the camera"), "{e}");
+        let e = parse_table(&format!(
+            r#"{{"lights": [{}], {CAMERA}, "distance": -3}}"#,
+            rows(r#"{"name": "a.png", "position": [0, 0, -1]}"#)
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("distance"), "{e}");
     }
 
     #[test]

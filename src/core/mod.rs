@@ -24,6 +24,7 @@ pub mod lights;
 pub mod mask;
 pub mod mesh;
 pub mod metrics;
+pub mod near;
 pub mod normalmap;
 pub mod normals_in;
 pub mod options;

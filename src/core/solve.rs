@@ -410,6 +410,7 @@ mod tests {
                     direction: d.map(|v| v / n),
                     intensity: 1.0,
                     rgb: None,
+                    emitter: None,
                 }
             })
             .collect();

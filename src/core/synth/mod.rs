@@ -7,6 +7,7 @@
 mod brdf;
 mod chrome;
 mod depth_scenes;
+mod near_rigs;
 mod render;
 mod scene;
 mod sensor;
@@ -16,6 +17,7 @@ mod write;
 pub use brdf::Specular;
 pub use chrome::{ChromeSet, RoomLight, matte_intensities};
 pub use depth_scenes::{DepthScene, depth_scenes, ortho_step_plate, sphere_in_front, step_plate};
+pub use near_rigs::{NOISE_SIGMA, NearRig, close_ring, dome_sphere, far_ring, ring_relief};
 pub use render::{Rendered, render, render_rgb};
 pub use scene::Scene;
 pub use sensor::Exposure;

@@ -1,0 +1,12 @@
+//! Near lights (LED domes, inspection rings): each light's direction and irradiance at a
+//! pixel follow from where the light is and where the surface point is, so the per-pixel
+//! solve and the depth integration alternate until the normals stop moving.
+
+mod model;
+mod pieces;
+mod pixel;
+mod solve;
+
+pub use model::{irradiance, light_vectors};
+pub use pixel::{Fit, fit};
+pub use solve::{Iteration, NearSettings, NearSurface, solve};

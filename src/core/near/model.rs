@@ -1,0 +1,79 @@
+//! The near-light model: `I = ρ · intensity · max(0, −l·axis)^μ · max(0, n·l) / r²`, with
+//! `r = |position − X|` and `l = (position − X) / r` for the surface point `X`.
+//!
+//! Irradiance is expressed relative to a light of the same intensity at the working
+//! distance `reference` (multiplied by `reference²`), so that an albedo solved under near
+//! lights reads like one solved under distant lights of the table's intensities.
+
+use crate::core::lights::Light;
+
+/// The irradiance vector `s · l` one light casts on the point `x` (camera frame, the
+/// table's unit): `l` the unit vector towards the light, `s = intensity ·
+/// max(0, −l·axis)^μ · (reference / r)²`. A distant light gives its scaled direction.
+#[inline]
+pub fn irradiance(light: &Light, x: [f64; 3], reference: f64) -> [f64; 3] {
+    let Some(e) = &light.emitter else {
+        return light.scaled();
+    };
+    let v = [0, 1, 2].map(|k| e.position[k] - x[k]);
+    let r2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+    if r2 <= 0.0 {
+        return [0.0; 3];
+    }
+    let r = r2.sqrt();
+    let l = v.map(|c| c / r);
+    let cone = match e.axis {
+        Some(a) if e.anisotropy > 0.0 => {
+            let c = -(l[0] * a[0] + l[1] * a[1] + l[2] * a[2]);
+            if c <= 0.0 { 0.0 } else { c.powf(e.anisotropy) }
+        }
+        _ => 1.0,
+    };
+    let s = light.intensity * cone * reference * reference / r2;
+    l.map(|c| c * s)
+}
+
+/// Every light's [`irradiance`] at `x`, as the per-pixel fit takes them.
+pub fn light_vectors(lights: &[Light], x: [f64; 3], reference: f64, out: &mut [[f32; 3]]) {
+    for (o, l) in out.iter_mut().zip(lights) {
+        *o = irradiance(l, x, reference).map(|c| c as f32);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::lights::{Emitter, make_light};
+
+    fn led(position: [f64; 3], axis: Option<[f64; 3]>, mu: f64) -> Light {
+        let mut l = make_light(1, "led", [0.0, 0.0, 1.0], None).unwrap();
+        l.emitter = Some(Emitter {
+            position,
+            axis,
+            anisotropy: mu,
+        });
+        l
+    }
+
+    /// Straight above at the working distance: the light's own intensity along +z; twice
+    /// as far: a quarter; off the LED's axis by 60° with μ = 2: a quarter again.
+    #[test]
+    fn falloff_and_cone() {
+        let x = [0.0, 0.0, -100.0];
+        let l = led([0.0, 0.0, 0.0], None, 0.0);
+        let v = irradiance(&l, x, 100.0);
+        assert!((v[2] - 1.0).abs() < 1e-12 && v[0].abs() < 1e-12, "{v:?}");
+        let v = irradiance(&l, [0.0, 0.0, -200.0], 100.0);
+        assert!((v[2] - 0.25).abs() < 1e-12, "{v:?}");
+        let tilt = 60f64.to_radians();
+        let axis = [tilt.sin(), 0.0, -tilt.cos()];
+        let v = irradiance(&led([0.0, 0.0, 0.0], Some(axis), 2.0), x, 100.0);
+        assert!((v[2] - 0.25).abs() < 1e-12, "{v:?}");
+        // Behind the LED's cone: dark.
+        let away = [0.0, 0.0, 1.0];
+        assert_eq!(
+            irradiance(&led([0.0; 3], Some(away), 1.0), x, 100.0),
+            [0.0; 3]
+        );
+    }
+}

@@ -1,0 +1,87 @@
+//! The pieces of an integrated surface: the parts of the mask that depth steps separate.
+//! Normals cannot say how far apart two pieces are (each could slide along its rays), but
+//! near lights can, so each large piece gets its own scale.
+
+use ndarray::Array2;
+
+/// A 4-neighbour pair is a step when the integrated `ζ` (`−fx ln D`, pixels) changes
+/// across it by more than this beyond the mean of the two pixels' own slopes.
+const STEP_PX: f32 = 1.0;
+
+/// Each mask pixel's piece (0, 1, …; `usize::MAX` off the mask) and the pieces' sizes:
+/// connected through pairs that are not steps of `zeta` under the slopes `p` (along
+/// columns) and `q` (along rows).
+pub fn pieces(
+    zeta: &Array2<f32>,
+    p: &Array2<f32>,
+    q: &Array2<f32>,
+    mask: &Array2<bool>,
+) -> (Array2<usize>, Vec<usize>) {
+    let (h, w) = mask.dim();
+    let mut label = Array2::from_elem((h, w), usize::MAX);
+    let mut sizes = Vec::new();
+    let mut stack = Vec::new();
+    let joined = |a: (usize, usize), b: (usize, usize), g: &Array2<f32>| {
+        mask[b] && ((zeta[b] - zeta[a]) - 0.5 * (g[a] + g[b])).abs() <= STEP_PX
+    };
+    for start in 0..h * w {
+        let s = (start / w, start % w);
+        if !mask[s] || label[s] != usize::MAX {
+            continue;
+        }
+        let id = sizes.len();
+        let mut size = 0;
+        label[s] = id;
+        stack.push(s);
+        while let Some((r, c)) = stack.pop() {
+            size += 1;
+            let here = (r, c);
+            let mut visit = |n: (usize, usize), g: &Array2<f32>, forward: bool| {
+                let (a, b) = if forward { (here, n) } else { (n, here) };
+                if label[n] == usize::MAX && joined(a, b, g) && mask[a] {
+                    label[n] = id;
+                    stack.push(n);
+                }
+            };
+            if c + 1 < w {
+                visit((r, c + 1), p, true);
+            }
+            if c > 0 {
+                visit((r, c - 1), p, false);
+            }
+            if r + 1 < h {
+                visit((r + 1, c), q, true);
+            }
+            if r > 0 {
+                visit((r - 1, c), q, false);
+            }
+        }
+        sizes.push(size);
+    }
+    (label, sizes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plane with a raised square: two pieces; without the step, one.
+    #[test]
+    fn a_step_all_round_makes_two_pieces() {
+        let n = 20;
+        let flat = Array2::<f32>::zeros((n, n));
+        let mask = Array2::from_elem((n, n), true);
+        let zeta = Array2::from_shape_fn((n, n), |(r, c)| {
+            if (5..10).contains(&r) && (5..10).contains(&c) {
+                5.0
+            } else {
+                0.0
+            }
+        });
+        let (label, sizes) = pieces(&zeta, &flat, &flat, &mask);
+        assert_eq!(sizes, vec![n * n - 25, 25]);
+        assert_eq!(label[[7, 7]], 1);
+        let (_, sizes) = pieces(&flat, &flat, &flat, &mask);
+        assert_eq!(sizes, vec![n * n]);
+    }
+}

@@ -1,0 +1,156 @@
+//! Near lights on the renderer's rigs (`synth::ring_relief` and friends): the near-light
+//! solve against the truth, and against the best distant table a user could give.
+
+use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
+use photostereo::core::intake::ImageSet;
+use photostereo::core::near::{self, NearSettings};
+use photostereo::core::options::{Integration, MaskMode, Options};
+use photostereo::core::progress::NEVER;
+use photostereo::core::synth::{self, NearRig};
+use photostereo::core::{RunToEnd, reconstruct};
+
+/// Angle (degrees) between two normal maps, per pixel.
+fn angles(a: &Array3<f32>, b: &Array3<f32>) -> Array2<f64> {
+    let mut out = Array2::zeros((a.dim().0, a.dim().1));
+    Zip::from(&mut out)
+        .and(a.lanes(Axis(2)))
+        .and(b.lanes(Axis(2)))
+        .for_each(|o, a, b| {
+            let la = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+            let lb = (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]).sqrt();
+            let d = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]) / (la * lb);
+            *o = f64::from(d.clamp(-1.0, 1.0)).acos().to_degrees();
+        });
+    out
+}
+
+fn mean_where(v: &Array2<f64>, on: &Array2<bool>) -> (f64, usize) {
+    let (s, n) = (v.iter().zip(on))
+        .filter(|(_, m)| **m)
+        .fold((0.0, 0), |(s, n), (v, _)| (s + v, n + 1));
+    (s / n.max(1) as f64, n)
+}
+
+fn percentile_where(v: &Array2<f64>, on: &Array2<bool>, p: f64) -> f64 {
+    let mut x: Vec<f64> = (v.iter().zip(on))
+        .filter(|(_, m)| **m)
+        .map(|(v, _)| *v)
+        .collect();
+    if x.is_empty() {
+        return 0.0;
+    }
+    let k = ((x.len() as f64 * p) as usize).min(x.len() - 1);
+    *x.select_nth_unstable_by(k, f64::total_cmp).1
+}
+
+/// The pixels away from the frame's border (the integrators' boundary rows).
+fn interior(rig: &NearRig, border: usize) -> Array2<bool> {
+    let (h, w) = rig.mask.dim();
+    Array2::from_shape_fn((h, w), |(r, c)| {
+        rig.mask[[r, c]] && r >= border && c >= border && r + border < h && c + border < w
+    })
+}
+
+/// Today's distant solve (the default pipeline) of the rig's images under `lights`.
+fn distant_normals(rig: &NearRig, lights: Vec<photostereo::core::lights::Light>) -> Array3<f32> {
+    let (h, w) = rig.mask.dim();
+    let set = ImageSet {
+        width: w,
+        height: h,
+        bit_depth: 16,
+        lights,
+        planes: rig.images.clone(),
+        colour_moments: None,
+        mask: Some(rig.mask.clone()),
+        mask_file: None,
+        notes: Vec::new(),
+    };
+    let opts = Options {
+        mask: MaskMode::Given,
+        ..Options::default()
+    };
+    reconstruct(&set, &opts, &mut RunToEnd).unwrap().normals
+}
+
+fn near_solve(rig: &NearRig, integration: Integration) -> near::NearSurface {
+    let planes: Vec<ArrayView2<u16>> = rig.images.iter().map(|p| p.view()).collect();
+    let settings = NearSettings {
+        integration,
+        ..NearSettings::new(rig.camera, rig.distance)
+    };
+    near::solve(&planes, &rig.lights, &rig.mask, &settings, NEVER)
+}
+
+/// Where the best distant table is more than 5° wrong, the near solve is within 0.5°
+/// (mean), and its metric depth within 0.5 % of the working distance (mean).
+fn holds_on(rig: NearRig, integration: Integration) {
+    let inner = interior(&rig, 4);
+    let distant = angles(&distant_normals(&rig, rig.distant_table()), &rig.normals);
+    let solved = near_solve(&rig, integration);
+    let err = angles(&solved.normals, &rig.normals);
+    let far_off = Array2::from_shape_fn(inner.dim(), |p| inner[p] && distant[p] > 5.0);
+    let (distant_mean, _) = mean_where(&distant, &inner);
+    let (near_mean, _) = mean_where(&err, &inner);
+    let (near_there, n) = mean_where(&err, &far_off);
+    let p95 = percentile_where(&err, &far_off, 0.95);
+    let depth_err = Array2::from_shape_fn(inner.dim(), |p| {
+        f64::from((solved.depth[p] - rig.depth[p]).abs())
+    });
+    let (depth_mean, _) = mean_where(&depth_err, &inner);
+    let depth_p95 = percentile_where(&depth_err, &inner, 0.95);
+    println!(
+        "{}: distant mean {distant_mean:.2}°, {n} px beyond 5°; near mean {near_mean:.3}°, there \
+         {near_there:.3}° (p95 {p95:.3}°); depth mean {depth_mean:.3} mm (p95 {depth_p95:.3}) at \
+         {} mm; iterations {:?}",
+        rig.name, rig.distance, solved.iterations
+    );
+    assert!(
+        n > inner.iter().filter(|m| **m).count() / 10,
+        "{}: few pixels beyond 5°",
+        rig.name
+    );
+    assert!(
+        near_there <= 0.5,
+        "{}: near {near_there}° (p95 {p95}°)",
+        rig.name
+    );
+    assert!(
+        depth_mean <= 0.005 * rig.distance,
+        "{}: depth {depth_mean} mm",
+        rig.name
+    );
+}
+
+#[test]
+fn a_ring_light_over_a_relief_plate() {
+    holds_on(synth::ring_relief(160), Integration::default());
+}
+
+#[test]
+fn a_close_ring_with_strong_falloff() {
+    holds_on(synth::close_ring(160), Integration::default());
+}
+
+#[test]
+fn a_dome_around_a_ball_before_a_plane() {
+    holds_on(synth::dome_sphere(160), Integration::Bilateral);
+}
+
+/// Lights ten thousand times farther than the ring's: the near solve is as accurate as
+/// today's distant solve with the rig's distant table, and close to it.
+#[test]
+fn a_far_rig_gives_the_distant_result() {
+    let rig = synth::far_ring(160);
+    let inner = interior(&rig, 4);
+    let distant = distant_normals(&rig, rig.distant_table());
+    let solved = near_solve(&rig, Integration::default());
+    let (d_err, _) = mean_where(&angles(&distant, &rig.normals), &inner);
+    let (n_err, _) = mean_where(&angles(&solved.normals, &rig.normals), &inner);
+    let (apart, _) = mean_where(&angles(&solved.normals, &distant), &inner);
+    println!("far-ring: distant {d_err:.3}°, near {n_err:.3}°, apart {apart:.3}°");
+    assert!(d_err < 1.0, "the distant table fits a far rig: {d_err}°");
+    assert!(
+        apart < 0.02 && (n_err - d_err).abs() < 0.01,
+        "near {n_err}° vs distant {d_err}°, {apart}° apart"
+    );
+}
