@@ -557,6 +557,10 @@ impl ReconstructArgs {
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let (mut opts, chosen) = args.options()?;
     let flags = args.camera.lens()?;
+    let table = intake::dir_table(&args.dir)?;
+    if table.lights.iter().any(|l| l.emitter.is_some()) {
+        return reconstruct_near(&args, opts, chosen, flags, table.rig);
+    }
     let start = std::time::Instant::now();
     let scratch = args.scratch_dir();
     let set = stream::open_dir(
@@ -600,6 +604,70 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
         start.elapsed().as_secs_f64() * 1e3,
         report.reprojection_rms,
         report.integrability_rms
+    );
+    println!("{}", args.out.display());
+    Ok(())
+}
+
+/// A folder whose light table gives positions: the near-light solve, the set in memory.
+/// The camera is the flags' or the table's; the working distance `--distance` or the
+/// table's.
+fn reconstruct_near(
+    args: &ReconstructArgs,
+    mut opts: Options,
+    chosen: Option<MaskMode>,
+    flags: Option<Lens>,
+    rig: photostereo::core::lights::Rig,
+) -> anyhow::Result<()> {
+    let start = std::time::Instant::now();
+    let set = intake::load_dir(&args.dir, args.dir_mask(chosen), &Limits::default())?;
+    if chosen.is_none() && set.mask.is_some() && args.mask_file.is_none() {
+        opts.mask = MaskMode::Given;
+    }
+    let camera = match (flags, rig.camera) {
+        (Some(lens), _) => lens.resolve(set.width, set.height),
+        (None, Some(c)) => c,
+        (None, None) => anyhow::bail!(
+            "the light table gives positions but no camera: add \"camera\" to it or give --camera"
+        ),
+    };
+    camera.check(set.width, set.height)?;
+    let Some(distance) = opts.distance.or(rig.distance) else {
+        anyhow::bail!(
+            "near lights need the working distance to the object: add \"distance\" to the light table or give --distance"
+        );
+    };
+    for note in &set.notes {
+        eprintln!("note: {note}");
+    }
+    let report = photostereo::core::near::run(
+        &set,
+        camera,
+        distance,
+        rig.unit,
+        &opts,
+        &args.out,
+        &mut |stage: photostereo::core::progress::Stage| {
+            eprintln!("  {}", stage.as_str());
+            true
+        },
+    )?;
+    let unit = report.unit.as_deref().unwrap_or("");
+    eprintln!(
+        "{}×{} from {} near lights: {} iterations{}, median depth {:.4} {unit} ({:.4}..{:.4}), total {:.0} ms",
+        report.width,
+        report.height,
+        report.light_count,
+        report.iterations.len(),
+        if report.converged {
+            ""
+        } else {
+            " (not settled)"
+        },
+        report.median_depth,
+        report.depth_min,
+        report.depth_max,
+        start.elapsed().as_secs_f64() * 1e3,
     );
     println!("{}", args.out.display());
     Ok(())

@@ -154,3 +154,68 @@ fn a_far_rig_gives_the_distant_result() {
         "near {n_err}° vs distant {d_err}°, {apart}° apart"
     );
 }
+
+/// `photostereo reconstruct` on a folder whose table gives positions: the near solve, its
+/// metric depth in result.json and depth.exr; a table without the distance is refused
+/// naming it.
+#[test]
+fn the_cli_reconstructs_a_near_light_folder() {
+    let rig = synth::ring_relief(96);
+    let tmp = tempfile::tempdir().unwrap();
+    let (set, out) = (tmp.path().join("ring"), tmp.path().join("out"));
+    rig.write(&set).unwrap();
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
+        .args([
+            "reconstruct",
+            set.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(report["lights"], "near");
+    assert_eq!(report["unit"], "mm");
+    assert_eq!(report["converged"], true, "{report}");
+    let mut truth: Vec<f32> = rig.depth.iter().copied().collect();
+    let mid = truth.len() / 2;
+    let true_median = f64::from(*truth.select_nth_unstable_by(mid, f32::total_cmp).1);
+    let median = report["median_depth"].as_f64().unwrap();
+    assert!(
+        (median - true_median).abs() < 0.005 * rig.distance,
+        "median depth {median} mm, truth {true_median} mm"
+    );
+    for name in [
+        "normal.png",
+        "albedo.png",
+        "depth.exr",
+        "depth.png",
+        "mesh.glb",
+        "points.ply",
+    ] {
+        assert!(out.join(name).is_file(), "{name} written");
+    }
+    // Without a working distance the table cannot be solved: the error names it.
+    let table = set.join("light_directions.json");
+    let mut json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&table).unwrap()).unwrap();
+    json.as_object_mut().unwrap().remove("distance");
+    std::fs::write(&table, serde_json::to_vec(&json).unwrap()).unwrap();
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
+        .args([
+            "reconstruct",
+            set.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success() && err.contains("distance"), "{err}");
+}

@@ -105,8 +105,13 @@ pub(super) struct DirFiles {
     pub notes: Vec<String>,
 }
 
-/// The light table, image files and mask of a folder (see [`load_dir`]).
-pub(super) fn dir_files(dir: &Path, mask: DirMask<'_>) -> Result<DirFiles, InputError> {
+/// A folder's light table (lights, mask file, rig, notes), its images not read.
+pub fn dir_table(dir: &Path) -> Result<layout::Table, InputError> {
+    dir_table_of(dir, &dir_names(dir)?)
+}
+
+/// The files at the top of a folder, sorted.
+fn dir_names(dir: &Path) -> Result<Vec<String>, InputError> {
     let mut names = Vec::new();
     for entry in std::fs::read_dir(dir).map_err(|e| InputError::io(dir, e))? {
         let entry = entry.map_err(|e| InputError::io(dir, e))?;
@@ -115,11 +120,21 @@ pub(super) fn dir_files(dir: &Path, mask: DirMask<'_>) -> Result<DirFiles, Input
         }
     }
     names.sort();
+    Ok(names)
+}
+
+fn dir_table_of(dir: &Path, names: &[String]) -> Result<layout::Table, InputError> {
     let mut read = |name: &str| {
         let path = dir.join(name);
         std::fs::read(&path).map_err(|e| InputError::io(&path, e))
     };
-    let table = layout::read_table(&dir.display().to_string(), &names, &mut read)?;
+    layout::read_table(&dir.display().to_string(), names, &mut read)
+}
+
+/// The light table, image files and mask of a folder (see [`load_dir`]).
+pub(super) fn dir_files(dir: &Path, mask: DirMask<'_>) -> Result<DirFiles, InputError> {
+    let names = dir_names(dir)?;
+    let table = dir_table_of(dir, &names)?;
     let named = |name: &str| NamedFile {
         name: name.to_string(),
         path: dir.join(name),

@@ -57,6 +57,8 @@ pub struct Table {
     pub mask: Option<String>,
     /// What was ignored or chosen, for `result.json`.
     pub notes: Vec<String>,
+    /// A near-light table's camera, distance and unit.
+    pub rig: lights::Rig,
 }
 
 /// Whether a file name is one intake would decode as an image.
@@ -89,13 +91,16 @@ pub fn read_table(
             notes.push(format!("{other} not read: {table} is the light table"));
         }
     };
+    let mut rig = lights::Rig::default();
     let lights = if let Some(seed) = [SEED_CSV, SEED_JSON].into_iter().find(|n| has(n)) {
         let mut others = lp_files.clone();
         if has(BENCH_DIRECTIONS) {
             others.push(BENCH_DIRECTIONS);
         }
         not_read(seed, &others);
-        lights::parse_bytes(&read(seed)?)?
+        let table = lights::parse_table_bytes(&read(seed)?)?;
+        rig = table.rig;
+        table.lights
     } else if let Some(&lp) = lp_files.first() {
         if lp_files.len() > 1 {
             return Err(InputError::Lights(format!(
@@ -149,6 +154,7 @@ pub fn read_table(
         lights,
         mask,
         notes,
+        rig,
     })
 }
 

@@ -165,13 +165,21 @@ pub fn check_name(name: &str) -> Result<(), String> {
 
 /// Parse the bytes of a light table, refusing text that is not UTF-8.
 pub fn parse_bytes(bytes: &[u8]) -> Result<Vec<Light>, InputError> {
-    let text = std::str::from_utf8(bytes).map_err(|e| {
+    parse(utf8(bytes)?)
+}
+
+/// [`parse_table`] of a table's bytes, refusing text that is not UTF-8.
+pub fn parse_table_bytes(bytes: &[u8]) -> Result<Table, InputError> {
+    parse_table(utf8(bytes)?)
+}
+
+fn utf8(bytes: &[u8]) -> Result<&str, InputError> {
+    std::str::from_utf8(bytes).map_err(|e| {
         InputError::Lights(format!(
             "not valid UTF-8 text (invalid byte at offset {})",
             e.valid_up_to()
         ))
-    })?;
-    parse(text)
+    })
 }
 
 fn parse_csv(text: &str) -> Result<Vec<Light>, InputError> {

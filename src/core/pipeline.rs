@@ -72,6 +72,14 @@ fn prepare(
     progress: &mut dyn Progress,
     timings: &mut Timings,
 ) -> Result<Prepared, RunError> {
+    if stack.info().lights.iter().any(|l| l.emitter.is_some()) {
+        return Err(InputError::Lights(
+            "lights given by position (near lights) are reconstructed by `photostereo \
+             reconstruct` on a folder; this path takes directions"
+                .into(),
+        )
+        .into());
+    }
     let condition = lights::check_solvable(&stack.info().lights, opts.max_condition)?;
     if let Some(names) = &opts.outputs {
         outputs::check_selection(names)?;

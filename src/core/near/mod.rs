@@ -5,8 +5,10 @@
 mod model;
 mod pieces;
 mod pixel;
+mod run;
 mod solve;
 
 pub use model::{irradiance, light_vectors};
 pub use pixel::{Fit, fit};
+pub use run::{NearReport, run};
 pub use solve::{Iteration, NearSettings, NearSurface, solve};

@@ -378,3 +378,42 @@ pub fn far_ring(size: usize) -> NearRig {
         NOISE_SIGMA,
     )
 }
+
+impl NearRig {
+    /// Write the capture as a folder `reconstruct` reads: one 16-bit PNG per LED and
+    /// `light_directions.json` with the positions, axes, anisotropy, intensities, the
+    /// camera, the working distance and the unit.
+    pub fn write(&self, dir: &std::path::Path) -> std::io::Result<()> {
+        std::fs::create_dir_all(dir)?;
+        for (light, plane) in self.lights.iter().zip(&self.images) {
+            let (h, w) = plane.dim();
+            let img = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(
+                w as u32,
+                h as u32,
+                |x, y| image::Luma([plane[[y as usize, x as usize]]]),
+            );
+            img.save(dir.join(&light.name))
+                .map_err(std::io::Error::other)?;
+        }
+        let lights: Vec<serde_json::Value> = (self.lights.iter())
+            .map(|l| {
+                let e = l.emitter.expect("rig lights have positions");
+                serde_json::json!({
+                    "name": l.name,
+                    "position": e.position,
+                    "axis": e.axis,
+                    "anisotropy": e.anisotropy,
+                    "intensity": l.intensity,
+                })
+            })
+            .collect();
+        let table = serde_json::json!({
+            "lights": lights,
+            "camera": self.camera,
+            "distance": self.distance,
+            "unit": self.unit,
+        });
+        let text = serde_json::to_vec_pretty(&table).map_err(std::io::Error::other)?;
+        std::fs::write(dir.join("light_directions.json"), text)
+    }
+}

@@ -1,0 +1,223 @@
+//! A near-light set reconstructed and written: [`super::solve`] on the decoded images,
+//! then the pictures (`albedo.png`, `normal.png`, `mask.png`, `depth.exr`, `depth.png`),
+//! `points.ply` and `mesh.glb` unprojected through the camera, and `result.json`
+//! ([`NearReport`]). Depth is metric, in the table's unit.
+
+use std::path::Path;
+use std::time::Instant;
+
+use ndarray::{Array2, ArrayView2};
+use serde::Serialize;
+
+use super::solve::{Iteration, NearSettings, solve};
+use crate::core::camera::Pinhole;
+use crate::core::commit::{self, Committer, WriteSeek};
+use crate::core::error::RunError;
+use crate::core::intake::ImageSet;
+use crate::core::mesh::{self, Document, MeshError};
+use crate::core::options::{Integration, MaskMode, Options};
+use crate::core::outputs::{self, Heights, Maps};
+use crate::core::pipeline::{not_halted, step};
+use crate::core::progress::{Progress, Stage};
+use crate::core::reconstruction::{Reconstruction, Report as RunReport, Timing};
+
+/// What a near-light reconstruction wrote: `result.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct NearReport {
+    pub width: usize,
+    pub height: usize,
+    pub light_count: usize,
+    /// Always `near`: lights given by position.
+    pub lights: &'static str,
+    pub camera: Pinhole,
+    /// The working distance given (the first surface).
+    pub distance: f64,
+    /// The unit of positions, distance and depth, as the table gives it.
+    pub unit: Option<String>,
+    pub method: Integration,
+    /// Median depth over the mask of the surface recovered, and its range.
+    pub median_depth: f64,
+    pub depth_min: f32,
+    pub depth_max: f32,
+    /// Each alternation of solve and integration, and whether the normals settled.
+    pub iterations: Vec<Iteration>,
+    pub converged: bool,
+    pub timings_ms: Vec<Timing>,
+    pub artifacts: Vec<String>,
+    pub notes: Vec<String>,
+}
+
+/// Reconstruct `set` (lights with positions) under `camera` from the working `distance`,
+/// and write its artifacts into `dir`. The mask is the set's own with `--mask given`,
+/// else every pixel with three lit observations; `opts` gives the integration and mesh.
+pub fn run(
+    set: &ImageSet,
+    camera: Pinhole,
+    distance: f64,
+    unit: Option<String>,
+    opts: &Options,
+    dir: &Path,
+    progress: &mut dyn Progress,
+) -> Result<NearReport, RunError> {
+    let mut timings = Vec::new();
+    let mut notes = set.notes.clone();
+    step(progress, Stage::Solve)?;
+    let start = Instant::now();
+    let mask = match (&set.mask, opts.mask) {
+        (Some(m), MaskMode::Given | MaskMode::Auto) => m.clone(),
+        _ => lit_pixels(set),
+    };
+    let planes: Vec<ArrayView2<u16>> = set.planes.iter().map(|p| p.view()).collect();
+    let settings = NearSettings {
+        integration: opts.integration,
+        ..NearSettings::new(camera, distance)
+    };
+    let polled: &dyn Progress = progress;
+    let surface = solve(&planes, &set.lights, &mask, &settings, &|| polled.halted());
+    not_halted(polled)?;
+    timings.push(timing("solve and integrate", start));
+    if !surface.converged {
+        notes.push(format!(
+            "the normals still moved {:.3}° on average after {} iterations",
+            surface.iterations.last().map_or(0.0, |i| i.mean_change_deg),
+            surface.iterations.len()
+        ));
+    }
+
+    step(progress, Stage::Outputs)?;
+    let start = Instant::now();
+    let (min, max) = (surface.depth.iter().zip(&mask))
+        .filter(|(d, m)| **m && d.is_finite())
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (d, _)| {
+            (a.min(*d), b.max(*d))
+        });
+    std::fs::create_dir_all(dir).map_err(|e| RunError::Output {
+        path: dir.display().to_string(),
+        reason: e.to_string(),
+    })?;
+    let dim = mask.dim();
+    let rec = Reconstruction {
+        width: set.width,
+        height: set.height,
+        lights: set.lights.clone(),
+        albedo: surface.albedo.mapv(|a| a.clamp(0.0, 1.0)),
+        albedo_rgb: None,
+        confidence: mask.mapv(f32::from),
+        unreliable: Array2::from_elem(dim, false),
+        curl: Array2::zeros(dim),
+        normals: surface.normals,
+        mask,
+        heights: surface.depth,
+        report: RunReport {
+            options: Options {
+                camera: Some(camera),
+                distance: Some(distance),
+                ..opts.clone()
+            },
+            ..RunReport::default()
+        },
+    };
+    let pictures: Vec<&str> = [
+        "albedo.png",
+        "normal.png",
+        "mask.png",
+        "depth.exr",
+        "depth.png",
+    ]
+    .into_iter()
+    .filter(|n| {
+        opts.outputs
+            .as_ref()
+            .is_none_or(|o| o.iter().any(|s| s == n))
+    })
+    .collect();
+    let maps = Maps {
+        heights: Some(Heights {
+            z: &rec.heights,
+            min,
+            max,
+        }),
+        ..Maps::of(&rec)
+    };
+    let commits = Committer::new();
+    let polled: &dyn Progress = progress;
+    let halt = || polled.halted();
+    let mut written = outputs::write_pictures(&maps, &pictures, [0.0; 3], dir, &commits, &halt)?;
+    not_halted(polled)?;
+    step(progress, Stage::Mesh)?;
+    let mut save =
+        |name: &str, write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>| {
+            commits.write(dir, name, write)?;
+            written.push(name.to_string());
+            Ok::<_, RunError>(())
+        };
+    save("points.ply", &mut |f| {
+        mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, Some(&camera))
+    })?;
+    match Document::with_camera(&rec, &opts.mesh, Some(&camera)) {
+        Ok(doc) => save("mesh.glb", &mut |f| {
+            doc.write_glb(f).map_err(|e| match e {
+                MeshError::Write(io) => io,
+                other => std::io::Error::other(other.to_string()),
+            })
+        })?,
+        Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. })) => {
+            notes.push(format!("no mesh.glb: {e}"))
+        }
+        Err(e) => {
+            return Err(RunError::Output {
+                path: dir.join("mesh.glb").display().to_string(),
+                reason: e.to_string(),
+            });
+        }
+    }
+    timings.push(timing("outputs", start));
+    written.push("result.json".into());
+    let report = NearReport {
+        width: set.width,
+        height: set.height,
+        light_count: set.lights.len(),
+        lights: "near",
+        camera,
+        distance,
+        unit,
+        method: opts.integration,
+        median_depth: surface
+            .iterations
+            .last()
+            .map_or(distance, |i| i.median_depth),
+        depth_min: min,
+        depth_max: max,
+        iterations: surface.iterations,
+        converged: surface.converged,
+        timings_ms: timings,
+        artifacts: written,
+        notes,
+    };
+    let json = serde_json::to_vec_pretty(&report).expect("the report serialises");
+    commits.finish()?;
+    commit::write_atomic(dir, "result.json", &json)?;
+    Ok(report)
+}
+
+/// Pixels with at least three observations above 1 % of the set's brightest value.
+fn lit_pixels(set: &ImageSet) -> Array2<bool> {
+    let peak = set
+        .planes
+        .iter()
+        .flat_map(|p| p.iter())
+        .copied()
+        .max()
+        .unwrap_or(0);
+    let dark = (peak / 100).max(1);
+    Array2::from_shape_fn((set.height, set.width), |p| {
+        set.planes.iter().filter(|plane| plane[p] > dark).count() >= 3
+    })
+}
+
+fn timing(stage: &'static str, start: Instant) -> Timing {
+    Timing {
+        stage,
+        ms: start.elapsed().as_secs_f64() * 1e3,
+    }
+}
