@@ -109,6 +109,8 @@ struct ReconstructArgs {
     /// PNGs, mesh.glb, result.json).
     #[arg(long, value_delimiter = ',')]
     outputs: Option<Vec<String>>,
+    #[command(flatten)]
+    limit: PixelLimit,
     /// Largest light-matrix condition number accepted.
     #[arg(long)]
     max_condition: Option<f64>,
@@ -149,6 +151,25 @@ struct CameraArgs {
     /// in its unit); without it depth is relative, median 1.
     #[arg(long, allow_hyphen_values = true)]
     distance: Option<f64>,
+}
+
+/// How large a picture is read: as the server's `--max-pixels`, which bounds each image
+/// or normal map of a job.
+#[derive(Args)]
+struct PixelLimit {
+    /// Most pixels (width × height) in one image or normal map: larger files are refused
+    /// before they are decoded.
+    #[arg(long, default_value_t = Limits::default().max_pixels_per_image)]
+    max_pixels: u64,
+}
+
+impl PixelLimit {
+    fn limits(&self) -> Limits {
+        Limits {
+            max_pixels_per_image: self.max_pixels,
+            ..Limits::default()
+        }
+    }
 }
 
 impl CameraArgs {
@@ -193,6 +214,13 @@ struct IntegrateArgs {
     /// frankot-chellappa | path
     #[arg(long, value_parser = kebab::<Integration>)]
     integration: Option<Integration>,
+    /// Write these artifacts (comma-separated names, or `all`) instead of all of them:
+    /// mask.png, normal.png, height.png and height.exr (depth.png and depth.exr with a
+    /// camera), points.ply, mesh.glb; result.json is always written.
+    #[arg(long, value_delimiter = ',')]
+    outputs: Option<Vec<String>>,
+    #[command(flatten)]
+    limit: PixelLimit,
 }
 
 fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
@@ -203,8 +231,13 @@ fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
     let mut settings = Settings {
         integration: args.integration.unwrap_or_default(),
         distance: args.camera.distance,
+        outputs: args.outputs.clone(),
         ..Settings::default()
     };
+    // Before the map is read: a misspelt name should not wait for a large map's decode.
+    if let Some(names) = &settings.outputs {
+        normals_in::check_outputs(names, lens.is_some())?;
+    }
     if lens.is_none()
         && let Some(note) = normals_in::unused_camera_note(&args.map)
     {
@@ -216,6 +249,7 @@ fn integrate(args: IntegrateArgs) -> anyhow::Result<()> {
         args.mask.as_deref(),
         args.normal_convention,
         lens,
+        &args.limit.limits(),
     )?;
     settings.check(map.camera.as_ref())?;
     let c = map.counts;
@@ -566,7 +600,7 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     let set = stream::open_dir(
         &args.dir,
         args.dir_mask(chosen),
-        &Limits::default(),
+        &args.limit.limits(),
         &scratch,
     )?;
     // A folder's own mask.png stands for `--mask given` unless a mode was chosen.

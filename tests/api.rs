@@ -1839,16 +1839,42 @@ async fn a_normals_job_integrates_heights_as_the_cli_does() {
             Form::new()
                 .part("normals", normals_part(directx, "sphere-dx.png"))
                 .text("convention", "directx")
-                .text("options", options),
+                .text(
+                    "options",
+                    r#"{"integration": "poisson", "outputs": ["height.exr"]}"#,
+                ),
         )
         .await;
     let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
     assert!(job["result"]["depth_min"].is_null(), "{job}");
+    // The reader's counts: the disc used, the rest black background.
+    let (pixels, used) = (
+        (size * size) as usize,
+        truth.iter().filter(|t| t.is_finite()).count(),
+    );
+    let counts = &job["result"]["counts"];
+    assert_eq!(counts["pixels"], pixels, "{job}");
+    assert_eq!(counts["used"], used, "{job}");
+    assert_eq!(counts["black"], pixels - used, "{job}");
+    for kind in [
+        "back_facing",
+        "not_unit",
+        "zero_length",
+        "non_finite",
+        "transparent",
+        "outside_mask",
+    ] {
+        assert_eq!(counts[kind], 0, "{kind}: {job}");
+    }
     let span = |key: &str| job["result"][key].as_f64().unwrap();
     assert!(span("height_max") - span("height_min") > 20.0, "{job}");
     let files = normals_artifacts(&s, &job, &HEIGHT_ARTIFACTS).await;
     let report: Value = serde_json::from_slice(&files["result.json"]).unwrap();
     assert_eq!(report["source"], "sphere.png");
+    assert_eq!(
+        &report["counts"], counts,
+        "the summary's counts are result.json's"
+    );
     assert_eq!(report["output"], "height");
     assert_eq!(report["method"], "poisson");
     let served = outputs::decode_height_exr(&files["height.exr"]).unwrap();
@@ -1890,9 +1916,15 @@ async fn a_normals_job_integrates_heights_as_the_cli_does() {
         "heights off the sphere's by up to {spread} px"
     );
 
-    // The DirectX map with its convention gives the same heights.
+    // The DirectX map with its convention gives the same heights; its job wrote only the
+    // outputs it named, and result.json.
     let flipped = s.wait_succeeded(flipped["id"].as_str().unwrap()).await;
-    let files = normals_artifacts(&s, &flipped, &HEIGHT_ARTIFACTS).await;
+    let files = normals_artifacts(&s, &flipped, &["height.exr", "result.json"]).await;
+    let report: Value = serde_json::from_slice(&files["result.json"]).unwrap();
+    assert_eq!(
+        report["artifacts"],
+        serde_json::json!(["height.exr", "result.json"])
+    );
     let heights = outputs::decode_height_exr(&files["height.exr"]).unwrap();
     let worst = (heights.iter().zip(&served)).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
     assert!(
@@ -1933,6 +1965,11 @@ async fn a_normals_job_with_a_camera_gives_depth() {
     assert_eq!(job["options"]["camera"]["fx"], 120.0, "{job}");
     let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
     assert!(job["result"]["height_min"].is_null(), "{job}");
+    // The mask's right half is counted outside it, before any other kind.
+    let counts = &job["result"]["counts"];
+    assert_eq!(counts["pixels"], 96 * 80, "{job}");
+    assert_eq!(counts["used"], kept.len(), "{job}");
+    assert_eq!(counts["outside_mask"], 48 * 80, "{job}");
     let expected = [
         "depth.png",
         "depth.exr",
@@ -1945,6 +1982,7 @@ async fn a_normals_job_with_a_camera_gives_depth() {
     let files = normals_artifacts(&s, &job, &expected).await;
     let report: Value = serde_json::from_slice(&files["result.json"]).unwrap();
     assert_eq!(report["output"], "depth");
+    assert_eq!(&report["counts"], counts);
     assert_eq!(report["mask_file"], "mask.png");
     assert_eq!(report["distance"], median);
     let depth = outputs::decode_height_exr(&files["depth.exr"]).unwrap();
@@ -2031,6 +2069,21 @@ async fn normals_jobs_refuse_mixed_parts_and_bad_maps_naming_them() {
         .await
         .unwrap();
     expect_problem(r, 422, &["`solver` does not apply to a normals job"]).await;
+    // Outputs it never writes, or of the other projection, judged against its camera.
+    let r = post(normals().text("options", r#"{"outputs": ["mesh.glb", "albedo.png"]}"#))
+        .await
+        .unwrap();
+    let writes = "mask.png, normal.png, height.png, height.exr, points.ply, mesh.glb, result.json";
+    expect_problem(r, 422, &["`outputs`", "\"albedo.png\"", writes]).await;
+    let r = post(normals().text("options", r#"{"outputs": ["depth.exr"]}"#))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["`outputs`", "\"depth.exr\"", "needs a camera"]).await;
+    let under_camera = normals()
+        .text("camera", "50,50,20,20")
+        .text("options", r#"{"outputs": ["depth.exr", "height.png"]}"#);
+    let r = post(under_camera).await.unwrap();
+    expect_problem(r, 422, &["`outputs`", "\"height.png\"", "under a camera"]).await;
     let r = post(normals().text("convention", "sideways"))
         .await
         .unwrap();
@@ -2094,5 +2147,44 @@ async fn an_interrupted_normals_job_runs_again_after_a_restart() {
     let job = s.wait_succeeded(&id).await;
     assert_eq!(job["attempts"], 2, "the interrupted job ran again: {job}");
     normals_artifacts(&s, &job, &HEIGHT_ARTIFACTS).await;
+    s.stop().await;
+}
+
+/// A normals job decodes its map under the server's pixel limit, not the core's larger
+/// default: a job accepted under one limit and run after a restart under a lower one
+/// fails with the 413 that an upload of that map now gets.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_normals_job_is_held_to_the_servers_pixel_limit() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut slow = config(dir.path());
+    slow.workers = 1;
+    slow.stage_delay = Duration::from_millis(400);
+    slow.shutdown_grace = Duration::from_millis(100);
+    let s = TestServer::start(slow).await;
+    let (normal, _) = ortho_sphere(48, 20.0);
+    let map = normal_map_png16((48, 48), false, &normal);
+    let form = || Form::new().part("normals", normals_part(map.clone(), "sphere.png"));
+    let job = s.submit(form()).await;
+    let id = job["id"].as_str().unwrap().to_string();
+    s.wait_for(&id, Duration::from_secs(30), |j| j["status"] == "running")
+        .await;
+    s.stop().await;
+
+    let mut small = config(dir.path());
+    small.max_pixels = 40 * 40;
+    let s = TestServer::start(small).await;
+    let job = s.wait_finished(&id).await;
+    assert_eq!(job["status"], "failed", "{job}");
+    assert_eq!(job["error"]["status"], 413, "{job}");
+    let needles = ["\"sphere.png\"", "48×48", "limit of 1600 pixels"];
+    let r = s
+        .client
+        .post(s.url("/v1/jobs"))
+        .multipart(form())
+        .send()
+        .await
+        .unwrap();
+    let refused = expect_problem(r, 413, &needles).await;
+    assert_eq!(job["error"]["detail"], refused["detail"], "{job}");
     s.stop().await;
 }

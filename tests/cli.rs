@@ -279,6 +279,20 @@ fn bad_input_fails_with_a_message_naming_the_problem() {
     );
 }
 
+/// `--max-pixels`, as the server's flag: an image over it is refused by name before it is
+/// decoded.
+#[test]
+fn max_pixels_refuses_larger_images() {
+    let (w, h) = image::image_dimensions(res("bump").join("im1.png")).unwrap();
+    let limit = (w * h - 1).to_string();
+    let err = failure(&["--max-pixels", &limit], &res("bump"));
+    let size = format!("{w}×{h}");
+    assert!(
+        err.contains(".png\"") && err.contains(&size) && err.contains(&format!("limit of {limit}")),
+        "{err}"
+    );
+}
+
 /// The stderr of a run that must fail.
 fn failure(args: &[&str], dir: &Path) -> String {
     let out = bin()

@@ -379,6 +379,10 @@ async fn jobs_over_the_input_bytes_or_image_size_limits_are_refused() {
         .part("images", Part::bytes(png(20, 20, 60)).file_name("a.png"));
     let over_pixels = ["\"a.png\"", "20×20", "limit of 300"];
     refused(&s, "image size", form, 413, &over_pixels).await;
+    // A normal map is held to the same limit, and refused alike.
+    let map = common::normal_map_png16((20, 20), false, |_, _| Some([0.0, 0.0, 1.0]));
+    let form = Form::new().part("normals", Part::bytes(map).file_name("a.png"));
+    refused(&s, "normal map size", form, 413, &over_pixels).await;
     nothing_accepted(&s).await;
 
     // Under both (600 pixels in all, past the old per-job bound of 100): accepted.

@@ -98,6 +98,32 @@ fn a_written_normal_map_integrates_to_its_depth_through_the_binary() {
     assert_eq!(report["method"], "poisson");
     assert!(report["notes"][0].as_str().unwrap().contains("K.txt"));
 
+    // --outputs: only the artifacts named, and result.json, which lists them.
+    let out = dir.path().join("some");
+    let o = integrate(
+        &map,
+        &out,
+        &[
+            "--camera",
+            "120,120,48,38",
+            "--outputs",
+            "depth.exr,mesh.glb",
+        ],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut written: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    written.sort();
+    assert_eq!(written, ["depth.exr", "mesh.glb", "result.json"]);
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("result.json")).unwrap()).unwrap();
+    assert_eq!(
+        report["artifacts"],
+        serde_json::json!(["depth.exr", "mesh.glb", "result.json"])
+    );
+
     // The four numbers and --focal-length work too.
     let o = integrate(&map, &dir.path().join("b"), &["--camera", "120,120,48,38"]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -156,6 +182,22 @@ fn bad_inputs_exit_non_zero_naming_the_problem() {
         &["--camera", "nowhere/K.txt"],
         &map,
         &["neither a file nor fx,fy,cx,cy"],
+    );
+    // Outputs it never writes, or depth without a camera; a map over --max-pixels.
+    fails(
+        &["--outputs", "mesh.glb,albedo.png"],
+        &map,
+        &["`outputs`", "\"albedo.png\"", "height.exr, points.ply"],
+    );
+    fails(
+        &["--outputs", "depth.exr"],
+        &map,
+        &["\"depth.exr\"", "needs a camera"],
+    );
+    fails(
+        &["--max-pixels", "7679"],
+        &map,
+        &["sphere.png", "96×80", "limit of 7679 pixels"],
     );
     assert!(
         !out.join("result.json").exists(),

@@ -20,6 +20,7 @@ use anyhow::Context;
 use ndarray::{Array2, Array3};
 
 use photostereo::core::camera::Pinhole;
+use photostereo::core::intake::Limits;
 use photostereo::core::integrate::{self, perspective};
 use photostereo::core::normalmap::{self, Convention, Lens};
 use photostereo::core::options::Integration;
@@ -171,6 +172,7 @@ fn real_maps(dir: &Path) -> anyhow::Result<Vec<Map>> {
                 Some(&folder.join("mask.png")),
                 Convention::Opengl,
                 Some(Lens::Pinhole(camera)),
+                &Limits::default(),
             )?;
             Ok(Map {
                 name: folder

@@ -21,7 +21,8 @@
 //!   renormalised.
 //!
 //! **Refused** ([`NormalMapError`], naming the file): unreadable or unsupported files (a
-//! gray picture has no normals), a mask of another size than the map, an 8- or 16-bit map
+//! gray picture has no normals), a map or mask over the caller's pixel limit (intake's own
+//! [`InputError::TooLarge`]), a mask of another size than the map, an 8- or 16-bit map
 //! where more than [`MAX_NOT_UNIT_SHARE`] of the non-background pixels are `not_unit`
 //! (not a normal map, or another encoding), a map with no usable pixel, a camera whose
 //! principal point lies outside the image.
@@ -82,8 +83,10 @@ impl Lens {
     }
 }
 
-/// What the reader did with each pixel (see the module docs).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, ToSchema)]
+/// What the normal-map reader did with each pixel: `used` ones are integrated; each other
+/// one is off the mask, counted once, under the first of `outside_mask`, `transparent`,
+/// `non_finite`, `black`, `zero_length` that applies.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 pub struct Counts {
     /// Every pixel of the map.
     pub pixels: usize,
@@ -95,13 +98,13 @@ pub struct Counts {
     pub transparent: usize,
     /// NaN or infinite components.
     pub non_finite: usize,
-    /// Samples (0, 0, 0).
+    /// Samples (0, 0, 0), the usual background.
     pub black: usize,
-    /// Shorter than [`MIN_LENGTH`] once decoded.
+    /// Shorter than 0.05 ([`MIN_LENGTH`]) once decoded: no direction (e.g. mid-grey).
     pub zero_length: usize,
     /// Used, but facing away from the camera (the integrators clamp them).
     pub back_facing: usize,
-    /// Used, but their length was more than [`UNIT_TOLERANCE`] from 1 (renormalised).
+    /// Used, but their length was more than 0.15 ([`UNIT_TOLERANCE`]) from 1: renormalised.
     pub not_unit: usize,
 }
 
@@ -129,6 +132,10 @@ pub struct NormalMap {
 pub enum NormalMapError {
     #[error("normal map {name:?} cannot be read: {reason}")]
     Unreadable { name: String, reason: String },
+    /// Over the pixel limit: intake's refusal as it is, so that a normal map is refused
+    /// as an image of that size is (HTTP 413).
+    #[error(transparent)]
+    TooLarge(InputError),
     #[error(
         "normal map {name:?} is {what}; a normal map is RGB or RGBA: an 8/16-bit PNG or a 32-bit float OpenEXR"
     )]
@@ -184,6 +191,7 @@ impl NormalMapError {
                 name: name.into(),
                 what: format!("not a format that can be read ({reason})"),
             },
+            e if e.is_too_large() => Self::TooLarge(e),
             e => Self::Unreadable {
                 name: name.into(),
                 reason: e.to_string(),
@@ -218,6 +226,7 @@ pub fn read(
     mask: Option<&Path>,
     convention: Convention,
     lens: Option<Lens>,
+    limits: &Limits,
 ) -> Result<NormalMap, NormalMapError> {
     let name = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|e| NormalMapError::Unreadable {
@@ -236,25 +245,27 @@ pub fn read(
         None => None,
     };
     let mask = mask.as_ref().map(|(name, bytes)| MaskInput { name, bytes });
-    decode(&name, &bytes, mask, convention, lens)
+    decode(&name, &bytes, mask, convention, lens, limits)
 }
 
 /// Decode a normal map (named `name` in errors) into the project's frame: the module
-/// docs give the decoding, the treatment of each pixel and what is refused.
+/// docs give the decoding, the treatment of each pixel and what is refused. The map and
+/// the mask are refused over `limits.max_pixels_per_image` before they are decoded.
 pub fn decode(
     name: &str,
     bytes: &[u8],
     mask: Option<MaskInput<'_>>,
     convention: Convention,
     lens: Option<Lens>,
+    limits: &Limits,
 ) -> Result<NormalMap, NormalMapError> {
-    let img = intake::decode(name, bytes, &Limits::default())
-        .map_err(|e| NormalMapError::unreadable(name, e))?;
+    let img =
+        intake::decode(name, bytes, limits).map_err(|e| NormalMapError::unreadable(name, e))?;
     let bits = bits_of(name, img.color())?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     let mask_name = mask.as_ref().map(|m| m.name.to_string());
     let given = match mask {
-        Some(m) => Some(read_mask(m, name, width, height)?),
+        Some(m) => Some(read_mask(m, name, width, height, limits)?),
         None => None,
     };
     let camera = lens.map(|l| l.resolve(width, height));
@@ -422,12 +433,15 @@ fn read_mask(
     name: &str,
     width: usize,
     height: usize,
+    limits: &Limits,
 ) -> Result<Array2<bool>, NormalMapError> {
-    let img =
-        intake::decode(m.name, m.bytes, &Limits::default()).map_err(|e| NormalMapError::Mask {
+    let img = intake::decode(m.name, m.bytes, limits).map_err(|e| match e {
+        e if e.is_too_large() => NormalMapError::TooLarge(e),
+        e => NormalMapError::Mask {
             mask: m.name.into(),
             reason: e.to_string(),
-        })?;
+        },
+    })?;
     let (mw, mh) = (img.width() as usize, img.height() as usize);
     if (mw, mh) != (width, height) {
         return Err(NormalMapError::MaskSize {

@@ -13,6 +13,9 @@
 //! - Both: `mask.png`, `normal.png` (the normals as read, 16-bit OpenGL encoding),
 //!   `mesh.glb` (heights, or vertices unprojected through the camera), `points.ply` and
 //!   `result.json` ([`Report`]).
+//!
+//! All of them unless [`Settings::outputs`] names some ([`ARTIFACTS`]); `result.json` is
+//! always written.
 
 use std::path::Path;
 use std::time::Instant;
@@ -34,7 +37,58 @@ use super::reconstruction::{Reconstruction, Report as RunReport, Timing};
 
 /// The job options (`Options` fields) a normal map's integration takes; the others are
 /// the photometric reconstruction's.
-pub const OPTIONS: [&str; 4] = ["integration", "mesh", "camera", "distance"];
+pub const OPTIONS: [&str; 5] = ["integration", "mesh", "camera", "distance", "outputs"];
+
+/// Every artifact [`run`] can write, in the order it writes them: the height pictures
+/// without a camera, the depth pictures under one ([`outputs::fits_surface`]).
+pub const ARTIFACTS: [&str; 9] = [
+    "mask.png",
+    "normal.png",
+    "height.png",
+    "height.exr",
+    "depth.exr",
+    "depth.png",
+    "points.ply",
+    "mesh.glb",
+    "result.json",
+];
+
+/// The artifacts a map integrates into, orthographic or under a `camera`.
+pub fn artifacts(camera: bool) -> impl Iterator<Item = &'static str> {
+    ARTIFACTS
+        .into_iter()
+        .filter(move |n| outputs::fits_surface(n, camera))
+}
+
+/// Refuses an `outputs` selection that names what a normal map's integration never
+/// writes (the photometric maps: it has no albedo, confidence or images), or the surface
+/// of the other projection: depth needs a camera, and under one there are no heights.
+pub fn check_outputs(names: &[String], camera: bool) -> Result<(), InputError> {
+    outputs::check_selection(names)?;
+    let refuse = |why: String| Err(InputError::Options(format!("field `outputs`: {why}")));
+    for name in names.iter().map(String::as_str) {
+        if name == outputs::ALL || artifacts(camera).any(|a| a == name) {
+            continue;
+        }
+        if !ARTIFACTS.contains(&name) {
+            return refuse(format!(
+                "integrating a normal map writes no {name:?} (there are no images); it writes {}, or {:?} for all of them",
+                artifacts(camera).collect::<Vec<_>>().join(", "),
+                outputs::ALL
+            ));
+        }
+        return refuse(if camera {
+            format!(
+                "{name:?} cannot be written: under a camera the normal map integrates into depth (depth.png, depth.exr), not heights"
+            )
+        } else {
+            format!(
+                "{name:?} cannot be written: without a camera the normal map integrates into heights (height.png, height.exr); depth needs a camera"
+            )
+        });
+    }
+    Ok(())
+}
 
 /// How a normal map is integrated.
 #[derive(Debug, Clone, Default)]
@@ -46,6 +100,8 @@ pub struct Settings {
     pub mesh: MeshOptions,
     /// Passed on to `result.json` (e.g. a camera file left unused).
     pub notes: Vec<String>,
+    /// The artifacts to write (`"all"` for every one, `result.json` always); `None`: all.
+    pub outputs: Option<Vec<String>>,
 }
 
 impl Settings {
@@ -57,13 +113,26 @@ impl Settings {
             distance: options.distance,
             mesh: options.mesh.clone(),
             notes: Vec::new(),
+            outputs: options.outputs.clone(),
         }
     }
 
     /// Refuses what cannot be used: a distance that is not a positive number, or one
-    /// given without a camera (orthographic heights have no depth to scale).
+    /// given without a camera (orthographic heights have no depth to scale); outputs
+    /// that [`check_outputs`] refuses.
     pub fn check(&self, camera: Option<&Pinhole>) -> Result<(), InputError> {
-        options::check_distance(self.distance, camera)
+        options::check_distance(self.distance, camera)?;
+        match &self.outputs {
+            Some(names) => check_outputs(names, camera.is_some()),
+            None => Ok(()),
+        }
+    }
+
+    /// Whether artifact `name` is to be written (`result.json` always is).
+    pub fn wants(&self, name: &str) -> bool {
+        name == "result.json"
+            || (self.outputs.as_deref())
+                .is_none_or(|names| names.iter().any(|n| n == name || n == outputs::ALL))
     }
 }
 
@@ -194,10 +263,9 @@ pub fn run(
         },
     };
     let mut notes = settings.notes.clone();
-    let pictures: Vec<&str> = ["mask.png", "normal.png"]
-        .into_iter()
-        .chain(["height.png", "height.exr", "depth.exr", "depth.png"])
-        .filter(|n| outputs::fits_surface(n, perspective))
+    let pictures: Vec<&str> = artifacts(perspective)
+        .filter(|n| n.ends_with(".png") || n.ends_with(".exr"))
+        .filter(|n| settings.wants(n))
         .collect();
     let maps = Maps {
         heights: Some(Heights {
@@ -218,21 +286,26 @@ pub fn run(
             written.push(name.to_string());
             Ok::<_, RunError>(())
         };
-    save("points.ply", &mut |f| {
-        mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, camera.as_ref())
-    })?;
-    match Document::with_camera(&rec, &settings.mesh, camera.as_ref()) {
-        Ok(doc) => save("mesh.glb", &mut |f| {
+    if settings.wants("points.ply") {
+        save("points.ply", &mut |f| {
+            mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, camera.as_ref())
+        })?;
+    }
+    let doc = (settings.wants("mesh.glb"))
+        .then(|| Document::with_camera(&rec, &settings.mesh, camera.as_ref()));
+    match doc {
+        None => {}
+        Some(Ok(doc)) => save("mesh.glb", &mut |f| {
             doc.write_glb(f).map_err(|e| match e {
                 MeshError::Write(io) => io,
                 other => std::io::Error::other(other.to_string()),
             })
         })?,
         // Too small a mask to triangulate: no mesh, and the report says so.
-        Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. })) => {
+        Some(Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. }))) => {
             notes.push(format!("no mesh.glb: {e}"))
         }
-        Err(e) => {
+        Some(Err(e)) => {
             return Err(RunError::Output {
                 path: dir.join("mesh.glb").display().to_string(),
                 reason: e.to_string(),

@@ -298,15 +298,19 @@ impl From<InputError> for ApiError {
     }
 }
 
-/// The calibration's errors name the image, circle or mask at fault: 422, except for the
-/// input errors, mapped as above.
-/// A normal map that cannot be used: 422 naming the file and the problem.
+/// A normal map that cannot be used: 422 naming the file and the problem; over the pixel
+/// limit 413, as an image.
 impl From<NormalMapError> for ApiError {
     fn from(e: NormalMapError) -> Self {
-        Self::invalid(e.to_string())
+        match e {
+            NormalMapError::TooLarge(e) => e.into(),
+            other => Self::invalid(other.to_string()),
+        }
     }
 }
 
+/// The calibration's errors name the image, circle or mask at fault: 422, except for the
+/// input errors, mapped as above.
 impl From<CalibrationError> for ApiError {
     fn from(e: CalibrationError) -> Self {
         match e {

@@ -29,7 +29,7 @@ use uuid::Uuid;
 use crate::core::RunError;
 use crate::core::bands::Stack;
 use crate::core::error::panic_message;
-use crate::core::intake::NamedFile;
+use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
 use crate::core::normalmap::{self, Lens, MaskInput, NormalMap};
 use crate::core::normals_in;
@@ -600,7 +600,8 @@ fn execute(
     let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
     let summary = match &manifest.normals {
         Some(map) => {
-            let map = read_normal_map(&input, map, manifest.mask.as_ref(), &options)?;
+            let limits = inner.config.limits();
+            let map = read_normal_map(&input, map, manifest.mask.as_ref(), &options, &limits)?;
             memory.shrink_to(budget::job_peak_bytes((map.width * map.height) as u64));
             let settings = normals_in::Settings::of(&options);
             let report = normals_in::run(map, &settings, &out, clock);
@@ -636,13 +637,15 @@ fn finished<R>(report: Result<R, RunError>, clock: &mut StageClock<'_>) -> Resul
     }
 }
 
-/// A normals job's map (and mask) decoded under the job's camera: a 422 naming the
-/// problem when it holds no usable normals.
+/// A normals job's map (and mask) decoded under the job's camera and the server's pixel
+/// limit (which may be lower than when the job was accepted): a 422 naming the problem
+/// when it holds no usable normals, a 413 over the limit.
 fn read_normal_map(
     input: &Path,
     map: &NormalsEntry,
     mask: Option<&ManifestEntry>,
     options: &Options,
+    limits: &Limits,
 ) -> Result<NormalMap, ApiError> {
     let bytes = std::fs::read(input.join(&map.file))?;
     let mask_bytes = match mask {
@@ -660,6 +663,7 @@ fn read_normal_map(
         mask,
         map.convention,
         lens,
+        limits,
     )?)
 }
 
@@ -744,7 +748,7 @@ fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
 
 /// The report's headline numbers (as in `result.json`).
 fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
-    const KEYS: [&str; 18] = [
+    const KEYS: [&str; 19] = [
         "width",
         "height",
         "light_count",
@@ -763,6 +767,7 @@ fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
         "unreliable_pixels",
         "black_level",
         "noise_sigma",
+        "counts",
     ];
     let full = serde_json::to_value(report).unwrap_or_default();
     let mut out = serde_json::Map::new();

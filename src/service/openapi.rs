@@ -8,7 +8,7 @@ use utoipa::openapi::{ObjectBuilder, RefOr};
 use utoipa::{Modify, OpenApi};
 
 use crate::core::camera::Pinhole;
-use crate::core::normalmap::Convention;
+use crate::core::normalmap::{Convention, Counts};
 use crate::core::outputs::{ALL, ARTIFACTS};
 
 use super::calibrations::{
@@ -30,6 +30,7 @@ use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
         Problem,
         Pinhole,
         Convention,
+        Counts,
         JobStatus,
         JobView,
         JobList,

@@ -14,7 +14,7 @@ use uuid::Uuid;
 
 use crate::core::Options;
 use crate::core::error::panic_message;
-use crate::core::normalmap::Convention;
+use crate::core::normalmap::{Convention, Counts};
 use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
@@ -121,6 +121,9 @@ pub struct ResultSummary {
     pub black_level: Option<f64>,
     /// Image noise σ the robust solver estimated.
     pub noise_sigma: Option<f64>,
+    /// Normals jobs: what the reader did with each pixel of the normal map (used,
+    /// back-facing, renormalised, and why the others are off the mask), as `result.json`.
+    pub counts: Option<Counts>,
 }
 
 /// A page of jobs, newest first.
@@ -160,7 +163,7 @@ pub struct JobUpload {
     #[schema(value_type = String, required = false)]
     camera: Option<String>,
     /// Optional reconstruction options as JSON (unknown fields are refused; a normals job
-    /// takes only `integration`, `mesh`, `camera` and `distance`).
+    /// takes only `integration`, `mesh`, `camera`, `distance` and `outputs`).
     #[schema(value_type = Options, required = false)]
     options: Option<String>,
     /// Instead of images + lights: a .zip of a folder with the images and
@@ -169,8 +172,9 @@ pub struct JobUpload {
     archive: Option<Vec<u8>>,
     /// Instead of images + lights: a normal map to integrate into heights (orthographic) or,
     /// with a camera, depth; an RGB(A) 8/16-bit PNG (`n = 2·v/max − 1`) or 32-bit float
-    /// OpenEXR. Black, transparent and zero-length pixels are background; the job fails
-    /// (422) when the map does not decode to unit normals or has no usable pixel.
+    /// OpenEXR, within the server's pixel limit (413). Black, transparent and zero-length
+    /// pixels are background; the job fails (422) when the map does not decode to unit
+    /// normals or has no usable pixel.
     #[schema(value_type = ImageFile, required = false)]
     normals: Option<Vec<u8>>,
     /// With `normals`: how its green channel points, `opengl` (y up, the default; aliases

@@ -548,8 +548,9 @@ pub async fn receive(
 
 /// A normals job's parts checked against each other, and its manifest written: its
 /// options name only the fields it takes, a mask has the map's size, a camera (part or
-/// option) fits the map. The map's pixels are the job's to check (unit length, usable
-/// pixels): it fails naming them.
+/// option) fits the map, the outputs named are ones it writes with or without that
+/// camera. The map's pixels are the job's to check (unit length, usable pixels): it fails
+/// naming them.
 async fn finish_normals(
     mut parts: Parts,
     mut options: Options,
@@ -581,6 +582,9 @@ async fn finish_normals(
     }
     take_camera_part(&mut options, parts.camera)?;
     options.check_camera(map.width as usize, map.height as usize)?;
+    if let Some(names) = &options.outputs {
+        normals_in::check_outputs(names, options.camera.is_some())?;
+    }
     let manifest = Manifest {
         images: Vec::new(),
         mask: parts.mask.as_ref().map(StoredImage::entry),

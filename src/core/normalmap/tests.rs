@@ -83,7 +83,7 @@ fn each_convention_and_encoding_round_trips_into_the_project_frame() {
             (16, png16(&n, convention), 3e-5),
             (32, exr_bytes, 1e-6),
         ] {
-            let map = decode("n", &bytes, None, convention, None).unwrap();
+            let map = decode("n", &bytes, None, convention, None, &Limits::default()).unwrap();
             assert_eq!(map.bits, bits);
             assert_eq!((map.width, map.height), (W, H));
             assert_eq!(map.counts.used, W * H, "{convention:?} {bits}-bit");
@@ -105,6 +105,7 @@ fn each_convention_and_encoding_round_trips_into_the_project_frame() {
         None,
         Convention::Directx,
         None,
+        &Limits::default(),
     );
     let y = map.unwrap().normals[[0, 0, 1]];
     assert!((y + n[[0, 0, 1]]).abs() < 1e-4, "{y} vs {}", n[[0, 0, 1]]);
@@ -156,7 +157,15 @@ fn background_and_odd_pixels_are_counted_each_once() {
         name: "m.png",
         bytes: &m,
     });
-    let map = decode("n.png", &png_bytes(&img), mask, Convention::Opengl, None).unwrap();
+    let map = decode(
+        "n.png",
+        &png_bytes(&img),
+        mask,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    )
+    .unwrap();
     let k = map.counts;
     assert_eq!(
         (k.black, k.zero_length, k.transparent, k.outside_mask),
@@ -179,7 +188,15 @@ fn background_and_odd_pixels_are_counted_each_once() {
         (0, 3) => [0.0, 0.0, 3.0],
         _ => [0.0, 0.0, 1.0],
     });
-    let map = decode("n.exr", &bytes, None, Convention::Opengl, None).unwrap();
+    let map = decode(
+        "n.exr",
+        &bytes,
+        None,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    )
+    .unwrap();
     let k = map.counts;
     assert_eq!((k.non_finite, k.black, k.not_unit), (2, 1, 1));
     assert_eq!(map.normals[[0, 3, 2]], 1.0);
@@ -191,10 +208,26 @@ fn under_a_camera_back_facing_is_judged_along_each_ray() {
     // rays on the right of a wide-angle one.
     let t = [0.995f32, 0.0, 0.0995];
     let bytes = exr(|_, _| t);
-    let ortho = decode("n.exr", &bytes, None, Convention::Opengl, None).unwrap();
+    let ortho = decode(
+        "n.exr",
+        &bytes,
+        None,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    )
+    .unwrap();
     assert_eq!(ortho.counts.back_facing, 0);
     let lens = Lens::Centred { focal_px: 20.0 };
-    let wide = decode("n.exr", &bytes, None, Convention::Opengl, Some(lens)).unwrap();
+    let wide = decode(
+        "n.exr",
+        &bytes,
+        None,
+        Convention::Opengl,
+        Some(lens),
+        &Limits::default(),
+    )
+    .unwrap();
     // n·d = 0.995 (u − cx)/20 − 0.0995 > 0 once u − cx > 2: columns 14 to 23.
     assert_eq!(wide.counts.back_facing, 10 * H);
     assert_eq!(wide.camera, Some(Pinhole::centred(20.0, W, H)));
@@ -212,7 +245,14 @@ fn bad_inputs_get_errors_naming_the_file_and_the_problem() {
         name: "small.png",
         bytes: &small,
     });
-    let e = err(decode("n.png", &good, mask, Convention::Opengl, None));
+    let e = err(decode(
+        "n.png",
+        &good,
+        mask,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    ));
     assert!(matches!(e, NormalMapError::MaskSize { .. }), "{e}");
     let text = e.to_string();
     assert!(text.contains("small.png") && text.contains("8×8") && text.contains("24×16"));
@@ -228,13 +268,21 @@ fn bad_inputs_get_errors_naming_the_file_and_the_problem() {
         None,
         Convention::Opengl,
         None,
+        &Limits::default(),
     ));
     assert!(matches!(e, NormalMapError::NotUnitLength { .. }), "{e}");
     assert!(e.to_string().contains("photo.png") && e.to_string().contains("not a normal map"));
 
     // Nothing usable.
     let black = png_bytes(&ImageBuffer::from_pixel(W as u32, H as u32, Rgb([0u16; 3])));
-    let e = err(decode("black.png", &black, None, Convention::Opengl, None));
+    let e = err(decode(
+        "black.png",
+        &black,
+        None,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    ));
     assert!(
         matches!(e, NormalMapError::NoUsablePixel { black, .. } if black == W * H),
         "{e}"
@@ -253,13 +301,21 @@ fn bad_inputs_get_errors_naming_the_file_and_the_problem() {
         None,
         Convention::Opengl,
         Some(Lens::Pinhole(k)),
+        &Limits::default(),
     ));
     assert!(matches!(e, NormalMapError::Camera { .. }), "{e}");
     assert!(e.to_string().contains("principal point") && e.to_string().contains("n.png"));
 
     // Gray pictures have no normals; garbage is no picture; a missing file.
     let gray = png_bytes(&ImageBuffer::from_pixel(4, 4, Luma([128u8])));
-    let e = err(decode("gray.png", &gray, None, Convention::Opengl, None));
+    let e = err(decode(
+        "gray.png",
+        &gray,
+        None,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    ));
     assert!(matches!(e, NormalMapError::Unsupported { .. }), "{e}");
     assert!(e.to_string().contains("RGB"));
     let e = err(decode(
@@ -268,6 +324,7 @@ fn bad_inputs_get_errors_naming_the_file_and_the_problem() {
         None,
         Convention::Opengl,
         None,
+        &Limits::default(),
     ));
     assert!(matches!(e, NormalMapError::Unsupported { .. }), "{e}");
     let e = err(read(
@@ -275,9 +332,70 @@ fn bad_inputs_get_errors_naming_the_file_and_the_problem() {
         None,
         Convention::Opengl,
         None,
+        &Limits::default(),
     ));
     assert!(matches!(e, NormalMapError::Unreadable { .. }), "{e}");
     assert!(e.to_string().contains("/nonexistent/n.png"));
+}
+
+#[test]
+fn maps_and_masks_over_the_pixel_limit_are_refused_as_images_are() {
+    let good = png16(&field(), Convention::Opengl);
+    let limits = |max: usize| Limits {
+        max_pixels_per_image: max as u64,
+        ..Limits::default()
+    };
+    let e = decode(
+        "n.png",
+        &good,
+        None,
+        Convention::Opengl,
+        None,
+        &limits(W * H - 1),
+    );
+    let e = e.unwrap_err();
+    assert!(
+        matches!(&e, NormalMapError::TooLarge(i) if i.is_too_large()),
+        "{e}"
+    );
+    let text = e.to_string();
+    assert!(
+        text.contains("\"n.png\"") && text.contains("24×16"),
+        "{text}"
+    );
+    assert!(text.contains(&format!("limit of {}", W * H - 1)), "{text}");
+    // At the limit the map is read; its mask is held to the same limit.
+    assert!(
+        decode(
+            "n.png",
+            &good,
+            None,
+            Convention::Opengl,
+            None,
+            &limits(W * H)
+        )
+        .is_ok()
+    );
+    let big = png_bytes(&ImageBuffer::from_pixel(
+        W as u32 + 1,
+        H as u32,
+        Luma([255u8]),
+    ));
+    let mask = Some(MaskInput {
+        name: "big.png",
+        bytes: &big,
+    });
+    let e = decode(
+        "n.png",
+        &good,
+        mask,
+        Convention::Opengl,
+        None,
+        &limits(W * H),
+    );
+    let e = e.unwrap_err();
+    assert!(matches!(e, NormalMapError::TooLarge(_)), "{e}");
+    assert!(e.to_string().contains("\"big.png\""), "{e}");
 }
 
 #[test]
@@ -298,6 +416,7 @@ fn a_masked_map_keeps_only_the_masks_pixels() {
         given,
         Convention::Opengl,
         None,
+        &Limits::default(),
     );
     let map = map.unwrap();
     assert_eq!(map.mask, mask);

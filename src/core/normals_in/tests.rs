@@ -2,6 +2,7 @@ use image::{ImageBuffer, Rgb};
 use ndarray::Array2;
 
 use super::*;
+use crate::core::intake::Limits;
 use crate::core::normalmap::{self, Lens};
 use crate::core::outputs::png_bytes;
 use crate::core::progress::{NEVER, RunToEnd};
@@ -75,7 +76,15 @@ fn offset_errors(z: &Array2<f32>, truth: &Array2<f64>, region: &Array2<bool>) ->
 fn an_orthographic_spheres_normal_map_integrates_to_the_sphere() {
     let (n, radius) = (96, 40.0);
     let (bytes, truth) = ortho_sphere(n, radius);
-    let map = normalmap::decode("sphere.png", &bytes, None, Convention::Opengl, None).unwrap();
+    let map = normalmap::decode(
+        "sphere.png",
+        &bytes,
+        None,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    )
+    .unwrap();
     assert_eq!(
         map.counts.used,
         truth.iter().filter(|t| t.is_finite()).count()
@@ -105,7 +114,15 @@ fn a_spheres_normal_map_under_a_pinhole_integrates_to_its_depth() {
     let (size, rho, dist) = ((96, 96), 3.0, 10.0);
     let (bytes, truth) = pinhole_sphere(&k, size, rho, dist);
     let lens = Some(Lens::Pinhole(k));
-    let map = normalmap::decode("sphere.png", &bytes, None, Convention::Opengl, lens).unwrap();
+    let map = normalmap::decode(
+        "sphere.png",
+        &bytes,
+        None,
+        Convention::Opengl,
+        lens,
+        &Limits::default(),
+    )
+    .unwrap();
     assert_eq!(map.counts.back_facing, 0);
     // Metric: the median true depth over the mask as the working distance.
     let mut on: Vec<f64> = truth.iter().copied().filter(|t| t.is_finite()).collect();
@@ -151,6 +168,7 @@ fn run_writes_every_artifact_and_a_report_that_lists_them() {
         None,
         Convention::Opengl,
         Some(Lens::Centred { focal_px: 150.0 }),
+        &Limits::default(),
     )
     .unwrap();
     let used = map.counts.used;
@@ -220,7 +238,15 @@ fn run_writes_every_artifact_and_a_report_that_lists_them() {
 
     // Orthographic: heights instead of depth.
     let (bytes, _) = ortho_sphere(40, 15.0);
-    let map = normalmap::decode("s.png", &bytes, None, Convention::Opengl, None).unwrap();
+    let map = normalmap::decode(
+        "s.png",
+        &bytes,
+        None,
+        Convention::Opengl,
+        None,
+        &Limits::default(),
+    )
+    .unwrap();
     let dir = tempfile::tempdir().unwrap();
     let report = run(map, &Settings::default(), dir.path(), &mut RunToEnd).unwrap();
     assert_eq!(
@@ -271,4 +297,73 @@ fn a_camera_file_beside_the_map_is_noted_not_used() {
         note.contains("K.txt") && note.contains("--camera"),
         "{note}"
     );
+}
+
+#[test]
+fn an_outputs_selection_writes_only_what_it_names_and_the_report() {
+    let (bytes, _) = ortho_sphere(40, 15.0);
+    let limits = Limits::default();
+    let map = normalmap::decode("s.png", &bytes, None, Convention::Opengl, None, &limits);
+    let dir = tempfile::tempdir().unwrap();
+    let settings = Settings {
+        outputs: Some(vec!["height.exr".into(), "mesh.glb".into()]),
+        ..Settings::default()
+    };
+    let report = run(map.unwrap(), &settings, dir.path(), &mut RunToEnd).unwrap();
+    assert_eq!(report.artifacts, ["height.exr", "mesh.glb", "result.json"]);
+    let mut written: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    written.sort();
+    assert_eq!(written, ["height.exr", "mesh.glb", "result.json"]);
+    // `all` is every artifact of the projection.
+    let all = Settings {
+        outputs: Some(vec!["all".into()]),
+        ..Settings::default()
+    };
+    assert!(
+        ["height.png", "points.ply", "mask.png"]
+            .iter()
+            .all(|n| all.wants(n))
+    );
+}
+
+#[test]
+fn outputs_a_normals_job_cannot_write_are_refused_naming_why() {
+    let names = |n: &[&str]| n.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    let refused = |n: &[&str], camera: bool| check_outputs(&names(n), camera).unwrap_err();
+    assert!(check_outputs(&names(&["all", "height.png", "mesh.glb"]), false).is_ok());
+    assert!(check_outputs(&names(&["depth.exr", "points.ply"]), true).is_ok());
+    let e = refused(&["mesh.glb", "albedo.png"], false).to_string();
+    assert!(
+        e.contains("`outputs`") && e.contains("\"albedo.png\""),
+        "{e}"
+    );
+    assert!(
+        e.contains("mask.png, normal.png, height.png, height.exr, points.ply"),
+        "{e}"
+    );
+    let e = refused(&["depth.exr"], false).to_string();
+    assert!(
+        e.contains("\"depth.exr\"") && e.contains("needs a camera"),
+        "{e}"
+    );
+    let e = refused(&["height.png"], true).to_string();
+    assert!(
+        e.contains("\"height.png\"") && e.contains("under a camera"),
+        "{e}"
+    );
+    // Unknown names get the general refusal; Settings::check applies the selection.
+    assert!(
+        refused(&["selfie.jpg"], false)
+            .to_string()
+            .contains("unknown output")
+    );
+    let depth = Settings {
+        outputs: Some(names(&["depth.png"])),
+        ..Settings::default()
+    };
+    let k = Pinhole::centred(100.0, 10, 10);
+    assert!(depth.check(Some(&k)).is_ok() && depth.check(None).is_err());
 }

@@ -347,6 +347,11 @@ async function loadImage(url) {
   return img;
 }
 
+const mapCounts = (c) =>
+  `${c.used} used (${c.back_facing} back-facing, ${c.not_unit} renormalised); off the mask: ` +
+  `${c.black} black, ${c.zero_length} zero-length, ${c.non_finite} NaN or infinite, ` +
+  `${c.transparent} transparent, ${c.outside_mask} outside the mask`;
+
 function showSummary(job) {
   const r = job.result || {};
   const ms = (a, b) => (a && b ? `${((new Date(b) - new Date(a)) / 1000).toFixed(2)} s` : "–");
@@ -355,6 +360,8 @@ function showSummary(job) {
     ["lights", r.light_count ?? "–"],
     ["light condition number", fmt(r.light_condition_number)],
     ["object pixels", r.object_pixels ?? "–"],
+    // A normals job's: what the reader did with each pixel of the map.
+    ...(r.counts ? [["normal map pixels", mapCounts(r.counts)]] : []),
     ["heights", r.height_min != null ? `${fmt(r.height_min)} to ${fmt(r.height_max)} px` : "–"],
     ["mean confidence", fmt(r.confidence_mean)],
     ["reprojection RMS", fmt(r.reprojection_rms)],
