@@ -97,6 +97,11 @@ pub struct BenchArgs {
     /// megapixels (`photostereo calibrate` in a child process), its time and peak memory.
     #[arg(long, conflicts_with_all = ["integrators", "hostile"])]
     pub calibration: bool,
+    /// Instead of the other measurements: a near-light job (a ring of 24 LEDs over a
+    /// relief plate) against the distant job on the same images, at each of --sizes
+    /// (`photostereo reconstruct` in a child process), time and peak memory.
+    #[arg(long, conflicts_with_all = ["integrators", "hostile", "calibration"])]
+    pub near: bool,
     /// Where to create the temporary directory [default: the system's temp dir].
     #[arg(long)]
     pub tmp_dir: Option<PathBuf>,

@@ -13,7 +13,8 @@
 //! [`http`] drives the in-process server with the small client in [`client`], [`sweep`]
 //! runs the light-count sweep in child processes, [`integrators`] times the integrators
 //! alone on normal maps, [`calibration`] times a chrome-ball calibration of camera-sized
-//! images, [`hostile`] probes a `serve` child process
+//! images, [`near`] times a near-light job against the distant one on the same images,
+//! [`hostile`] probes a `serve` child process
 //! ([`child`]) with [`probe`] under hostile loads, and [`tables`] prints what was measured;
 //! [`stats`] holds the medians and percentiles they share.
 
@@ -25,6 +26,7 @@ mod hostile;
 mod http;
 mod integrators;
 mod memory;
+mod near;
 mod probe;
 mod sets;
 mod stats;
@@ -68,6 +70,15 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         print!(
             "{}",
             tables::calibration_table(&args, &machine, (loads.0, &loads.1), &measured)
+        );
+        return Ok(());
+    }
+    if args.near {
+        let rows = near::run(&args.sizes, args.runs, &tmp.0)?;
+        let loads = (load_at_start.as_str(), load_average());
+        print!(
+            "{}",
+            tables::near_table(&args, &machine, (loads.0, &loads.1), &rows)
         );
         return Ok(());
     }

@@ -56,6 +56,9 @@ pub struct Emitter {
     pub axis: Option<[f64; 3]>,
     /// μ ≥ 0 of the falloff off the axis (0 without an axis).
     pub anisotropy: f64,
+    /// Whether the table gave the intensity; an LED's unknown intensity is estimated
+    /// from the object itself.
+    pub intensity_known: bool,
 }
 
 /// What a near-light table says beside its lights: the camera, the working distance to
@@ -385,11 +388,13 @@ fn json_light(row: usize, r: JsonLight, rig: &Rig) -> Result<Light, InputError> 
     // The direction a distant table would give: from the scene's centre to the light.
     let centre = [0.0, 0.0, -rig.distance.unwrap_or(0.0)];
     let towards = [0, 1, 2].map(|k| position[k] - centre[k]);
+    let intensity_known = r.intensity.is_some();
     let mut light = make_light(row, name, towards, r.intensity)?;
     light.emitter = Some(Emitter {
         position,
         axis,
         anisotropy,
+        intensity_known,
     });
     Ok(light)
 }

@@ -41,6 +41,7 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
     ("mesh.glb", "model/gltf-binary"),
     ("mesh.gltf", "model/gltf+json"),
     ("points.ply", "application/x-ply"),
+    ("lights.json", "application/json"),
     ("result.json", "application/json"),
 ];
 

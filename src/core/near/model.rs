@@ -51,6 +51,7 @@ mod tests {
             position,
             axis,
             anisotropy: mu,
+            intensity_known: true,
         });
         l
     }

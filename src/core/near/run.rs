@@ -42,9 +42,19 @@ pub struct NearReport {
     /// Each alternation of solve and integration, and whether the normals settled.
     pub iterations: Vec<Iteration>,
     pub converged: bool,
+    /// The lights' relative intensities (mean 1) estimated from the object, when the
+    /// table did not give them all; `lights.json` is then the table with them.
+    pub estimated_intensities: Option<Vec<Estimated>>,
     pub timings_ms: Vec<Timing>,
     pub artifacts: Vec<String>,
     pub notes: Vec<String>,
+}
+
+/// One light's estimated intensity.
+#[derive(Debug, Clone, Serialize)]
+pub struct Estimated {
+    pub name: String,
+    pub intensity: f64,
 }
 
 /// Reconstruct `set` (lights with positions) under `camera` from the working `distance`,
@@ -68,8 +78,11 @@ pub fn run(
         _ => lit_pixels(set),
     };
     let planes: Vec<ArrayView2<u16>> = set.planes.iter().map(|p| p.view()).collect();
+    // An LED whose table gave no intensity is estimated, and then every one is (relative).
+    let estimate = (set.lights.iter()).any(|l| l.emitter.is_some_and(|e| !e.intensity_known));
     let settings = NearSettings {
         integration: opts.integration,
+        estimate_intensities: estimate,
         ..NearSettings::new(camera, distance)
     };
     let polled: &dyn Progress = progress;
@@ -171,6 +184,18 @@ pub fn run(
             });
         }
     }
+    let estimated: Option<Vec<Estimated>> = surface.intensities.as_ref().map(|e| {
+        (set.lights.iter().zip(e))
+            .map(|(l, &intensity)| Estimated {
+                name: l.name.clone(),
+                intensity,
+            })
+            .collect()
+    });
+    if let Some(e) = &estimated {
+        let table = table_json(set, e, camera, distance, unit.as_deref());
+        save("lights.json", &mut |f| f.write_all(&table))?;
+    }
     timings.push(timing("outputs", start));
     written.push("result.json".into());
     let report = NearReport {
@@ -190,6 +215,7 @@ pub fn run(
         depth_max: max,
         iterations: surface.iterations,
         converged: surface.converged,
+        estimated_intensities: estimated,
         timings_ms: timings,
         artifacts: written,
         notes,
@@ -198,6 +224,35 @@ pub fn run(
     commits.finish()?;
     commit::write_atomic(dir, "result.json", &json)?;
     Ok(report)
+}
+
+/// The set's light table with the estimated intensities, as `reconstruct` reads it.
+fn table_json(
+    set: &ImageSet,
+    estimated: &[Estimated],
+    camera: Pinhole,
+    distance: f64,
+    unit: Option<&str>,
+) -> Vec<u8> {
+    let lights: Vec<serde_json::Value> = (set.lights.iter().zip(estimated))
+        .filter_map(|(l, e)| {
+            let em = l.emitter?;
+            Some(serde_json::json!({
+                "name": l.name,
+                "position": em.position,
+                "axis": em.axis,
+                "anisotropy": em.anisotropy,
+                "intensity": e.intensity,
+            }))
+        })
+        .collect();
+    let table = serde_json::json!({
+        "lights": lights,
+        "camera": camera,
+        "distance": distance,
+        "unit": unit,
+    });
+    serde_json::to_vec_pretty(&table).expect("the table serialises")
 }
 
 /// Pixels with at least three observations above 1 % of the set's brightest value.

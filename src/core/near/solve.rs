@@ -14,6 +14,7 @@
 use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 
+use super::intensities::Gram;
 use super::model::light_vectors;
 use super::pieces::pieces;
 use super::pixel::fit;
@@ -35,6 +36,9 @@ pub struct NearSettings {
     pub max_iterations: usize,
     /// They stop once the normals move by less than this on average (degrees).
     pub tolerance_deg: f64,
+    /// Estimate each light's relative intensity from the object (semi-calibrated): the
+    /// lights' own intensities are only the starting point.
+    pub estimate_intensities: bool,
 }
 
 impl NearSettings {
@@ -45,6 +49,7 @@ impl NearSettings {
             integration: Integration::default(),
             max_iterations: 12,
             tolerance_deg: 0.01,
+            estimate_intensities: false,
         }
     }
 }
@@ -73,6 +78,8 @@ pub struct NearSurface {
     pub iterations: Vec<Iteration>,
     /// Whether the normals stopped moving within the iterations allowed.
     pub converged: bool,
+    /// The lights' intensities estimated (mean 1), when asked for.
+    pub intensities: Option<Vec<f64>>,
 }
 
 /// Observations at or below this fraction of a pixel's brightest are shadow.
@@ -84,6 +91,9 @@ const SCALE_SAMPLES: usize = 20_000;
 /// The scale search brackets the current scale within this factor either way.
 const SCALE_BRACKET: f64 = 2.0;
 const SCALE_STEPS: usize = 40;
+/// Re-estimations of the intensities before the first solve, and before each other.
+const FIRST_INTENSITY_ROUNDS: usize = 3;
+const INTENSITY_ROUNDS: usize = 1;
 /// Pieces of the surface at least this fraction of the mask get their own scale; the
 /// others keep the whole surface's.
 const MIN_PIECE: f64 = 0.02;
@@ -110,10 +120,30 @@ pub fn solve(
     let mut iterations = Vec::new();
     let mut converged = false;
     let mut scale = settings.distance;
+    let mut lights = lights.to_vec();
     loop {
+        if settings.estimate_intensities {
+            let rounds = if iterations.is_empty() {
+                FIRST_INTENSITY_ROUNDS
+            } else {
+                INTENSITY_ROUNDS
+            };
+            for _ in 0..rounds {
+                let pass = Pass {
+                    planes,
+                    lights: &lights,
+                    mask,
+                    settings,
+                };
+                let next = pass.intensities(&depth);
+                for (l, e) in lights.iter_mut().zip(next) {
+                    l.intensity = e;
+                }
+            }
+        }
         let pass = Pass {
             planes,
-            lights,
+            lights: &lights,
             mask,
             settings,
         };
@@ -165,6 +195,8 @@ pub fn solve(
                 residual,
                 iterations,
                 converged,
+                intensities: (settings.estimate_intensities)
+                    .then(|| lights.iter().map(|l| l.intensity).collect()),
             };
         }
     }
@@ -216,6 +248,54 @@ impl Pass<'_> {
         (f.g, f.rms)
     }
 
+    /// The lights' relative intensities (mean 1) that the sampled pixels' observations
+    /// say, given the surface `depth` and the observations each pixel's fit under the
+    /// current intensities keeps ([`Gram`]); the current ones when that says nothing.
+    fn intensities(&self, depth: &Array2<f32>) -> Vec<f64> {
+        let sample = self.sample(depth, |_, _| true);
+        let n = self.lights.len();
+        let gram = sample
+            .par_chunks(256)
+            .map(|chunk| {
+                let mut scratch = Scratch::new(n);
+                let mut gram = Gram::new(n);
+                let mut unit = vec![[0f32; 3]; n];
+                for &(r, c, d) in chunk {
+                    self.fit_at(r, c, d, &mut scratch);
+                    for ((u, l), light) in unit.iter_mut().zip(&scratch.lights).zip(self.lights) {
+                        let e = light.intensity as f32;
+                        *u = l.map(|v| v / e);
+                    }
+                    gram.add(&unit, &scratch.obs, &scratch.keep);
+                }
+                gram
+            })
+            .reduce(|| Gram::new(n), Gram::merge);
+        let current: Vec<f64> = self.lights.iter().map(|l| l.intensity).collect();
+        gram.intensities(&current).unwrap_or(current)
+    }
+
+    /// About [`SCALE_SAMPLES`] mask pixels that `select` takes, on a regular grid, with
+    /// their `depth`.
+    fn sample(
+        &self,
+        depth: &Array2<f32>,
+        select: impl Fn(usize, usize) -> bool,
+    ) -> Vec<(usize, usize, f64)> {
+        let (h, w) = self.mask.dim();
+        let on = (self.mask.indexed_iter())
+            .filter(|((r, c), m)| **m && select(*r, *c))
+            .count()
+            .max(1);
+        let stride = ((on as f64 / SCALE_SAMPLES as f64).sqrt().ceil() as usize).max(1);
+        (0..h)
+            .step_by(stride)
+            .flat_map(|r| (0..w).step_by(stride).map(move |c| (r, c)))
+            .filter(|&(r, c)| self.mask[[r, c]] && depth[[r, c]].is_finite() && select(r, c))
+            .map(|(r, c)| (r, c, f64::from(depth[[r, c]])))
+            .collect()
+    }
+
     /// The scale of `relative` (median depth 1) whose fits leave the smallest squared
     /// residual over a sample of the mask's pixels that `select` takes, searched around
     /// `current`.
@@ -225,18 +305,7 @@ impl Pass<'_> {
         current: f64,
         select: impl Fn(usize, usize) -> bool,
     ) -> f64 {
-        let (h, w) = self.mask.dim();
-        let on = (self.mask.indexed_iter())
-            .filter(|((r, c), m)| **m && select(*r, *c))
-            .count()
-            .max(1);
-        let stride = ((on as f64 / SCALE_SAMPLES as f64).sqrt().ceil() as usize).max(1);
-        let sample: Vec<(usize, usize, f64)> = (0..h)
-            .step_by(stride)
-            .flat_map(|r| (0..w).step_by(stride).map(move |c| (r, c)))
-            .filter(|&(r, c)| self.mask[[r, c]] && relative[[r, c]].is_finite() && select(r, c))
-            .map(|(r, c)| (r, c, f64::from(relative[[r, c]])))
-            .collect();
+        let sample = self.sample(relative, select);
         if sample.is_empty() {
             return current;
         }

@@ -17,7 +17,9 @@ mod write;
 pub use brdf::Specular;
 pub use chrome::{ChromeSet, RoomLight, matte_intensities};
 pub use depth_scenes::{DepthScene, depth_scenes, ortho_step_plate, sphere_in_front, step_plate};
-pub use near_rigs::{NOISE_SIGMA, NearRig, close_ring, dome_sphere, far_ring, ring_relief};
+pub use near_rigs::{
+    NOISE_SIGMA, NearRig, close_ring, dome_sphere, far_ring, ring_relief, ring_relief_of,
+};
 pub use render::{Rendered, render, render_rgb};
 pub use scene::Scene;
 pub use sensor::Exposure;

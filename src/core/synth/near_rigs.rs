@@ -205,6 +205,7 @@ fn led(i: usize, position: [f64; 3], target: Option<[f64; 3]>, mu: f64, intensit
         position,
         axis: target.map(|t| unit([0, 1, 2].map(|k| t[k] - position[k]))),
         anisotropy: if target.is_some() { mu } else { 0.0 },
+        intensity_known: true,
     });
     light
 }
@@ -299,7 +300,12 @@ pub const NOISE_SIGMA: f64 = 0.002;
 
 /// A 40 mm ring of 12 LEDs 10 mm before the lens over the relief plate at 100 mm.
 pub fn ring_relief(size: usize) -> NearRig {
-    let lights = ring(12, 40.0, -10.0, 100.0, 1.5, 0.2);
+    ring_relief_of(size, 12)
+}
+
+/// [`ring_relief`] with `leds` LEDs on the ring.
+pub fn ring_relief_of(size: usize, leds: usize) -> NearRig {
+    let lights = ring(leds, 40.0, -10.0, 100.0, 1.5, 0.2);
     render(
         "ring-relief",
         size,
