@@ -278,7 +278,10 @@ pub async fn receive(
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
                 if let Some(p) = prefetch {
-                    p.start(file.clone(), written, dir);
+                    // The decoded copy's unlinked scratch file goes beside the staging
+                    // directory, not in it: a scan that starts late (the pool busy with
+                    // another job) would otherwise find it renamed by the commit.
+                    p.start(file.clone(), written, dir.parent().unwrap_or(dir));
                 }
                 parts.images.push(StoredImage {
                     name,
