@@ -2188,3 +2188,159 @@ async fn a_normals_job_is_held_to_the_servers_pixel_limit() {
     assert_eq!(job["error"]["detail"], refused["detail"], "{job}");
     s.stop().await;
 }
+
+/// The median of `values` (the upper one of an even count).
+fn median_of(mut values: Vec<f64>) -> f64 {
+    let mid = values.len() / 2;
+    *values.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+/// A ring of LEDs over a relief plate, uploaded as its images and its table of positions
+/// (or as a zip of its folder), is a near-light job: its summary says so, with the
+/// iterations and the median depth (within 0.5 % of the truth) in the table's unit, and
+/// depth.exr is an artifact. The camera and working distance may come from the job
+/// instead of the table; without either, the upload is refused naming it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_near_light_table_makes_a_near_light_job() {
+    let rig = photostereo::core::synth::ring_relief(64);
+    let set = tempfile::tempdir().unwrap();
+    rig.write(set.path()).unwrap();
+    let table_file = set.path().join("light_directions.json");
+    let table: Value = serde_json::from_slice(&std::fs::read(&table_file).unwrap()).unwrap();
+    let without = |key: &str| {
+        let mut t = table.clone();
+        assert!(t.as_object_mut().unwrap().remove(key).is_some(), "{key}");
+        t
+    };
+    let form = |table: &Value| {
+        let text = serde_json::to_string(table).unwrap();
+        let mut form = Form::new().part(
+            "lights",
+            Part::text(text).file_name("light_directions.json"),
+        );
+        for img in images_of(set.path()) {
+            form = form.part("images", file_part(&img));
+        }
+        form
+    };
+    let truth = median_of(
+        (rig.depth.iter().zip(&rig.mask))
+            .filter(|(_, m)| **m)
+            .map(|(d, _)| f64::from(*d))
+            .collect(),
+    );
+    let camera = &table["camera"];
+    let camera_text = format!(
+        "{},{},{},{}",
+        camera["fx"], camera["fy"], camera["cx"], camera["cy"]
+    );
+    let distance = format!(r#"{{"distance": {}}}"#, table["distance"]);
+    let mut entries: Vec<(String, Vec<u8>)> = images_of(set.path())
+        .into_iter()
+        .chain([table_file.clone()])
+        .map(|p| {
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            (name, std::fs::read(&p).unwrap())
+        })
+        .collect();
+    entries.push(("notes.txt".into(), b"skipped".to_vec()));
+    let refs: Vec<(&str, &[u8])> = (entries.iter())
+        .map(|(n, b)| (n.as_str(), b.as_slice()))
+        .collect();
+
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let forms = [
+        form(&table),
+        archive_form(zip_entries(&refs)),
+        form(&without("distance")).text("options", distance.clone()),
+        form(&without("camera")).text("camera", camera_text.clone()),
+    ];
+    let mut ids = Vec::new();
+    for form in forms {
+        let job = s.submit(form).await;
+        assert_eq!(job["image_count"], rig.lights.len(), "{job}");
+        ids.push(job["id"].as_str().unwrap().to_string());
+    }
+    for id in &ids {
+        let job = s.wait_succeeded(id).await;
+        let result = &job["result"];
+        assert_eq!(result["lights"], "near", "{job}");
+        assert_eq!(result["unit"], "mm", "{job}");
+        assert_eq!(result["converged"], true, "{job}");
+        assert_eq!(
+            (result["width"].as_u64(), result["height"].as_u64()),
+            (Some(64), Some(64))
+        );
+        assert!(result["iterations"].as_u64().unwrap() >= 1, "{job}");
+        assert!(result["light_condition_number"].is_null(), "{job}");
+        let median = result["median_depth"].as_f64().unwrap();
+        assert!(
+            (median - truth).abs() <= 0.005 * truth,
+            "median depth {median} mm, truth {truth} mm"
+        );
+        let (near, far) = (
+            result["depth_min"].as_f64().unwrap(),
+            result["depth_max"].as_f64().unwrap(),
+        );
+        assert!(near < median && median < far, "{job}");
+        let url = job["artifacts"]["depth.exr"].as_str().expect("depth.exr");
+        let r = s.client.get(s.url(url)).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+        let depth = outputs::decode_height_exr(&r.bytes().await.unwrap()).unwrap();
+        assert_eq!(depth.dim(), (64, 64));
+        let exr_median = median_of(
+            (depth.iter())
+                .filter(|d| d.is_finite())
+                .map(|d| f64::from(*d))
+                .collect(),
+        );
+        assert!(
+            (exr_median - truth).abs() <= 0.01 * truth,
+            "depth.exr median {exr_median} mm, truth {truth} mm"
+        );
+        let r = s
+            .client
+            .get(s.url(job["artifacts"]["result.json"].as_str().unwrap()));
+        let report: Value = r.send().await.unwrap().json().await.unwrap();
+        assert_eq!(report["lights"], "near");
+        assert_eq!(report["median_depth"], result["median_depth"]);
+    }
+
+    // Without a working distance or a camera, refused before the job is queued, naming
+    // what is missing (and only that).
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let body = expect_problem(
+        post(form(&without("distance"))).await.unwrap(),
+        422,
+        &["distance"],
+    )
+    .await;
+    assert!(
+        !body["detail"].as_str().unwrap().contains("camera"),
+        "{body}"
+    );
+    let body = expect_problem(
+        post(form(&without("camera"))).await.unwrap(),
+        422,
+        &["camera"],
+    )
+    .await;
+    assert!(
+        !body["detail"].as_str().unwrap().contains("distance"),
+        "{body}"
+    );
+    // A light behind the camera: the parser's refusal, naming the row.
+    let mut behind = table.clone();
+    behind["lights"][1]["position"][2] = serde_json::json!(5.0);
+    expect_problem(
+        post(form(&behind)).await.unwrap(),
+        422,
+        &["row 2", "behind the camera"],
+    )
+    .await;
+    // A camera that cannot have taken 64 × 64 images.
+    let wide = form(&without("camera")).text("camera", "80,80,300,31.5");
+    expect_problem(post(wide).await.unwrap(), 422, &["principal point"]).await;
+    s.stop().await;
+}

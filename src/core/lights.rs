@@ -108,7 +108,8 @@ pub fn parse(text: &str) -> Result<Vec<Light>, InputError> {
 }
 
 /// Parse a light table with its top level: [`parse`]'s layouts, and JSON lights given by
-/// position with the rig's camera, distance and unit.
+/// position with the rig's camera, distance and unit (each optional here: a near-light
+/// run takes the camera and distance from the table or from its caller).
 pub fn parse_table(text: &str) -> Result<Table, InputError> {
     let trimmed = text.trim_start_matches('\u{feff}').trim_start();
     let table = if trimmed.starts_with('[') || trimmed.starts_with('{') {
@@ -301,13 +302,8 @@ fn parse_json(text: &str) -> Result<Table, InputError> {
             lights.len()
         )));
     }
-    if near > 0 && rig.camera.is_none() {
-        return Err(InputError::Lights(
-            "lights given by position need the camera: add \"camera\": {\"fx\", \"fy\", \
-             \"cx\", \"cy\"} (pixels) to the table, or give one with the job"
-                .into(),
-        ));
-    }
+    // The camera may come from the table or from whoever runs the table (a flag, a job's
+    // option): the caller asks for it where it is needed (as it does the distance).
     Ok(Table { lights, rig })
 }
 
@@ -695,13 +691,14 @@ mod tests {
                 .to_string();
             assert!(e.contains(needle), "{first}: {e}");
         }
-        let e = parse_table(&format!(
+        // Neither camera nor distance: the table is read, the rig left for the caller to
+        // complete.
+        let t = parse_table(&format!(
             r#"{{"lights": [{}]}}"#,
             rows(r#"{"name": "a.png", "position": [0, 0, -1]}"#)
         ))
-        .unwrap_err()
-        .to_string();
-        assert!(e.contains("need the camera"), "{e}");
+        .unwrap();
+        assert!(t.is_near() && t.rig == Rig::default(), "{t:?}");
         let e = parse_table(&format!(
             r#"{{"lights": [{}], {CAMERA}, "distance": -3}}"#,
             rows(r#"{"name": "a.png", "position": [0, 0, -1]}"#)

@@ -11,7 +11,9 @@
 //! (each image decoded once into a scratch file beside them, read back band by band) and
 //! run by `pipeline::run` into a staged output directory that the store commits when the
 //! job succeeds, under a key of this attempt's own; a normals job's map is decoded by
-//! `normalmap::decode` and integrated by `normals_in::run` in its place. Every write about
+//! `normalmap::decode` and integrated by `normals_in::run` in its place; a job whose
+//! light table gives positions (near lights) has its images decoded whole by
+//! `intake::load` and run by `near::run`. Every write about
 //! the job carries the lease's token, so a worker that lost its lease records nothing. A
 //! store that does not answer makes the job wait and run again, never fail. Progress goes
 //! to the repo at every stage; the progress callback is also where cancellation, the time
@@ -29,8 +31,9 @@ use uuid::Uuid;
 use crate::core::RunError;
 use crate::core::bands::Stack;
 use crate::core::error::panic_message;
-use crate::core::intake::{Limits, NamedFile};
+use crate::core::intake::{self, Limits, NamedFile};
 use crate::core::lights;
+use crate::core::near::{self, NearReport};
 use crate::core::normalmap::{self, Lens, MaskInput, NormalMap};
 use crate::core::normals_in;
 use crate::core::outputs::ARTIFACTS;
@@ -47,6 +50,7 @@ use super::budget::{self, Reservation, Use};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
+use super::upload;
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};
 
 /// The pipeline's stages in order; progress is the index of the stage reached over
@@ -609,8 +613,12 @@ fn execute(
         }
         None => {
             let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(ApiError::from)?;
-            let lights = lights::parse_bytes(&table).map_err(ApiError::from)?;
-            let set = open_inputs(inner, scanned, lights, &input, &manifest, clock)?;
+            let table = lights::parse_table_bytes(&table).map_err(ApiError::from)?;
+            if table.is_near() {
+                let report = run_near(inner, table, &input, &manifest, &options, &out, clock);
+                return commit(inner, id, attempt, &out, summarize_near(&report?));
+            }
+            let set = open_inputs(inner, scanned, table.lights, &input, &manifest, clock)?;
             let set = set.noted(manifest.notes.clone());
             // The images' size is known now: keep the job's own estimate of the budget.
             let info = set.info();
@@ -619,12 +627,53 @@ fn execute(
             summarize(&finished(report, clock)?)
         }
     };
-    let mut artifacts = list_artifacts(&out).map_err(ApiError::from)?;
+    commit(inner, id, attempt, &out, summary)
+}
+
+/// The staged outputs in `out` made the job's artifacts; the job's result.
+fn commit(
+    inner: &Inner,
+    id: Uuid,
+    attempt: &str,
+    out: &Path,
+    summary: serde_json::Value,
+) -> Result<(serde_json::Value, Vec<ArtifactInfo>), Stop> {
+    let mut artifacts = list_artifacts(out).map_err(ApiError::from)?;
     inner
         .store
         .commit_outputs(id, attempt, &mut artifacts)
         .map_err(|e| store_error(e, "committing the outputs"))?;
     Ok((summary, artifacts))
+}
+
+/// A near-light job (its table gives positions): the images decoded whole under the
+/// server's limits, then `near::run` under the camera and working distance the upload
+/// checked (the job's, else the table's).
+fn run_near(
+    inner: &Inner,
+    table: lights::Table,
+    input: &Path,
+    manifest: &Manifest,
+    options: &Options,
+    out: &Path,
+    clock: &mut StageClock<'_>,
+) -> Result<NearReport, Stop> {
+    let named = |e: &ManifestEntry| NamedFile {
+        name: e.name.clone(),
+        path: input.join(&e.file),
+    };
+    let files: Vec<NamedFile> = manifest.images.iter().map(named).collect();
+    let mask = manifest.mask.as_ref().map(named);
+    let limits = inner.config.limits();
+    let mut set =
+        intake::load(table.lights, &files, mask.as_ref(), &limits).map_err(ApiError::from)?;
+    if clock.halted() {
+        return Err(Stop::Stopped);
+    }
+    set.notes.splice(0..0, manifest.notes.iter().cloned());
+    let (camera, distance) = upload::near_rig(options, &table.rig, set.width, set.height)?;
+    let report = near::run(&set, camera, distance, table.rig.unit, options, out, clock);
+    finished(report, clock)
 }
 
 /// A run's report, once its last stage is timed; a stopped run is [`Stop::Stopped`].
@@ -744,6 +793,25 @@ fn list_artifacts(dir: &std::path::Path) -> std::io::Result<Vec<ArtifactInfo>> {
         })
         .collect::<std::io::Result<_>>()?;
     Ok(found.into_iter().flatten().collect())
+}
+
+/// A near-light job's headline numbers: [`summarize`]'s, that it was one (`lights`:
+/// `near`), the number of iterations, whether they converged, the median depth and unit.
+fn summarize_near(report: &NearReport) -> serde_json::Value {
+    let mut out = summarize(report);
+    if let serde_json::Value::Object(fields) = &mut out {
+        let more = [
+            ("lights", serde_json::json!(report.lights)),
+            ("iterations", serde_json::json!(report.iterations.len())),
+            ("converged", serde_json::json!(report.converged)),
+            ("median_depth", serde_json::json!(report.median_depth)),
+            ("unit", serde_json::json!(report.unit)),
+        ];
+        for (key, value) in more {
+            fields.insert(key.to_string(), value);
+        }
+    }
+    out
 }
 
 /// The report's headline numbers (as in `result.json`).

@@ -98,7 +98,8 @@ pub struct ResultSummary {
     /// Highest height on the object, in pixel units (orthographic).
     pub height_max: Option<f64>,
     /// Nearest depth on the object, along the optical axis (under a camera; relative with
-    /// median 1, or in the unit of the `distance` option).
+    /// median 1, or in the unit of the `distance` option; for a near-light job in the
+    /// light table's unit).
     pub depth_min: Option<f64>,
     /// Farthest depth on the object (under a camera).
     pub depth_max: Option<f64>,
@@ -124,6 +125,20 @@ pub struct ResultSummary {
     /// Normals jobs: what the reader did with each pixel of the normal map (used,
     /// back-facing, renormalised, and why the others are off the mask), as `result.json`.
     pub counts: Option<Counts>,
+    /// `near` for a near-light job (its light table gives positions); absent otherwise.
+    #[schema(example = "near")]
+    pub lights: Option<String>,
+    /// Near-light jobs: the alternations of per-pixel solve and depth integration run.
+    pub iterations: Option<u64>,
+    /// Near-light jobs: whether the normals settled (when false, `result.json`'s notes say
+    /// how much they still moved).
+    pub converged: Option<bool>,
+    /// Near-light jobs: median depth over the mask of the surface recovered, along the
+    /// optical axis, in `unit`.
+    pub median_depth: Option<f64>,
+    /// Near-light jobs: the unit of depth (and of the table's positions and distance), as
+    /// the light table gives it; null when it gives none.
+    pub unit: Option<String>,
 }
 
 /// A page of jobs, newest first.
@@ -146,7 +161,12 @@ pub struct JobUpload {
     images: Option<Vec<Vec<u8>>>,
     /// The light table: CSV rows `name, x, y, z[, intensity]`, JSON
     /// `[{"name", "direction": [x, y, z], "intensity"?}]`, or an `.lp` file (the count,
-    /// then `name x y z` rows, y up) (text or file part).
+    /// then `name x y z` rows, y up) (text or file part). Near lights: JSON
+    /// `{"lights": [{"name", "position": [x, y, z], "axis"?, "anisotropy"?, "intensity"?}],
+    /// "camera"?, "distance"?, "unit"?}` (camera frame: x right, y down, z towards the
+    /// camera, the scene at negative z) makes a near-light job; it needs a camera (the
+    /// `camera` part or option, else the table's) and the working `distance` (the
+    /// `distance` option, else the table's): 422 naming what is missing.
     #[schema(value_type = String, required = false)]
     lights: Option<String>,
     /// Instead of `lights`: the id of a calibration (`POST /v1/calibrations`) whose lights
@@ -595,7 +615,8 @@ async fn accept_job(
     let stored = record.clone();
     let (max_active, max_queued) = (config.tenant_max_jobs, config.queue_length);
     // Parked before the job is recorded, so that a worker that claims it at once finds it.
-    if let Some(set) = prefetch {
+    // A near-light job decodes its images whole: what was scanned is dropped.
+    if let Some(set) = prefetch.filter(|_| !received.near) {
         state.park_prefetch(id, set);
     }
     match state

@@ -195,6 +195,9 @@ pub struct Received {
     pub options: serde_json::Value,
     /// The `callback_url` part, as sent (the caller checks it).
     pub callback_url: Option<String>,
+    /// Whether its light table gives positions (near lights): the job decodes its images
+    /// itself, so none scanned during the upload are kept for it.
+    pub near: bool,
 }
 
 #[derive(Default)]
@@ -275,7 +278,10 @@ pub async fn receive(
                 let (width, height, depth) =
                     probe(dir.join(&file), name.clone(), head, config).await?;
                 if let Some(p) = prefetch {
-                    p.start(file.clone(), written, dir);
+                    // The decoded copy's unlinked scratch file goes beside the staging
+                    // directory, not in it: a scan that starts late (the pool busy with
+                    // another job) would otherwise find it renamed by the commit.
+                    p.start(file.clone(), written, dir.parent().unwrap_or(dir));
                 }
                 parts.images.push(StoredImage {
                     name,
@@ -507,10 +513,17 @@ pub async fn receive(
     // A part named `*.lp` is read as one, so that its errors are the .lp table's; the job
     // reads the stored table back with `lights::parse_bytes`, which knows an .lp table
     // by its first line, as `lp::parse_bytes` requires it.
-    let lights = match parts.lights_file.as_deref() {
-        Some(file) if lights::lp::is_lp_name(file) => lights::lp::parse_bytes(file, &table)?,
-        _ => lights::parse_bytes(&table)?,
+    // A JSON table may give positions (near lights): it is stored as sent, and its rig
+    // (camera, distance, unit) completed from the job's options below.
+    let parsed = match parts.lights_file.as_deref() {
+        Some(file) if lights::lp::is_lp_name(file) => lights::Table {
+            lights: lights::lp::parse_bytes(file, &table)?,
+            rig: lights::Rig::default(),
+        },
+        _ => lights::parse_table_bytes(&table)?,
     };
+    let near = parsed.is_near();
+    let lights = parsed.lights;
     if let Some(id) = &calibration {
         check_calibration_names(id, &lights, &parts.images)?;
     }
@@ -533,7 +546,12 @@ pub async fn receive(
     }
     take_camera_part(&mut options, parts.camera)?;
     let first = ordered[0];
-    options.check_camera(first.width as usize, first.height as usize)?;
+    let (width, height) = (first.width as usize, first.height as usize);
+    if near {
+        near_rig(&options, &parsed.rig, width, height)?;
+    } else {
+        options.check_camera(width, height)?;
+    }
 
     let manifest = Manifest {
         images: ordered.iter().map(|i| i.entry()).collect(),
@@ -543,7 +561,43 @@ pub async fn receive(
     };
     write_manifest(dir, &manifest).await?;
     tokio::fs::write(dir.join(LIGHTS_FILE), &table).await?;
-    received(ordered.len(), &options, parts.callback_url)
+    let mut received = received(ordered.len(), &options, parts.callback_url)?;
+    received.near = near;
+    Ok(received)
+}
+
+/// The camera and working distance of a near-light job: the job's (`camera` part or
+/// option, `distance` option) or else its light table's; a 422 naming what neither gives,
+/// or a camera that cannot have taken the `width × height` images.
+pub(super) fn near_rig(
+    options: &Options,
+    rig: &lights::Rig,
+    width: usize,
+    height: usize,
+) -> Result<(Pinhole, f64), ApiError> {
+    let camera = options.camera.or(rig.camera);
+    let distance = options.distance.or(rig.distance);
+    let mut missing = Vec::new();
+    if camera.is_none() {
+        missing.push(
+            "the camera (\"camera\": {\"fx\", \"fy\", \"cx\", \"cy\"} in the light table, or the job's camera part or `camera` option)",
+        );
+    }
+    if distance.is_none() {
+        missing.push(
+            "the working distance to the object along the optical axis (\"distance\" in the light table, or the job's `distance` option)",
+        );
+    }
+    let (Some(camera), Some(distance)) = (camera, distance) else {
+        return Err(InputError::Lights(format!(
+            "lights given by position (near lights) need {}",
+            missing.join(" and ")
+        ))
+        .into());
+    };
+    camera.check(width, height).map_err(InputError::from)?;
+    crate::core::options::check_distance(Some(distance), Some(&camera))?;
+    Ok((camera, distance))
 }
 
 /// A normals job's parts checked against each other, and its manifest written: its
@@ -667,6 +721,7 @@ fn received(
         options: serde_json::to_value(options)
             .map_err(|e| ApiError::internal(format!("options: {e}")))?,
         callback_url,
+        near: false,
     })
 }
 
@@ -1146,7 +1201,8 @@ fn zip_error(entry: &str, e: zip::result::ZipError) -> ApiError {
 struct Unpacked {
     /// The images its table names, in archive order.
     images: Vec<StoredImage>,
-    /// Its light table, as JSON in the project's frame ([`lights::to_json`]).
+    /// Its light table, as JSON in the project's frame ([`lights::to_json`]); a table
+    /// giving positions, as the archive holds it.
     table: Vec<u8>,
     /// Its `mask.png`, when asked for and present.
     mask: Option<StoredImage>,
@@ -1282,6 +1338,14 @@ fn extract_archive(
         }
         .into());
     }
+    // A table of directions is stored as JSON in the project's frame; one that gives
+    // positions (only light_directions.json can) as it came, rig and all, for the job to
+    // read back with `lights::parse_table`.
+    let stored_table = if table.lights.iter().any(|l| l.emitter.is_some()) {
+        texts.get(layout::SEED_JSON).cloned().unwrap_or_default()
+    } else {
+        lights::to_json(&table.lights)
+    };
     let mask_name = table.mask.as_deref().filter(|_| want_mask);
     let camera = match camera::FILES.iter().find(|n| by_name.contains_key(**n)) {
         Some(name) => {
@@ -1373,7 +1437,7 @@ fn extract_archive(
     }
     Ok(Unpacked {
         images,
-        table: lights::to_json(&table.lights),
+        table: stored_table,
         mask,
         has_mask: table.mask.is_some(),
         camera,
