@@ -30,21 +30,9 @@ pub(super) fn run(sizes: &[usize], runs: usize, tmp: &Path) -> anyhow::Result<Ve
     let mut rows = Vec::new();
     for &size in sizes {
         eprintln!("bench: rendering the {size}² ring of {LEDS} LEDs");
-        let rig = synth::ring_relief_of(size, LEDS);
         let near = tmp.join(format!("near-{size}"));
         let distant = tmp.join(format!("distant-{size}"));
-        rig.write(&near).context("writing the near set")?;
-        std::fs::create_dir_all(&distant)?;
-        let mut csv = String::new();
-        for l in rig.distant_table() {
-            std::fs::copy(near.join(&l.name), distant.join(&l.name))?;
-            let d = l.direction;
-            csv += &format!(
-                "{}, {}, {}, {}, {}\n",
-                l.name, d[0], d[1], d[2], l.intensity
-            );
-        }
-        std::fs::write(distant.join("light_directions.csv"), csv)?;
+        write_sets(size, &near, &distant)?;
         let (mut n, mut d) = (Vec::new(), Vec::new());
         for _ in 0..runs {
             n.push(reconstruct(&exe, &near, tmp)?);
@@ -67,12 +55,46 @@ pub(super) fn run(sizes: &[usize], runs: usize, tmp: &Path) -> anyhow::Result<Ve
     Ok(rows)
 }
 
-/// `photostereo reconstruct dir`: seconds and peak bytes (NaN when not measured).
+/// The ring rendered at `size²` and written twice: with positions into `near`, with the
+/// distant table into `distant`. The rendering is dropped before any child starts: a
+/// child's peak (`wait4`) counts what this process held when it forked.
+fn write_sets(size: usize, near: &Path, distant: &Path) -> anyhow::Result<()> {
+    let rig = synth::ring_relief_of(size, LEDS);
+    rig.write(near).context("writing the near set")?;
+    std::fs::create_dir_all(distant)?;
+    let mut csv = String::new();
+    for l in rig.distant_table() {
+        std::fs::copy(near.join(&l.name), distant.join(&l.name))?;
+        let d = l.direction;
+        csv += &format!(
+            "{}, {}, {}, {}, {}\n",
+            l.name, d[0], d[1], d[2], l.intensity
+        );
+    }
+    std::fs::write(distant.join("light_directions.csv"), csv)?;
+    Ok(())
+}
+
+/// GNU time: the peak of a child it forks itself, from a small process; the bench's own
+/// children's `wait4` peaks start at what the bench held when it forked.
+const GNU_TIME: &str = "/usr/bin/time";
+
+/// `photostereo reconstruct dir`: seconds and peak bytes (NaN when not measured), the
+/// peak through [`GNU_TIME`] when the machine has it.
 fn reconstruct(exe: &PathBuf, dir: &Path, tmp: &Path) -> anyhow::Result<(f64, f64)> {
     let log = tmp.join("reconstruct.log");
+    let peak_file = tmp.join("peak.txt");
     let stderr = std::fs::File::create(&log).context("creating the child's log")?;
+    let timed = Path::new(GNU_TIME).is_file();
+    let mut cmd = if timed {
+        let mut c = Command::new(GNU_TIME);
+        c.arg("-f").arg("%M").arg("-o").arg(&peak_file).arg(exe);
+        c
+    } else {
+        Command::new(exe)
+    };
     let start = Instant::now();
-    let child = Command::new(exe)
+    let child = cmd
         .arg("reconstruct")
         .arg(dir)
         .arg("--out")
@@ -90,5 +112,13 @@ fn reconstruct(exe: &PathBuf, dir: &Path, tmp: &Path) -> anyhow::Result<(f64, f6
             said.trim()
         );
     }
-    Ok((seconds, peak.unwrap_or(f64::NAN)))
+    let peak = if timed {
+        let text = std::fs::read_to_string(&peak_file).unwrap_or_default();
+        text.trim()
+            .parse::<f64>()
+            .map_or(f64::NAN, |kib| kib * 1024.0)
+    } else {
+        peak.unwrap_or(f64::NAN)
+    };
+    Ok((seconds, peak))
 }

@@ -70,15 +70,19 @@ pub const DEFAULT_DEPTH_OUTPUTS: &[&str] = &["depth.png", "depth.exr", "points.p
 /// In an `outputs` selection, stands for every artifact.
 pub const ALL: &str = "all";
 
+/// Artifacts a run writes when it has them, whatever the selection: `lights.json`, the
+/// light table with the intensities a near-light run estimated.
+pub const UNSELECTED: [&str; 1] = ["lights.json"];
+
 /// Whether artifact `name` is to be written under the `outputs` selection `selection`
 /// (the default set when there is none), for a surface of heights, or of depth when
-/// `camera` ([`fits_surface`]).
+/// `camera` ([`fits_surface`]); never one of [`UNSELECTED`].
 pub fn wanted(selection: Option<&[String]>, name: &str, camera: bool) -> bool {
     let selected = match selection {
         None => DEFAULT_OUTPUTS.contains(&name) || camera && DEFAULT_DEPTH_OUTPUTS.contains(&name),
         Some(names) => names.iter().any(|n| n == name || n == ALL),
     };
-    selected && fits_surface(name, camera)
+    selected && fits_surface(name, camera) && !UNSELECTED.contains(&name)
 }
 
 /// Whether artifact `name` exists for a surface of heights (orthographic), or of depth
@@ -729,7 +733,10 @@ mod tests {
     #[test]
     fn the_default_selection_is_the_default_set_and_all_is_everything() {
         let all = [ALL.to_string()];
-        for (name, _) in ARTIFACTS {
+        for name in UNSELECTED {
+            assert!(!wanted(Some(&all), name, false) && !wanted(Some(&all), name, true));
+        }
+        for (name, _) in ARTIFACTS.iter().filter(|(n, _)| !UNSELECTED.contains(n)) {
             assert_eq!(
                 wanted(None, name, false),
                 DEFAULT_OUTPUTS.contains(name) && !name.starts_with("depth."),
