@@ -24,10 +24,9 @@ use ndarray::Array2;
 use serde::Serialize;
 
 use super::camera::Pinhole;
-use super::commit::{self, Committer, WriteSeek};
+use super::commit::{self, Committer};
 use super::error::{InputError, RunError};
 use super::integrate::{self, perspective};
-use super::mesh::{self, Document, MeshError};
 use super::normalmap::{Convention, Counts, NormalMap};
 use super::options::{self, Integration, MeshOptions, Options};
 use super::outputs::{self, Heights, Maps};
@@ -280,38 +279,15 @@ pub fn run(
     let mut written = outputs::write_pictures(&maps, &pictures, [0.0; 3], dir, &commits, &halt)?;
     not_halted(polled)?;
     step(progress, Stage::Mesh)?;
-    let mut save =
-        |name: &str, write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>| {
-            commits.write(dir, name, write)?;
-            written.push(name.to_string());
-            Ok::<_, RunError>(())
-        };
-    if settings.wants("points.ply") {
-        save("points.ply", &mut |f| {
-            mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, camera.as_ref())
-        })?;
-    }
-    let doc = (settings.wants("mesh.glb"))
-        .then(|| Document::with_camera(&rec, &settings.mesh, camera.as_ref()));
-    match doc {
-        None => {}
-        Some(Ok(doc)) => save("mesh.glb", &mut |f| {
-            doc.write_glb(f).map_err(|e| match e {
-                MeshError::Write(io) => io,
-                other => std::io::Error::other(other.to_string()),
-            })
-        })?,
-        // Too small a mask to triangulate: no mesh, and the report says so.
-        Some(Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. }))) => {
-            notes.push(format!("no mesh.glb: {e}"))
-        }
-        Some(Err(e)) => {
-            return Err(RunError::Output {
-                path: dir.join("mesh.glb").display().to_string(),
-                reason: e.to_string(),
-            });
-        }
-    }
+    let wanted = |name: &str| settings.wants(name);
+    written.extend(outputs::write_geometry(
+        &rec,
+        &settings.mesh,
+        camera.as_ref(),
+        &wanted,
+        (dir, &commits),
+        &mut notes,
+    )?);
     timings.push(timing("outputs", start));
     written.push("result.json".into());
     let range = (min <= max).then_some((min, max));

@@ -12,8 +12,11 @@ use ndarray::{Array2, Array3, ArrayView2, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use super::InputError;
+use super::camera::Pinhole;
 use super::commit::{Committer, WriteSeek};
 use super::error::RunError;
+use super::mesh::{self, Document, MeshError};
+use super::options::MeshOptions;
 use super::progress::Halt;
 use super::reconstruction::Reconstruction;
 use super::render;
@@ -99,6 +102,50 @@ pub fn fits_surface(name: &str, camera: bool) -> bool {
 /// Content-Type of an artifact, or None when the name is not one.
 pub fn content_type(name: &str) -> Option<&'static str> {
     ARTIFACTS.iter().find(|(n, _)| *n == name).map(|(_, t)| *t)
+}
+
+/// `points.ply` and `mesh.glb` of `rec`'s surface (heights, or depth unprojected through
+/// `camera`), each when `wanted` takes it; a mask too small to triangulate gives a note in
+/// `notes` instead of the mesh. Returns the names written.
+pub fn write_geometry(
+    rec: &Reconstruction,
+    mesh_options: &MeshOptions,
+    camera: Option<&Pinhole>,
+    wanted: &dyn Fn(&str) -> bool,
+    (dir, commits): (&Path, &Committer),
+    notes: &mut Vec<String>,
+) -> Result<Vec<String>, RunError> {
+    let mut written = Vec::new();
+    if wanted("points.ply") {
+        commits.write(dir, "points.ply", &mut |f| {
+            mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, camera)
+        })?;
+        written.push("points.ply".to_string());
+    }
+    if !wanted("mesh.glb") {
+        return Ok(written);
+    }
+    match Document::with_camera(rec, mesh_options, camera) {
+        Ok(doc) => {
+            commits.write(dir, "mesh.glb", &mut |f| {
+                doc.write_glb(f).map_err(|e| match e {
+                    MeshError::Write(io) => io,
+                    other => std::io::Error::other(other.to_string()),
+                })
+            })?;
+            written.push("mesh.glb".to_string());
+        }
+        Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. })) => {
+            notes.push(format!("no mesh.glb: {e}"))
+        }
+        Err(e) => {
+            return Err(RunError::Output {
+                path: dir.join("mesh.glb").display().to_string(),
+                reason: e.to_string(),
+            });
+        }
+    }
+    Ok(written)
 }
 
 /// Check an `outputs` selection names only known artifacts.

@@ -11,10 +11,9 @@ use serde::Serialize;
 
 use super::solve::{Iteration, NearSettings, solve};
 use crate::core::camera::Pinhole;
-use crate::core::commit::{self, Committer, WriteSeek};
+use crate::core::commit::{self, Committer};
 use crate::core::error::RunError;
 use crate::core::intake::ImageSet;
-use crate::core::mesh::{self, Document, MeshError};
 use crate::core::options::{Integration, MaskMode, Options};
 use crate::core::outputs::{self, Heights, Maps};
 use crate::core::pipeline::{not_halted, step};
@@ -130,6 +129,10 @@ pub fn run(
             ..RunReport::default()
         },
     };
+    // The selection, `all` standing for everything; the default writes everything too.
+    let wanted = |name: &str| {
+        (opts.outputs.as_deref()).is_none_or(|o| o.iter().any(|s| s == name || s == outputs::ALL))
+    };
     let pictures: Vec<&str> = [
         "albedo.png",
         "normal.png",
@@ -138,11 +141,7 @@ pub fn run(
         "depth.png",
     ]
     .into_iter()
-    .filter(|n| {
-        opts.outputs
-            .as_ref()
-            .is_none_or(|o| o.iter().any(|s| s == n))
-    })
+    .filter(|n| wanted(n))
     .collect();
     let maps = Maps {
         heights: Some(Heights {
@@ -158,32 +157,14 @@ pub fn run(
     let mut written = outputs::write_pictures(&maps, &pictures, [0.0; 3], dir, &commits, &halt)?;
     not_halted(polled)?;
     step(progress, Stage::Mesh)?;
-    let mut save =
-        |name: &str, write: &mut dyn FnMut(&mut dyn WriteSeek) -> std::io::Result<()>| {
-            commits.write(dir, name, write)?;
-            written.push(name.to_string());
-            Ok::<_, RunError>(())
-        };
-    save("points.ply", &mut |f| {
-        mesh::write_points_ply(f, &rec.heights, &rec.normals, &rec.mask, Some(&camera))
-    })?;
-    match Document::with_camera(&rec, &opts.mesh, Some(&camera)) {
-        Ok(doc) => save("mesh.glb", &mut |f| {
-            doc.write_glb(f).map_err(|e| match e {
-                MeshError::Write(io) => io,
-                other => std::io::Error::other(other.to_string()),
-            })
-        })?,
-        Err(e @ (MeshError::EmptyMask | MeshError::NoTriangles { .. })) => {
-            notes.push(format!("no mesh.glb: {e}"))
-        }
-        Err(e) => {
-            return Err(RunError::Output {
-                path: dir.join("mesh.glb").display().to_string(),
-                reason: e.to_string(),
-            });
-        }
-    }
+    written.extend(outputs::write_geometry(
+        &rec,
+        &opts.mesh,
+        Some(&camera),
+        &wanted,
+        (dir, &commits),
+        &mut notes,
+    )?);
     let estimated: Option<Vec<Estimated>> = surface.intensities.as_ref().map(|e| {
         (set.lights.iter().zip(e))
             .map(|(l, &intensity)| Estimated {
@@ -194,7 +175,8 @@ pub fn run(
     });
     if let Some(e) = &estimated {
         let table = table_json(set, e, camera, distance, unit.as_deref());
-        save("lights.json", &mut |f| f.write_all(&table))?;
+        commits.write(dir, "lights.json", &mut |f| f.write_all(&table))?;
+        written.push("lights.json".to_string());
     }
     timings.push(timing("outputs", start));
     written.push("result.json".into());
