@@ -643,9 +643,9 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// A folder whose light table gives positions: the near-light solve, the set in memory.
-/// The camera is the flags' or the table's; the working distance `--distance` or the
-/// table's.
+/// A folder whose light table gives positions: the near-light solve, the set read in
+/// bands as `reconstruct` reads it. The camera is the flags' or the table's; the working
+/// distance `--distance` or the table's.
 fn reconstruct_near(
     args: &ReconstructArgs,
     mut opts: Options,
@@ -654,28 +654,31 @@ fn reconstruct_near(
     rig: photostereo::core::lights::Rig,
 ) -> anyhow::Result<()> {
     let start = std::time::Instant::now();
-    let set = intake::load_dir(&args.dir, args.dir_mask(chosen), &Limits::default())?;
-    if chosen.is_none() && set.mask.is_some() && args.mask_file.is_none() {
+    let scratch = args.scratch_dir();
+    let limits = args.limit.limits();
+    let mut set = stream::open_dir(&args.dir, args.dir_mask(chosen), &limits, &scratch)?;
+    if chosen.is_none() && set.info().mask.is_some() && args.mask_file.is_none() {
         opts.mask = MaskMode::Given;
     }
+    let (width, height) = (set.info().width, set.info().height);
     let camera = match (flags, rig.camera) {
-        (Some(lens), _) => lens.resolve(set.width, set.height),
+        (Some(lens), _) => lens.resolve(width, height),
         (None, Some(c)) => c,
         (None, None) => anyhow::bail!(
             "the light table gives positions but no camera: add \"camera\" to it or give --camera"
         ),
     };
-    camera.check(set.width, set.height)?;
+    camera.check(width, height)?;
     let Some(distance) = opts.distance.or(rig.distance) else {
         anyhow::bail!(
             "near lights need the working distance to the object: add \"distance\" to the light table or give --distance"
         );
     };
-    for note in &set.notes {
+    for note in &set.info().notes {
         eprintln!("note: {note}");
     }
     let report = photostereo::core::near::run(
-        &set,
+        &mut set,
         camera,
         distance,
         rig.unit,

@@ -70,6 +70,8 @@ pub trait Stack: Send {
     fn band_rows(&self) -> usize;
     /// The next band; bands must be asked for in order, each starting where the last ended.
     fn band(&mut self, rows: Range<usize>) -> Result<Band<'_>, InputError>;
+    /// Start again at row 0, for a solve that passes over the set more than once.
+    fn rewind(&mut self);
 }
 
 /// An [`ImageSet`] in memory (owned or borrowed) as a [`Stack`]: one band, the whole set.
@@ -144,6 +146,8 @@ impl<S: Borrow<ImageSet> + Send> Stack for InMemory<S> {
             .map(|m| &m[span.start * 9..span.end * 9]);
         Ok(Band { planes, moments })
     }
+
+    fn rewind(&mut self) {}
 }
 
 /// Some rows of the solve's per-pixel maps (its `Surface`), for a

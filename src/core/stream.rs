@@ -242,6 +242,10 @@ impl Stack for Streamed {
             moments: colour.then_some(self.moments.as_slice()),
         })
     }
+
+    fn rewind(&mut self) {
+        self.next_row = 0;
+    }
 }
 
 /// One image of a [`Streamed`] set.

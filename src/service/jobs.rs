@@ -12,9 +12,8 @@
 //! run by `pipeline::run` into a staged output directory that the store commits when the
 //! job succeeds, under a key of this attempt's own; a normals job's map is decoded by
 //! `normalmap::decode` and integrated by `normals_in::run` in its place; a job whose
-//! light table gives positions (near lights) has its images decoded whole by
-//! `intake::load` and run by `near::run`. Every write about
-//! the job carries the lease's token, so a worker that lost its lease records nothing. A
+//! light table gives positions (near lights) is opened the same way and run by
+//! `near::run`. Every write about the job carries the lease's token, so a worker that lost its lease records nothing. A
 //! store that does not answer makes the job wait and run again, never fail. Progress goes
 //! to the repo at every stage; the progress callback is also where cancellation, the time
 //! limit, shutdown and a lost lease stop a job.
@@ -31,7 +30,7 @@ use uuid::Uuid;
 use crate::core::RunError;
 use crate::core::bands::Stack;
 use crate::core::error::panic_message;
-use crate::core::intake::{self, Limits, NamedFile};
+use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
 use crate::core::near::{self, NearReport};
 use crate::core::normalmap::{self, Lens, MaskInput, NormalMap};
@@ -614,15 +613,16 @@ fn execute(
         None => {
             let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(ApiError::from)?;
             let table = lights::parse_table_bytes(&table).map_err(ApiError::from)?;
-            if table.is_near() {
-                let report = run_near(inner, table, &input, &manifest, &options, &out, clock);
-                return commit(inner, id, attempt, &out, summarize_near(&report?));
-            }
+            let near = table.is_near().then(|| table.rig.clone());
             let set = open_inputs(inner, scanned, table.lights, &input, &manifest, clock)?;
             let set = set.noted(manifest.notes.clone());
             // The images' size is known now: keep the job's own estimate of the budget.
             let info = set.info();
             memory.shrink_to(budget::job_peak_bytes((info.width * info.height) as u64));
+            if let Some(rig) = near {
+                let report = run_near(set, rig, &options, &out, clock);
+                return commit(inner, id, attempt, &out, summarize_near(&report?));
+            }
             let report = pipeline::run(set, &options, &out, clock);
             summarize(&finished(report, clock)?)
         }
@@ -646,33 +646,19 @@ fn commit(
     Ok((summary, artifacts))
 }
 
-/// A near-light job (its table gives positions): the images decoded whole under the
-/// server's limits, then `near::run` under the camera and working distance the upload
+/// A near-light job (its table gives positions): `near::run` on the job's images, read
+/// in bands as a distant job's are, under the camera and working distance the upload
 /// checked (the job's, else the table's).
 fn run_near(
-    inner: &Inner,
-    table: lights::Table,
-    input: &Path,
-    manifest: &Manifest,
+    mut set: Streamed,
+    rig: lights::Rig,
     options: &Options,
     out: &Path,
     clock: &mut StageClock<'_>,
 ) -> Result<NearReport, Stop> {
-    let named = |e: &ManifestEntry| NamedFile {
-        name: e.name.clone(),
-        path: input.join(&e.file),
-    };
-    let files: Vec<NamedFile> = manifest.images.iter().map(named).collect();
-    let mask = manifest.mask.as_ref().map(named);
-    let limits = inner.config.limits();
-    let mut set =
-        intake::load(table.lights, &files, mask.as_ref(), &limits).map_err(ApiError::from)?;
-    if clock.halted() {
-        return Err(Stop::Stopped);
-    }
-    set.notes.splice(0..0, manifest.notes.iter().cloned());
-    let (camera, distance) = upload::near_rig(options, &table.rig, set.width, set.height)?;
-    let report = near::run(&set, camera, distance, table.rig.unit, options, out, clock);
+    let (width, height) = (set.info().width, set.info().height);
+    let (camera, distance) = upload::near_rig(options, &rig, width, height)?;
+    let report = near::run(&mut set, camera, distance, rig.unit, options, out, clock);
     finished(report, clock)
 }
 

@@ -2,15 +2,24 @@
 //! pixel follow from where the light is and where the surface point is, so the per-pixel
 //! solve and the depth integration alternate until the normals stop moving.
 
+mod alternate;
+mod enlarge;
 mod intensities;
+mod maps;
 mod model;
 mod pieces;
 mod pixel;
+mod point;
+mod refine;
 mod run;
+mod scale;
+mod shrink;
 mod solve;
+mod surface;
 
 pub use intensities::Gram;
 pub use model::{irradiance, light_vectors};
 pub use pixel::{Fit, fit};
 pub use run::{NearReport, run};
-pub use solve::{Iteration, NearSettings, NearSurface, solve};
+pub use solve::solve;
+pub use surface::{COARSE_PIXELS, Iteration, NearSettings, NearSurface};

@@ -8,6 +8,10 @@ use ndarray::Array2;
 /// across it by more than this beyond the mean of the two pixels' own slopes.
 const STEP_PX: f32 = 1.0;
 
+/// Pieces at least this fraction of the mask get their own scale; the others keep the
+/// whole surface's.
+pub const MIN_PIECE: f64 = 0.02;
+
 /// Each mask pixel's piece (0, 1, …; `usize::MAX` off the mask) and the pieces' sizes:
 /// connected through pairs that are not steps of `zeta` under the slopes `p` (along
 /// columns) and `q` (along rows).

@@ -1,4 +1,4 @@
-//! A near-light set reconstructed and written: [`super::solve`] on the decoded images,
+//! A near-light set reconstructed and written: [`super::solve`] on the set's bands,
 //! then the pictures (`albedo.png`, `normal.png`, `mask.png`, `depth.exr`, `depth.png`),
 //! `points.ply` and `mesh.glb` unprojected through the camera, and `result.json`
 //! ([`NearReport`]). Depth is metric, in the table's unit.
@@ -6,14 +6,15 @@
 use std::path::Path;
 use std::time::Instant;
 
-use ndarray::{Array2, ArrayView2};
+use ndarray::Array2;
 use serde::Serialize;
 
-use super::solve::{Iteration, NearSettings, solve};
+use super::solve::solve;
+use super::surface::{Iteration, NearSettings};
+use crate::core::bands::{SetInfo, Stack};
 use crate::core::camera::Pinhole;
 use crate::core::commit::{self, Committer};
 use crate::core::error::RunError;
-use crate::core::intake::ImageSet;
 use crate::core::options::{Integration, MaskMode, Options};
 use crate::core::outputs::{self, Heights, Maps};
 use crate::core::pipeline::{not_halted, step};
@@ -56,11 +57,12 @@ pub struct Estimated {
     pub intensity: f64,
 }
 
-/// Reconstruct `set` (lights with positions) under `camera` from the working `distance`,
-/// and write its artifacts into `dir`. The mask is the set's own with `--mask given`,
-/// else every pixel with three lit observations; `opts` gives the integration and mesh.
+/// Reconstruct `stack` (lights with positions) under `camera` from the working
+/// `distance`, and write its artifacts into `dir`. The mask is the set's own with
+/// `--mask given`, else every pixel with three lit observations; `opts` gives the
+/// integration and mesh.
 pub fn run(
-    set: &ImageSet,
+    stack: &mut dyn Stack,
     camera: Pinhole,
     distance: f64,
     unit: Option<String>,
@@ -69,14 +71,14 @@ pub fn run(
     progress: &mut dyn Progress,
 ) -> Result<NearReport, RunError> {
     let mut timings = Vec::new();
+    let set = stack.info().clone();
     let mut notes = set.notes.clone();
     step(progress, Stage::Solve)?;
     let start = Instant::now();
     let mask = match (&set.mask, opts.mask) {
-        (Some(m), MaskMode::Given | MaskMode::Auto) => m.clone(),
-        _ => lit_pixels(set),
+        (Some(m), MaskMode::Given | MaskMode::Auto) => Some(m),
+        _ => None,
     };
-    let planes: Vec<ArrayView2<u16>> = set.planes.iter().map(|p| p.view()).collect();
     // An LED whose table gave no intensity is estimated, and then every one is (relative).
     let estimate = (set.lights.iter()).any(|l| l.emitter.is_some_and(|e| !e.intensity_known));
     let settings = NearSettings {
@@ -85,8 +87,9 @@ pub fn run(
         ..NearSettings::new(camera, distance)
     };
     let polled: &dyn Progress = progress;
-    let surface = solve(&planes, &set.lights, &mask, &settings, &|| polled.halted());
+    let surface = solve(stack, mask, &settings, &|| polled.halted())?;
     not_halted(polled)?;
+    let mask = surface.mask;
     timings.push(timing("solve and integrate", start));
     if !surface.converged {
         notes.push(format!(
@@ -174,7 +177,7 @@ pub fn run(
             .collect()
     });
     if let Some(e) = &estimated {
-        let table = table_json(set, e, camera, distance, unit.as_deref());
+        let table = table_json(&set, e, camera, distance, unit.as_deref());
         commits.write(dir, "lights.json", &mut |f| f.write_all(&table))?;
         written.push("lights.json".to_string());
     }
@@ -210,7 +213,7 @@ pub fn run(
 
 /// The set's light table with the estimated intensities, as `reconstruct` reads it.
 fn table_json(
-    set: &ImageSet,
+    set: &SetInfo,
     estimated: &[Estimated],
     camera: Pinhole,
     distance: f64,
@@ -235,21 +238,6 @@ fn table_json(
         "unit": unit,
     });
     serde_json::to_vec_pretty(&table).expect("the table serialises")
-}
-
-/// Pixels with at least three observations above 1 % of the set's brightest value.
-fn lit_pixels(set: &ImageSet) -> Array2<bool> {
-    let peak = set
-        .planes
-        .iter()
-        .flat_map(|p| p.iter())
-        .copied()
-        .max()
-        .unwrap_or(0);
-    let dark = (peak / 100).max(1);
-    Array2::from_shape_fn((set.height, set.width), |p| {
-        set.planes.iter().filter(|plane| plane[p] > dark).count() >= 3
-    })
 }
 
 fn timing(stage: &'static str, start: Instant) -> Timing {
