@@ -16,10 +16,15 @@ pub struct Fit {
     pub kept: usize,
 }
 
-/// Cauchy re-weightings before the outliers are cut.
+/// Cauchy re-weightings before the outliers are cut, at most.
 const REWEIGHTS: usize = 6;
+/// The re-weightings stop once no component of `g` moves by more than this (of full
+/// scale): the fit has settled far below the noise.
+const SETTLED: f32 = 1e-5;
 /// Robust deviations beyond which an observation is an outlier.
 const OUTLIER_DEVIATIONS: f32 = 3.0;
+/// Lights a pixel's buffers hold on the stack; larger rigs use the heap.
+const ON_STACK: usize = 64;
 
 /// Fit `obs[k] ≈ max(0, g · lights[k])` (values in [0, 1]); `dark` is the level at and
 /// below which an observation is taken as shadow, `floor` the smallest deviation the
@@ -30,31 +35,40 @@ const OUTLIER_DEVIATIONS: f32 = 3.0;
 /// fit leave it), then observations in attached shadow or beyond [`OUTLIER_DEVIATIONS`]
 /// robust deviations are cut and the rest fitted plainly.
 pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [bool]) -> Fit {
-    let mut weight: Vec<f32> = obs
-        .iter()
-        .map(|&o| if o > dark { 1.0 } else { 0.0 })
-        .collect();
-    let Some(mut g) = solve(lights, obs, &weight) else {
+    let n = obs.len();
+    let (mut weight_stack, mut residual_stack) = ([0f32; ON_STACK], [0f32; ON_STACK]);
+    let (mut weight_heap, mut residual_heap) = (Vec::new(), Vec::new());
+    let (weight, residuals) = if n <= ON_STACK {
+        (&mut weight_stack[..n], &mut residual_stack[..n])
+    } else {
+        weight_heap.resize(n, 0f32);
+        residual_heap.resize(n, 0f32);
+        (&mut weight_heap[..], &mut residual_heap[..])
+    };
+    for (w, &o) in weight.iter_mut().zip(obs) {
+        *w = if o > dark { 1.0 } else { 0.0 };
+    }
+    let Some(mut g) = solve(lights, obs, weight) else {
         return Fit {
             g: [0.0; 3],
             rms: 0.0,
             kept: 0,
         };
     };
-    let mut residuals = Vec::with_capacity(obs.len());
     let mut scale = floor;
     for round in 0..=REWEIGHTS {
-        residuals.clear();
-        for (l, (&o, &wt)) in lights.iter().zip(obs.iter().zip(&weight)) {
-            if o > dark && dot(g, *l) > 0.0 && wt > 0.0 {
-                residuals.push((o - dot(g, *l)).abs());
+        let mut m = 0;
+        for (l, (&o, &wt)) in lights.iter().zip(obs.iter().zip(weight.iter())) {
+            let p = dot(g, *l);
+            if o > dark && p > 0.0 && wt > 0.0 {
+                residuals[m] = (o - p).abs();
+                m += 1;
             }
         }
-        if residuals.len() < 3 {
+        if m < 3 {
             break;
         }
-        let mid = residuals.len() / 2;
-        scale = (1.4826 * *residuals.select_nth_unstable_by(mid, f32::total_cmp).1).max(floor);
+        scale = (1.4826 * median(&mut residuals[..m])).max(floor);
         if round == REWEIGHTS {
             break;
         }
@@ -67,8 +81,15 @@ pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [
                 0.0
             };
         }
-        match solve(lights, obs, &weight) {
-            Some(next) => g = next,
+        match solve(lights, obs, weight) {
+            Some(next) => {
+                let moved = (0..3).map(|k| (next[k] - g[k]).abs()).fold(0f32, f32::max);
+                g = next;
+                // The scale of the last residuals stands: g moved far below it.
+                if moved <= SETTLED {
+                    break;
+                }
+            }
             None => break,
         }
     }
@@ -78,7 +99,7 @@ pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [
         keep[k] = o > dark && p > 0.0 && (o - p).abs() <= limit;
         weight[k] = if keep[k] { 1.0 } else { 0.0 };
     }
-    if let Some(next) = solve(lights, obs, &weight) {
+    if let Some(next) = solve(lights, obs, weight) {
         g = next;
     }
     let (mut sum, mut kept) = (0f32, 0usize);
@@ -101,31 +122,57 @@ pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [
 }
 
 /// Weighted least squares; None with fewer than three weighted observations or when
-/// singular.
+/// singular. The normal equations are summed in f32 (at most a few hundred terms of
+/// order one) and solved in f64.
 fn solve(lights: &[[f32; 3]], obs: &[f32], weight: &[f32]) -> Option<[f32; 3]> {
-    let mut m = [[0f64; 3]; 3];
-    let mut b = [0f64; 3];
+    let (mut xx, mut xy, mut xz, mut yy, mut yz, mut zz) = (0f32, 0f32, 0f32, 0f32, 0f32, 0f32);
+    let mut b = [0f32; 3];
     let mut n = 0;
-    for ((l, &o), &wt) in lights
-        .iter()
-        .zip(obs)
-        .zip(weight)
-        .filter(|(_, w)| **w > 0.0)
-    {
-        n += 1;
-        let wt = f64::from(wt);
-        for r in 0..3 {
-            b[r] += wt * f64::from(l[r]) * f64::from(o);
-            for c in 0..3 {
-                m[r][c] += wt * f64::from(l[r]) * f64::from(l[c]);
-            }
+    for ((l, &o), &wt) in lights.iter().zip(obs).zip(weight) {
+        if wt <= 0.0 {
+            continue;
         }
+        n += 1;
+        let [x, y, z] = l.map(|v| v * wt);
+        xx += x * l[0];
+        xy += x * l[1];
+        xz += x * l[2];
+        yy += y * l[1];
+        yz += y * l[2];
+        zz += z * l[2];
+        b[0] += x * o;
+        b[1] += y * o;
+        b[2] += z * o;
     }
     if n < 3 {
         return None;
     }
+    let [xx, xy, xz, yy, yz, zz] = [xx, xy, xz, yy, yz, zz].map(f64::from);
+    let m = [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]];
     let inv = invert3(&m)?;
+    let b = b.map(f64::from);
     Some([0, 1, 2].map(|r| (0..3).map(|c| inv[r][c] * b[c]).sum::<f64>() as f32))
+}
+
+/// The median of a few values (the upper one of an even count): the value whose rank
+/// holds the middle, found by counting (branch-free inner loops, which for the dozens a
+/// pixel has beat sorting or a general selection).
+fn median(v: &mut [f32]) -> f32 {
+    let k = v.len() / 2;
+    if v.len() > ON_STACK {
+        return *v.select_nth_unstable_by(k, f32::total_cmp).1;
+    }
+    for &x in v.iter() {
+        let (mut less, mut equal) = (0usize, 0usize);
+        for &y in v.iter() {
+            less += usize::from(y < x);
+            equal += usize::from(y == x);
+        }
+        if less <= k && k < less + equal {
+            return x;
+        }
+    }
+    v[k]
 }
 
 #[inline(always)]

@@ -21,30 +21,45 @@ pub enum Pixels {
     Lit { dark: u16 },
 }
 
-/// What a pass fitted: `g = ρ n` and the RMS of each pixel's kept observations, zero
-/// off the mask; and the observations of the mask pixels on the sampling grid.
+/// What the passes fitted: `g = ρ n` and the RMS of each pixel's kept observations,
+/// zero off the mask.
 pub struct Fits {
     pub g: Array3<f32>,
     pub residual: Array2<f32>,
-    pub observed: Observed,
 }
 
-/// Fit every pixel of `stack` that `pixels` takes, its surface point at `depth`, keeping
-/// the observations of those on the grid of `stride`. Once `halt` says stop, the bands
-/// not yet read are left at zero.
+impl Fits {
+    pub fn zeros(h: usize, w: usize) -> Self {
+        Self {
+            g: Array3::zeros((h, w, 3)),
+            residual: Array2::zeros((h, w)),
+        }
+    }
+}
+
+/// What one pass fits on.
+pub struct Pass<'a> {
+    pub scene: &'a Scene<'a>,
+    /// Each pixel's surface depth.
+    pub depth: &'a Array2<f32>,
+    /// Only the pixels this marks, when given: the others keep their fits.
+    pub only: Option<&'a Array2<bool>>,
+}
+
+/// Fit the pixels of `stack` that `pixels` (and the pass's `only`) take into `fits`, and
+/// keep the observations of the mask pixels on the grid of a stride into `sampling`.
+/// Once `halt` says stop, the bands not yet read are left as they were.
 pub fn fit_bands(
     stack: &mut dyn Stack,
-    scene: &Scene<'_>,
-    depth: &Array2<f32>,
+    pass: &Pass<'_>,
     (mask, pixels): (&mut Array2<bool>, Pixels),
-    stride: usize,
+    fits: &mut Fits,
+    mut sampling: Option<(&mut Observed, usize)>,
     halt: Halt,
-) -> Result<Fits, InputError> {
+) -> Result<(), InputError> {
     let (h, w) = mask.dim();
-    let mut g = Array3::<f32>::zeros((h, w, 3));
-    let mut residual = Array2::<f32>::zeros((h, w));
+    let (scene, depth) = (pass.scene, pass.depth);
     let n = scene.lights.len();
-    let mut observed = Observed::new(n);
     let step = stack.band_rows().max(1);
     stack.rewind();
     for r0 in (0..h).step_by(step) {
@@ -55,51 +70,45 @@ pub fn fit_bands(
         let band = stack.band(r0..r1)?;
         let planes = &band.planes;
         let value = |at: usize| planes.iter().map(move |p| f32::from(p[at]) / 65535.0);
-        (g.slice_mut(s![r0..r1, .., ..])
-            .outer_iter_mut()
-            .into_par_iter())
-        .zip(
-            residual
-                .slice_mut(s![r0..r1, ..])
-                .outer_iter_mut()
-                .into_par_iter(),
-        )
-        .zip(
-            mask.slice_mut(s![r0..r1, ..])
-                .outer_iter_mut()
-                .into_par_iter(),
-        )
-        .enumerate()
-        .for_each(|(i, ((mut g, mut rms), mut on))| {
-            let mut scratch = Scratch::new(n);
-            let r = r0 + i;
-            for c in 0..w {
-                let at = i * w + c;
-                if let Pixels::Lit { dark } = pixels {
-                    on[c] = planes.iter().filter(|p| p[at] > dark).count() >= 3;
+        let mut g = fits.g.slice_mut(s![r0..r1, .., ..]);
+        let mut residual = fits.residual.slice_mut(s![r0..r1, ..]);
+        (g.outer_iter_mut().into_par_iter())
+            .zip(residual.outer_iter_mut().into_par_iter())
+            .zip(
+                mask.slice_mut(s![r0..r1, ..])
+                    .outer_iter_mut()
+                    .into_par_iter(),
+            )
+            .enumerate()
+            .for_each(|(i, ((mut g, mut rms), mut on))| {
+                let mut scratch = Scratch::new(n);
+                let r = r0 + i;
+                for c in 0..w {
+                    let at = i * w + c;
+                    if let Pixels::Lit { dark } = pixels {
+                        on[c] = planes.iter().filter(|p| p[at] > dark).count() >= 3;
+                    }
+                    let chosen = pass.only.is_none_or(|o| o[[r, c]]);
+                    if !on[c] || !chosen || !depth[[r, c]].is_finite() {
+                        continue;
+                    }
+                    for (o, v) in scratch.obs.iter_mut().zip(value(at)) {
+                        *o = v;
+                    }
+                    let f = scene.fit((r, c), f64::from(depth[[r, c]]), &mut scratch);
+                    for k in 0..3 {
+                        g[[c, k]] = f.g[k];
+                    }
+                    rms[c] = f.rms;
                 }
-                if !on[c] || !depth[[r, c]].is_finite() {
-                    continue;
+            });
+        if let Some((observed, stride)) = sampling.as_mut() {
+            for r in r0..r1 {
+                for c in (0..w).filter(|&c| sampled(r, c, *stride) && mask[[r, c]]) {
+                    observed.push((r, c), value((r - r0) * w + c));
                 }
-                for (o, v) in scratch.obs.iter_mut().zip(value(at)) {
-                    *o = v;
-                }
-                let f = scene.fit((r, c), f64::from(depth[[r, c]]), &mut scratch);
-                for k in 0..3 {
-                    g[[c, k]] = f.g[k];
-                }
-                rms[c] = f.rms;
-            }
-        });
-        for r in r0..r1 {
-            for c in (0..w).filter(|&c| sampled(r, c, stride) && mask[[r, c]]) {
-                observed.push((r, c), value((r - r0) * w + c));
             }
         }
     }
-    Ok(Fits {
-        g,
-        residual,
-        observed,
-    })
+    Ok(())
 }

@@ -13,10 +13,11 @@ use super::pieces::MIN_PIECE;
 use super::point::{Scene, Scratch};
 
 /// Pixels the scale search samples (about).
-const SAMPLES: usize = 20_000;
+const SAMPLES: usize = 8_000;
 /// The search brackets the current scale within this factor either way.
 const BRACKET: f64 = 2.0;
-const STEPS: usize = 40;
+/// Shrinkings of the bracket: to 10⁻⁴ of the scale.
+const STEPS: usize = 20;
 
 /// The grid stride that samples about [`SAMPLES`] of `count` pixels.
 pub fn stride_for(count: usize) -> usize {
@@ -43,6 +44,11 @@ impl Observed {
             at: Vec::new(),
             obs: Vec::new(),
         }
+    }
+
+    /// The pixels kept, in order.
+    pub fn pixels(&self) -> &[(usize, usize)] {
+        &self.at
     }
 
     pub fn push(&mut self, at: (usize, usize), obs: impl IntoIterator<Item = f32>) {

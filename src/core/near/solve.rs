@@ -18,21 +18,27 @@ use super::enlarge::enlarge;
 use super::maps::{changes, split};
 use super::pieces::pieces;
 use super::point::Scene;
-use super::refine::{Pixels, fit_bands};
-use super::scale::stride_for;
+use super::refine::{Fits, Pass, Pixels, fit_bands};
+use super::scale::{Observed, stride_for};
 use super::shrink::{factor_for, shrink, shrink_mask};
 use super::surface::{Iteration, NearSettings, NearSurface};
 use crate::core::InputError;
 use crate::core::bands::Stack;
+use crate::core::camera::Pinhole;
 use crate::core::integrate::{self, perspective};
 use crate::core::progress::Halt;
 
-/// Full-resolution passes: at least two (the first's change is against the shrunk
-/// grid's normals, not a measure of the full resolution's), at most four.
-const FULL_PASSES: std::ops::RangeInclusive<usize> = 2..=4;
-/// They stop once the normals move less than this on average (degrees): each costs as
-/// much as the alternation.
+/// Full-resolution passes, at most. After the first, a pass refits only the pixels
+/// whose surface point [moved](MOVED); the passes stop when none did, or once a refit
+/// moves the normals less than [`FULL_TOLERANCE_DEG`] on average, leaving the surface
+/// where it is (the first's change is against the shrunk grid's normals, no measure of
+/// the full resolution's).
+const MAX_FULL_PASSES: usize = 4;
 const FULL_TOLERANCE_DEG: f64 = 0.05;
+/// A surface point moved when its light vectors turn or dim by more than
+/// [`FULL_TOLERANCE_DEG`] (relative, in radians): a move of δ changes a light's direction
+/// by up to δ/r and its falloff by 2δ/r, r the distance to the nearest light.
+const MOVED: f64 = FULL_TOLERANCE_DEG * std::f64::consts::PI / 180.0;
 /// A pixel is lit when its observation is above this fraction of the set's brightest.
 const LIT_FRACTION: u16 = 100;
 
@@ -89,19 +95,41 @@ pub fn solve(
         .last()
         .map_or(settings.distance, |i| i.median_depth);
     let mut iterations = coarse.iterations;
+    let mut fits = Fits::zeros(h, w);
+    let mut observed = Observed::new(lights.len());
+    let mut moved: Option<Array2<bool>> = None;
     let mut albedo = Array2::zeros((h, w));
-    let mut residual = Array2::zeros((h, w));
     let mut settled = false;
-    for pass in 1..=*FULL_PASSES.end() {
+    for pass in 1..=MAX_FULL_PASSES {
         if halt() {
             break;
         }
-        let fits = fit_bands(stack, &scene, &depth, (&mut full, pixels), stride, halt)?;
+        let on = Pass {
+            scene: &scene,
+            depth: &depth,
+            only: moved.as_ref(),
+        };
+        // The observations do not change between passes: the first keeps its sample.
+        let sampling = (pass == 1).then_some((&mut observed, stride));
+        fit_bands(stack, &on, (&mut full, pixels), &mut fits, sampling, halt)?;
         pixels = Pixels::Masked;
         let (normals, a) = split(&fits.g, &full);
         let (mean, p95) = changes(&previous, &normals, &full);
+        (previous, albedo) = (normals, a);
+        let mut iteration = Iteration {
+            grid: [w, h],
+            median_depth: scale,
+            mean_change_deg: mean,
+            p95_change_deg: p95,
+        };
+        // A refit that barely moved the normals leaves the surface where it is.
+        if pass > 1 && mean < FULL_TOLERANCE_DEG {
+            iterations.push(iteration);
+            settled = true;
+            break;
+        }
         let zeta = integrate::integrate_log_depth(
-            &normals,
+            &previous,
             &full,
             &settings.camera,
             settings.integration,
@@ -109,35 +137,73 @@ pub fn solve(
             halt,
         );
         let relative = perspective::depth_from_log(&zeta, &full, &settings.camera, None);
-        let (p, q) = perspective::log_depth_gradients(&normals, &full, &settings.camera);
+        let (p, q) = perspective::log_depth_gradients(&previous, &full, &settings.camera);
         let (label, sizes) = pieces(&zeta, &p, &q, &full);
-        (depth, scale) = fits
-            .observed
-            .place(&scene, &relative, (&label, &sizes), scale);
-        iterations.push(Iteration {
-            grid: [w, h],
-            median_depth: scale,
-            mean_change_deg: mean,
-            p95_change_deg: p95,
-        });
-        previous = normals;
-        albedo = a;
-        residual = fits.residual;
-        settled = pass >= *FULL_PASSES.start() && mean < FULL_TOLERANCE_DEG;
-        if settled {
+        drop((zeta, p, q));
+        let (next, s) = observed.place(&scene, &relative, (&label, &sizes), scale);
+        drop((relative, label));
+        let reach = nearest_light(&scene, &observed, &next);
+        let far_moved = moved_points(&depth, &next, &full, &settings.camera, reach);
+        (depth, scale) = (next, s);
+        iteration.median_depth = scale;
+        iterations.push(iteration);
+        if !far_moved.iter().any(|m| *m) {
+            settled = true;
             break;
         }
+        moved = Some(far_moved);
     }
     Ok(NearSurface {
         normals: previous,
         albedo,
         depth,
-        residual,
+        residual: fits.residual,
         mask: full,
         iterations,
         converged: coarse.converged && settled,
         intensities: coarse.intensities,
     })
+}
+
+/// The distance from the surface `depth` to its nearest light, over the sampled pixels.
+fn nearest_light(scene: &Scene<'_>, observed: &Observed, depth: &Array2<f32>) -> f64 {
+    let positions: Vec<[f64; 3]> = (scene.lights.iter())
+        .filter_map(|l| l.emitter.map(|e| e.position))
+        .collect();
+    let mut nearest = f64::INFINITY;
+    for &(r, c) in observed.pixels() {
+        if !depth[[r, c]].is_finite() {
+            continue;
+        }
+        let x = scene
+            .camera
+            .unproject(c as f64, r as f64, f64::from(depth[[r, c]]));
+        for p in &positions {
+            let d = (0..3).map(|k| (p[k] - x[k]).powi(2)).sum::<f64>().sqrt();
+            nearest = nearest.min(d);
+        }
+    }
+    nearest
+}
+
+/// The mask pixels whose surface point moves between `from` and `to` by more than
+/// [`MOVED`] of `reach` (a third of it: direction and falloff together).
+fn moved_points(
+    from: &Array2<f32>,
+    to: &Array2<f32>,
+    mask: &Array2<bool>,
+    camera: &Pinhole,
+    reach: f64,
+) -> Array2<bool> {
+    let limit = MOVED * reach / 3.0;
+    Zip::indexed(from)
+        .and(to)
+        .and(mask)
+        .map_collect(|(r, c), &a, &b, &m| {
+            let ray = camera.ray(c as f64, r as f64);
+            let length = (ray[0] * ray[0] + ray[1] * ray[1] + 1.0).sqrt();
+            m && !(f64::from((b - a).abs()) * length <= limit)
+        })
 }
 
 /// Pixels with at least three observations above `dark`.

@@ -5,10 +5,10 @@ use ndarray::{Array2, Array3};
 use crate::core::camera::Pinhole;
 use crate::core::options::Integration;
 
-/// The alternation's grid: 512², a small cost next to one pass over 2048² images, and
-/// fine enough that the light vectors it gives are a fraction of a degree from the
-/// surface's own.
-pub const COARSE_PIXELS: usize = 512 * 512;
+/// The alternation's grid: 256², a small cost next to one pass over 2048² images; the
+/// light vectors its surface gives are close enough to the full resolution's that the
+/// first full pass leaves few pixels to refit.
+pub const COARSE_PIXELS: usize = 256 * 256;
 
 /// How a near-light set is solved.
 #[derive(Debug, Clone)]
