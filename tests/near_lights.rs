@@ -52,10 +52,10 @@ fn interior(rig: &NearRig, border: usize) -> Array2<bool> {
     })
 }
 
-/// Today's distant solve (the default pipeline) of the rig's images under `lights`.
-fn distant_normals(rig: &NearRig, lights: Vec<photostereo::core::lights::Light>) -> Array3<f32> {
+/// The rig's images as a set under `lights`, with its mask.
+fn set_of(rig: &NearRig, lights: Vec<photostereo::core::lights::Light>) -> ImageSet {
     let (h, w) = rig.mask.dim();
-    let set = ImageSet {
+    ImageSet {
         width: w,
         height: h,
         bit_depth: 16,
@@ -65,7 +65,12 @@ fn distant_normals(rig: &NearRig, lights: Vec<photostereo::core::lights::Light>)
         mask: Some(rig.mask.clone()),
         mask_file: None,
         notes: Vec::new(),
-    };
+    }
+}
+
+/// Today's distant solve (the default pipeline) of the rig's images under `lights`.
+fn distant_normals(rig: &NearRig, lights: Vec<photostereo::core::lights::Light>) -> Array3<f32> {
+    let set = set_of(rig, lights);
     let opts = Options {
         mask: MaskMode::Given,
         ..Options::default()
@@ -79,18 +84,7 @@ fn solve_with(
     lights: Vec<photostereo::core::lights::Light>,
     settings: &NearSettings,
 ) -> near::NearSurface {
-    let (h, w) = rig.mask.dim();
-    let set = ImageSet {
-        width: w,
-        height: h,
-        bit_depth: 16,
-        lights,
-        planes: rig.images.clone(),
-        colour_moments: None,
-        mask: None,
-        mask_file: None,
-        notes: Vec::new(),
-    };
+    let set = set_of(rig, lights);
     near::solve(&mut InMemory::new(set), Some(&rig.mask), settings, NEVER).unwrap()
 }
 

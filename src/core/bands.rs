@@ -74,6 +74,26 @@ pub trait Stack: Send {
     fn rewind(&mut self);
 }
 
+/// Every band of `stack` from its first row, in order, each handed to `each` with its
+/// rows; once `halt` says stop, the rest are not read.
+pub fn each_band(
+    stack: &mut dyn Stack,
+    halt: &(dyn Fn() -> bool + Sync),
+    mut each: impl FnMut(Range<usize>, Band<'_>),
+) -> Result<(), InputError> {
+    let height = stack.info().height;
+    let step = stack.band_rows().max(1);
+    stack.rewind();
+    for r0 in (0..height).step_by(step) {
+        if halt() {
+            break;
+        }
+        let rows = r0..(r0 + step).min(height);
+        each(rows.clone(), stack.band(rows)?);
+    }
+    Ok(())
+}
+
 /// An [`ImageSet`] in memory (owned or borrowed) as a [`Stack`]: one band, the whole set.
 pub struct InMemory<S> {
     set: S,

@@ -9,7 +9,7 @@ use ndarray::{Array2, Array3, ArrayViewMut3, Axis, s};
 use rayon::prelude::*;
 
 use super::InputError;
-use super::bands::{Band, SetInfo, Stack, SurfaceRows};
+use super::bands::{Band, SetInfo, Stack, SurfaceRows, each_band};
 use super::lambert::{invert3, pseudo_inverse, render_observation};
 use super::lights::Light;
 use super::options::Solver;
@@ -78,13 +78,8 @@ pub fn solve(stack: &mut dyn Stack, solver: Solver, halt: Halt) -> Result<Surfac
         .then(|| robust::Robust::new(&info.lights, info.bit_depth, stack.samples(), cols));
     let linear = Linear::new(&info, solver);
     surface.estimate = robust.as_ref().map(|r| r.estimate);
-    let step = stack.band_rows().max(1);
-    for r0 in (0..rows).step_by(step) {
-        if halt() {
-            break;
-        }
-        let r1 = (r0 + step).min(rows);
-        let band = stack.band(r0..r1)?;
+    each_band(stack, halt, |band_rows, band| {
+        let (r0, r1) = (band_rows.start, band_rows.end);
         let out = surface.rows_mut(r0..r1);
         match &robust {
             Some(r) => r.solve_rows(&band.planes, cols, out, halt),
@@ -99,7 +94,7 @@ pub fn solve(stack: &mut dyn Stack, solver: Solver, halt: Halt) -> Result<Surfac
                 &info.lights,
             );
         }
-    }
+    })?;
     Ok(surface)
 }
 

@@ -9,7 +9,7 @@ use rayon::prelude::*;
 use super::point::{Scene, Scratch};
 use super::scale::{Observed, sampled};
 use crate::core::InputError;
-use crate::core::bands::Stack;
+use crate::core::bands::{Stack, each_band};
 use crate::core::progress::Halt;
 
 /// Which pixels a pass fits.
@@ -57,17 +57,11 @@ pub fn fit_bands(
     mut sampling: Option<(&mut Observed, usize)>,
     halt: Halt,
 ) -> Result<(), InputError> {
-    let (h, w) = mask.dim();
+    let w = mask.dim().1;
     let (scene, depth) = (pass.scene, pass.depth);
     let n = scene.lights.len();
-    let step = stack.band_rows().max(1);
-    stack.rewind();
-    for r0 in (0..h).step_by(step) {
-        if halt() {
-            break;
-        }
-        let r1 = (r0 + step).min(h);
-        let band = stack.band(r0..r1)?;
+    each_band(stack, halt, |rows, band| {
+        let (r0, r1) = (rows.start, rows.end);
         let planes = &band.planes;
         let value = |at: usize| planes.iter().map(move |p| f32::from(p[at]) / 65535.0);
         let mut g = fits.g.slice_mut(s![r0..r1, .., ..]);
@@ -109,6 +103,5 @@ pub fn fit_bands(
                 }
             }
         }
-    }
-    Ok(())
+    })
 }

@@ -10,7 +10,7 @@ use ndarray::Array2;
 use rayon::prelude::*;
 
 use crate::core::InputError;
-use crate::core::bands::Stack;
+use crate::core::bands::{Stack, each_band};
 use crate::core::camera::Pinhole;
 use crate::core::progress::Halt;
 
@@ -55,19 +55,12 @@ pub fn shrink(
     let images = stack.info().lights.len();
     let mut sums = vec![vec![0u32; cw * ch]; images];
     let mut peak = 0u16;
-    let step = stack.band_rows().max(1);
-    stack.rewind();
-    for r0 in (0..h).step_by(step) {
-        if halt() {
-            break;
-        }
-        let r1 = (r0 + step).min(h);
-        let band = stack.band(r0..r1)?;
+    each_band(stack, halt, |rows, band| {
         let top = (sums.par_iter_mut().zip(&band.planes))
             .map(|(sum, plane)| {
                 let mut top = 0u16;
                 for (i, row) in plane.chunks_exact(w).enumerate() {
-                    let out = &mut sum[(r0 + i) / factor * cw..][..cw];
+                    let out = &mut sum[(rows.start + i) / factor * cw..][..cw];
                     for (c, &v) in row.iter().enumerate() {
                         out[c / factor] += u32::from(v);
                         top = top.max(v);
@@ -78,7 +71,7 @@ pub fn shrink(
             .max()
             .unwrap_or(0);
         peak = peak.max(top);
-    }
+    })?;
     let size = |i: usize, n: usize| (factor.min(n - i * factor)) as u32;
     let planes = (sums.into_par_iter())
         .map(|sum| {
