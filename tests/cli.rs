@@ -223,7 +223,7 @@ fn bench_prints_its_tables_and_cleans_up() {
     assert!(left.is_empty(), "left behind: {left:?}");
 }
 
-/// `--light x,y,z` as the help and README write it: the default light gives the default
+/// `--light x,y,z` as the help and docs/usage.md write it: the default light gives the default
 /// picture, another light (negative components too) another one, and lights that cannot
 /// shade are refused by name.
 #[test]

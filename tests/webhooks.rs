@@ -61,7 +61,7 @@ fn webhook_config(dir: &std::path::Path) -> photostereo::service::Config {
     c
 }
 
-/// The README's recipe: HMAC-SHA256 of `timestamp.body` under the secret, hex, as `v1=`.
+/// The recipe docs/http-api.md gives: HMAC-SHA256 of `timestamp.body` under the secret, hex, as `v1=`.
 fn expected_signature(secret: &str, timestamp: &str, body: &str) -> String {
     let mut key = [0u8; 64];
     key[..secret.len()].copy_from_slice(secret.as_bytes());

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::ensure;
 use clap::Args;
 
-/// Time, memory and HTTP figures on synthetic data sets (see the README's Performance).
+/// Time, memory and HTTP figures on synthetic data sets (docs/benchmarks.md holds them).
 #[derive(Debug, Args)]
 pub struct BenchArgs {
     /// Square image sizes in pixels, comma-separated (up to 8192; 5120² is a 26-megapixel camera).
