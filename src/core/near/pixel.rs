@@ -55,6 +55,17 @@ pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [
             kept: 0,
         };
     };
+    // When the plain fit leaves every lit observation lit and within the outlier limit
+    // at the noise floor, nothing is an outlier: the cut would keep them all, and the
+    // plain fit is the answer (most pixels of a matte surface).
+    let clean = OUTLIER_DEVIATIONS * floor;
+    let plain = (lights.iter().zip(obs)).all(|(l, &o)| {
+        let p = dot(g, *l);
+        o <= dark || (p > 0.0 && (o - p).abs() <= clean)
+    });
+    if plain {
+        return kept_fit(lights, obs, dark, g, keep);
+    }
     let mut scale = floor;
     for round in 0..=REWEIGHTS {
         let mut m = 0;
@@ -102,6 +113,21 @@ pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [
     if let Some(next) = solve(lights, obs, weight) {
         g = next;
     }
+    let (rms, kept) = rms_of(lights, obs, g, keep);
+    Fit { g, rms, kept }
+}
+
+/// The plain fit `g` of every lit observation (above `dark`), all kept.
+fn kept_fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, g: [f32; 3], keep: &mut [bool]) -> Fit {
+    for (k, &o) in keep.iter_mut().zip(obs) {
+        *k = o > dark;
+    }
+    let (rms, kept) = rms_of(lights, obs, g, keep);
+    Fit { g, rms, kept }
+}
+
+/// RMS of (observed − re-rendered) over the kept observations, and their count.
+fn rms_of(lights: &[[f32; 3]], obs: &[f32], g: [f32; 3], keep: &[bool]) -> (f32, usize) {
     let (mut sum, mut kept) = (0f32, 0usize);
     for (k, (l, &o)) in lights.iter().zip(obs).enumerate() {
         if keep[k] {
@@ -110,15 +136,12 @@ pub fn fit(lights: &[[f32; 3]], obs: &[f32], dark: f32, floor: f32, keep: &mut [
             kept += 1;
         }
     }
-    Fit {
-        g,
-        rms: if kept > 0 {
-            (sum / kept as f32).sqrt()
-        } else {
-            0.0
-        },
-        kept,
-    }
+    let rms = if kept > 0 {
+        (sum / kept as f32).sqrt()
+    } else {
+        0.0
+    };
+    (rms, kept)
 }
 
 /// Weighted least squares; None with fewer than three weighted observations or when
