@@ -202,7 +202,9 @@ fn moved_points(
         .map_collect(|(r, c), &a, &b, &m| {
             let ray = camera.ray(c as f64, r as f64);
             let length = (ray[0] * ray[0] + ray[1] * ray[1] + 1.0).sqrt();
-            m && !(f64::from((b - a).abs()) * length <= limit)
+            // A point that became unknown (NaN) moved too.
+            let step = f64::from((b - a).abs()) * length;
+            m && (step > limit || step.is_nan())
         })
 }
 
