@@ -12,7 +12,7 @@ use photostereo::core::bands::Stack;
 use photostereo::core::intake::{self, DirMask, Limits};
 use photostereo::core::normalmap::{Convention, Lens};
 use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
-use photostereo::core::{Options, metrics, pipeline, stream, synth};
+use photostereo::core::{Options, metrics, near, pipeline, stream, synth};
 use photostereo::service;
 use serde::de::DeserializeOwned;
 
@@ -106,7 +106,8 @@ struct ReconstructArgs {
     light: Option<[f64; 3]>,
     /// Write these artifacts (comma-separated names, e.g. albedo.png,mesh.glb, or `all`)
     /// instead of the default set (albedo, mask, normal, height, confidence and shaded
-    /// PNGs, mesh.glb, result.json).
+    /// PNGs, mesh.glb, result.json). Near lights write all of theirs by default: albedo,
+    /// normal, mask and depth pictures, points.ply, mesh.glb, result.json.
     #[arg(long, value_delimiter = ',')]
     outputs: Option<Vec<String>>,
     #[command(flatten)]
@@ -504,20 +505,23 @@ fn circle_arg(s: &str) -> Result<[f64; 3], String> {
 }
 
 impl ReconstructArgs {
-    /// The options, and the mask mode if the user chose one (by flag or in the file).
-    fn options(&self) -> anyhow::Result<(Options, Option<MaskMode>)> {
-        let (mut o, mut chosen): (Options, _) = match &self.options {
+    /// The options, the mask mode if the user chose one (by flag or in the file), and the
+    /// fields the options file names.
+    fn options(&self) -> anyhow::Result<(Options, Option<MaskMode>, Vec<String>)> {
+        let (mut o, mut chosen, fields): (Options, _, Vec<String>) = match &self.options {
             Some(p) => {
                 let text = std::fs::read_to_string(p)
                     .with_context(|| format!("reading {}", p.display()))?;
                 let o: Options = serde_json::from_str(&text)
                     .with_context(|| format!("options in {}", p.display()))?;
-                let has_mask = serde_json::from_str::<serde_json::Value>(&text)
-                    .is_ok_and(|v| v.get("mask").is_some());
-                let chosen = has_mask.then_some(o.mask);
-                (o, chosen)
+                let fields: Vec<String> = serde_json::from_str::<serde_json::Value>(&text)
+                    .ok()
+                    .and_then(|v| Some(v.as_object()?.keys().cloned().collect()))
+                    .unwrap_or_default();
+                let chosen = fields.iter().any(|f| f == "mask").then_some(o.mask);
+                (o, chosen, fields)
             }
-            None => (Options::default(), None),
+            None => (Options::default(), None, Vec::new()),
         };
         chosen = self.mask.or(chosen);
         macro_rules! set {
@@ -541,7 +545,40 @@ impl ReconstructArgs {
             o.distance = self.camera.distance;
         }
         o.check_values()?;
-        Ok((o, chosen))
+        Ok((o, chosen, fields))
+    }
+
+    /// Refuses what a near-light reconstruction would leave unused: the distant solve's
+    /// flags (`--solver`, `--light`, `--max-condition`), fields of the options file other
+    /// than [`near::OPTIONS`], and outputs it never writes ([`near::check_outputs`]).
+    fn check_near(&self, file_fields: &[String], opts: &Options) -> anyhow::Result<()> {
+        let distant = [
+            ("--solver", self.solver.is_some()),
+            ("--light", self.light.is_some()),
+            ("--max-condition", self.max_condition.is_some()),
+        ];
+        if let Some((flag, _)) = distant.iter().find(|(_, given)| *given) {
+            anyhow::bail!(
+                "{flag} does not apply to near lights (the light table gives positions); a near-light reconstruction takes --mask, --mask-file, --integration, --outputs, the mesh flags, --camera, --focal-length and --distance"
+            );
+        }
+        let other = file_fields
+            .iter()
+            .find(|f| !near::OPTIONS.contains(&f.as_str()));
+        if let (Some(file), Some(field)) = (&self.options, other) {
+            anyhow::bail!(
+                "field `{field}` of {} does not apply to near lights (the light table gives positions), which take {}",
+                file.display(),
+                near::OPTIONS.join(", ")
+            );
+        }
+        if let Some(names) = &opts.outputs {
+            near::check_outputs(names).with_context(|| match &self.options {
+                Some(file) if self.outputs.is_none() => format!("outputs in {}", file.display()),
+                _ => "--outputs".to_string(),
+            })?;
+        }
+        Ok(())
     }
 
     /// Which mask the folder's set gets: --mask-file, else the folder's mask.png unless
@@ -589,10 +626,11 @@ impl ReconstructArgs {
 }
 
 fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
-    let (mut opts, chosen) = args.options()?;
+    let (mut opts, chosen, file_fields) = args.options()?;
     let flags = args.camera.lens()?;
     let table = intake::dir_table(&args.dir)?;
     if table.lights.iter().any(|l| l.emitter.is_some()) {
+        args.check_near(&file_fields, &opts)?;
         return reconstruct_near(&args, opts, chosen, flags, table.rig);
     }
     let start = std::time::Instant::now();
@@ -644,8 +682,8 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
 }
 
 /// A folder whose light table gives positions: the near-light solve, the set read in
-/// bands as `reconstruct` reads it. The camera is the flags' or the table's; the working
-/// distance `--distance` or the table's.
+/// bands as `reconstruct` reads it. The camera is the flags', the options file's or the
+/// table's; the working distance `--distance`, the options file's or the table's.
 fn reconstruct_near(
     args: &ReconstructArgs,
     mut opts: Options,
@@ -661,7 +699,7 @@ fn reconstruct_near(
         opts.mask = MaskMode::Given;
     }
     let (width, height) = (set.info().width, set.info().height);
-    let camera = match (flags, rig.camera) {
+    let camera = match (flags, opts.camera.or(rig.camera)) {
         (Some(lens), _) => lens.resolve(width, height),
         (None, Some(c)) => c,
         (None, None) => anyhow::bail!(
@@ -677,7 +715,7 @@ fn reconstruct_near(
     for note in &set.info().notes {
         eprintln!("note: {note}");
     }
-    let report = photostereo::core::near::run(
+    let report = near::run(
         &mut set,
         camera,
         distance,

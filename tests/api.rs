@@ -2344,3 +2344,67 @@ async fn a_near_light_table_makes_a_near_light_job() {
     expect_problem(post(wide).await.unwrap(), 422, &["principal point"]).await;
     s.stop().await;
 }
+
+/// A near-light job takes the options it reads (mask, integration, mesh, outputs, camera,
+/// distance): one of the distant solve's is refused before the 202 naming the field and
+/// what the job takes, and so is an `outputs` selection naming what it never writes; a
+/// selection of what it writes is honoured.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_near_light_job_refuses_options_and_outputs_it_cannot_honour() {
+    let rig = photostereo::core::synth::ring_relief(64);
+    let set = tempfile::tempdir().unwrap();
+    rig.write(set.path()).unwrap();
+    let form = |options: &str| {
+        let mut form = Form::new()
+            .part(
+                "lights",
+                file_part(&set.path().join("light_directions.json")),
+            )
+            .text("options", options.to_string());
+        for img in images_of(set.path()) {
+            form = form.part("images", file_part(&img));
+        }
+        form
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let takes = "which takes mask, integration, mesh, outputs, camera, distance";
+    for field in [
+        r#""solver": "l2""#,
+        r#""shading_light": [0, 0, 1]"#,
+        r#""max_condition": 1e6"#,
+    ] {
+        let name = field.split('"').nth(1).unwrap();
+        let r = post(form(&format!("{{{field}}}"))).await.unwrap();
+        let needle = format!("field `{name}` does not apply to a near-light job");
+        expect_problem(r, 422, &[&needle, takes]).await;
+    }
+    let writes =
+        "albedo.png, normal.png, mask.png, depth.exr, depth.png, points.ply, mesh.glb, result.json";
+    let r = post(form(r#"{"outputs": ["height.png"]}"#)).await.unwrap();
+    expect_problem(r, 422, &["field `outputs`", "\"height.png\"", writes]).await;
+    let r = post(form(r#"{"outputs": ["depth.exr", "lights.json"]}"#))
+        .await
+        .unwrap();
+    expect_problem(r, 422, &["field `outputs`", "\"lights.json\""]).await;
+
+    // What it takes, with a selection of what it writes: only those are written.
+    let options = r#"{"mask": "auto", "integration": "poisson", "mesh": {"max_vertices": 2000}, "outputs": ["depth.exr", "mesh.glb"]}"#;
+    let job = s.submit(form(options)).await;
+    let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    let artifacts = job["artifacts"].as_object().unwrap();
+    for name in ["depth.exr", "mesh.glb", "result.json"] {
+        assert!(artifacts.contains_key(name), "{name}: {job}");
+    }
+    for name in [
+        "albedo.png",
+        "normal.png",
+        "mask.png",
+        "depth.png",
+        "points.ply",
+    ] {
+        assert!(!artifacts.contains_key(name), "{name}: {job}");
+    }
+    s.stop().await;
+}

@@ -32,6 +32,7 @@ use serde::Deserialize;
 use crate::core::camera::{self, Pinhole};
 use crate::core::layout;
 use crate::core::lights::{self, Light};
+use crate::core::near;
 use crate::core::normalmap::{self, Convention, NormalMapError};
 use crate::core::normals_in;
 use crate::core::options::MaskMode;
@@ -523,6 +524,9 @@ pub async fn receive(
         _ => lights::parse_table_bytes(&table)?,
     };
     let near = parsed.is_near();
+    if near {
+        check_near_options(&parts.options_fields, &options)?;
+    }
     let lights = parsed.lights;
     if let Some(id) = &calibration {
         check_calibration_names(id, &lights, &parts.images)?;
@@ -598,6 +602,23 @@ pub(super) fn near_rig(
     camera.check(width, height).map_err(InputError::from)?;
     crate::core::options::check_distance(Some(distance), Some(&camera))?;
     Ok((camera, distance))
+}
+
+/// A near-light job's options name only the fields it takes ([`near::OPTIONS`]) and its
+/// `outputs` only what it writes ([`near::check_outputs`]): a 422 naming the first that
+/// does not apply.
+fn check_near_options(fields: &[String], options: &Options) -> Result<(), ApiError> {
+    if let Some(field) = fields.iter().find(|f| !near::OPTIONS.contains(&f.as_str())) {
+        return Err(InputError::Options(format!(
+            "field `{field}` does not apply to a near-light job, which takes {}",
+            near::OPTIONS.join(", ")
+        ))
+        .into());
+    }
+    if let Some(names) = &options.outputs {
+        near::check_outputs(names)?;
+    }
+    Ok(())
 }
 
 /// A normals job's parts checked against each other, and its manifest written: its

@@ -1,7 +1,8 @@
 //! A near-light set reconstructed and written: [`super::solve`] on the set's bands,
 //! then the pictures (`albedo.png`, `normal.png`, `mask.png`, `depth.exr`, `depth.png`),
 //! `points.ply` and `mesh.glb` unprojected through the camera, and `result.json`
-//! ([`NearReport`]). Depth is metric, in the table's unit.
+//! ([`NearReport`]): those of [`selection::ARTIFACTS`] the `outputs` selection names (all
+//! without one). Depth is metric, in the table's unit.
 
 use std::path::Path;
 use std::time::Instant;
@@ -9,6 +10,7 @@ use std::time::Instant;
 use ndarray::Array2;
 use serde::Serialize;
 
+use super::selection;
 use super::solve::solve;
 use super::surface::{Iteration, NearSettings};
 use crate::core::bands::{SetInfo, Stack};
@@ -60,7 +62,8 @@ pub struct Estimated {
 /// Reconstruct `stack` (lights with positions) under `camera` from the working
 /// `distance`, and write its artifacts into `dir`. The mask is the set's own with
 /// `--mask given`, else every pixel with three lit observations; `opts` gives the
-/// integration and mesh.
+/// integration, mesh and outputs (the fields of [`selection::OPTIONS`]; the camera and
+/// distance are the caller's to resolve).
 pub fn run(
     stack: &mut dyn Stack,
     camera: Pinhole,
@@ -136,16 +139,7 @@ pub fn run(
     let wanted = |name: &str| {
         (opts.outputs.as_deref()).is_none_or(|o| o.iter().any(|s| s == name || s == outputs::ALL))
     };
-    let pictures: Vec<&str> = [
-        "albedo.png",
-        "normal.png",
-        "mask.png",
-        "depth.exr",
-        "depth.png",
-    ]
-    .into_iter()
-    .filter(|n| wanted(n))
-    .collect();
+    let pictures: Vec<&str> = selection::pictures().filter(|n| wanted(n)).collect();
     let maps = Maps {
         heights: Some(Heights {
             z: &rec.heights,
