@@ -2310,26 +2310,11 @@ async fn a_near_light_table_makes_a_near_light_job() {
     // Without a working distance or a camera, refused before the job is queued, naming
     // what is missing (and only that).
     let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
-    let body = expect_problem(
-        post(form(&without("distance"))).await.unwrap(),
-        422,
-        &["distance"],
-    )
-    .await;
-    assert!(
-        !body["detail"].as_str().unwrap().contains("camera"),
-        "{body}"
-    );
-    let body = expect_problem(
-        post(form(&without("camera"))).await.unwrap(),
-        422,
-        &["camera"],
-    )
-    .await;
-    assert!(
-        !body["detail"].as_str().unwrap().contains("distance"),
-        "{body}"
-    );
+    for (missing, given) in [("distance", "camera"), ("camera", "distance")] {
+        let r = post(form(&without(missing))).await.unwrap();
+        let body = expect_problem(r, 422, &[missing]).await;
+        assert!(!body["detail"].as_str().unwrap().contains(given), "{body}");
+    }
     // A light behind the camera: the parser's refusal, naming the row.
     let mut behind = table.clone();
     behind["lights"][1]["position"][2] = serde_json::json!(5.0);

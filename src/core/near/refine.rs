@@ -17,8 +17,13 @@ use crate::core::progress::Halt;
 pub enum Pixels {
     /// Those of the mask it is given.
     Masked,
-    /// Those with three observations above this level: the pass sets the mask.
+    /// Those [`lit`] above this level: the pass sets the mask.
     Lit { dark: u16 },
+}
+
+/// Whether a pixel with these observations is solved: three of them above `dark`.
+pub fn lit(values: impl Iterator<Item = u16>, dark: u16) -> bool {
+    values.filter(|&v| v > dark).count() >= 3
 }
 
 /// What the passes fitted: `g = ρ n` and the RMS of each pixel's kept observations,
@@ -80,7 +85,7 @@ pub fn fit_bands(
                 for c in 0..w {
                     let at = i * w + c;
                     if let Pixels::Lit { dark } = pixels {
-                        on[c] = planes.iter().filter(|p| p[at] > dark).count() >= 3;
+                        on[c] = lit(planes.iter().map(|p| p[at]), dark);
                     }
                     let chosen = pass.only.is_none_or(|o| o[[r, c]]);
                     if !on[c] || !chosen || !depth[[r, c]].is_finite() {

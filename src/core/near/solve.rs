@@ -18,7 +18,7 @@ use super::enlarge::enlarge;
 use super::maps::{changes, split};
 use super::pieces::pieces;
 use super::point::Scene;
-use super::refine::{Fits, Pass, Pixels, fit_bands};
+use super::refine::{Fits, Pass, Pixels, fit_bands, lit};
 use super::scale::{Observed, stride_for};
 use super::shrink::{factor_for, shrink, shrink_mask};
 use super::surface::{Iteration, NearSettings, NearSurface};
@@ -56,7 +56,7 @@ pub fn solve(
     let dark = (shrunk.peak / LIT_FRACTION).max(1);
     let small_mask = match mask {
         Some(m) => shrink_mask(m, factor),
-        None => lit(&shrunk.planes, dark),
+        None => lit_blocks(&shrunk.planes, dark),
     };
     let planes: Vec<ArrayView2<u16>> = shrunk.planes.iter().map(|p| p.view()).collect();
     let mut lights = stack.info().lights.clone();
@@ -208,12 +208,10 @@ fn moved_points(
         })
 }
 
-/// Pixels with at least three observations above `dark`.
-fn lit(planes: &[Array2<u16>], dark: u16) -> Array2<bool> {
+/// The [`lit`] pixels of the shrunk planes.
+fn lit_blocks(planes: &[Array2<u16>], dark: u16) -> Array2<bool> {
     let dim = planes.first().map_or((0, 0), |p| p.dim());
-    Array2::from_shape_fn(dim, |p| {
-        planes.iter().filter(|plane| plane[p] > dark).count() >= 3
-    })
+    Array2::from_shape_fn(dim, |p| lit(planes.iter().map(|plane| plane[p]), dark))
 }
 
 /// The shrunk grid's normals at full resolution, each block's over its pixels.
