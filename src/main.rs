@@ -11,7 +11,7 @@ use clap::{Args, Parser, Subcommand};
 use photostereo::core::bands::Stack;
 use photostereo::core::intake::{self, DirMask, Limits};
 use photostereo::core::normalmap::{Convention, Lens};
-use photostereo::core::options::{Integration, MaskMode, MeshNormals, Solver};
+use photostereo::core::options::{Integration, Intensities, MaskMode, MeshNormals, Solver};
 use photostereo::core::{Options, metrics, near, pipeline, stream, synth};
 use photostereo::service;
 use serde::de::DeserializeOwned;
@@ -104,6 +104,11 @@ struct ReconstructArgs {
     /// Light for shaded.png, as x,y,z (default 1,2,3).
     #[arg(long, value_parser = xyz, allow_hyphen_values = true)]
     light: Option<[f64; 3]>,
+    /// table (default): the light table's intensities (1 where it gives none; an LED
+    /// given by position without one is estimated) | estimate: every light's relative
+    /// intensity from the object itself, written back as lights.json.
+    #[arg(long, value_parser = kebab::<Intensities>)]
+    intensities: Option<Intensities>,
     /// Write these artifacts (comma-separated names, e.g. albedo.png,mesh.glb, or `all`)
     /// instead of the default set (albedo, mask, normal, height, confidence and shaded
     /// PNGs, mesh.glb, result.json). Near lights write all of theirs by default: albedo,
@@ -527,7 +532,7 @@ impl ReconstructArgs {
         macro_rules! set {
             ($($flag:ident => $($field:ident).+),*) => { $(if let Some(v) = self.$flag.clone() { o.$($field).+ = v; })* };
         }
-        set!(solver => solver, mask => mask, integration => integration, max_condition => max_condition,
+        set!(solver => solver, mask => mask, integration => integration, max_condition => max_condition, intensities => intensities,
              height_scale => mesh.height_scale, mesh_max_vertices => mesh.max_vertices, mesh_normals => mesh.normals);
         if let Some(l) = self.light {
             o.shading_light = l;
@@ -559,7 +564,7 @@ impl ReconstructArgs {
         ];
         if let Some((flag, _)) = distant.iter().find(|(_, given)| *given) {
             anyhow::bail!(
-                "{flag} does not apply to near lights (the light table gives positions); a near-light reconstruction takes --mask, --mask-file, --integration, --outputs, the mesh flags, --camera, --focal-length and --distance"
+                "{flag} does not apply to near lights (the light table gives positions); a near-light reconstruction takes --mask, --mask-file, --integration, --intensities, --outputs, the mesh flags, --camera, --focal-length and --distance"
             );
         }
         let other = file_fields

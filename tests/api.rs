@@ -2393,3 +2393,76 @@ async fn a_near_light_job_refuses_options_and_outputs_it_cannot_honour() {
     }
     s.stop().await;
 }
+
+/// `intensities: estimate` on a distant-light job: the summary lists each light's
+/// estimated intensity, `lights.json` is an artifact, and as the light table of a job it
+/// gives the normals of the estimate's job.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_estimates_its_lights_intensities_on_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = TestServer::start(config(dir.path())).await;
+    let set = repo_root().join("res/sphere");
+    let form = folder_form(&set).text("options", r#"{"intensities": "estimate"}"#);
+    let job = s.submit(form).await;
+    let job = s.wait_succeeded(job["id"].as_str().unwrap()).await;
+    let estimated = job["result"]["estimated_intensities"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no estimated intensities in {job}"));
+    assert_eq!(
+        estimated.len() as u64,
+        job["result"]["light_count"].as_u64().unwrap()
+    );
+    for e in estimated {
+        let i = e["intensity"].as_f64().unwrap();
+        assert!((i - 1.0).abs() < 0.01, "the set's lights are equal: {job}");
+    }
+    let get = |name: &str| {
+        let url = job["artifacts"][name]
+            .as_str()
+            .unwrap_or_else(|| panic!("no {name} in {job}"))
+            .to_string();
+        let s = &s;
+        async move {
+            s.client
+                .get(s.url(&url))
+                .send()
+                .await
+                .unwrap()
+                .bytes()
+                .await
+                .unwrap()
+        }
+    };
+    let table = get("lights.json").await;
+    let normals = get("normal.png").await;
+
+    let mut form = Form::new();
+    for img in images_of(&set) {
+        form = form.part("images", file_part(&img));
+    }
+    let form = form.part(
+        "lights",
+        Part::bytes(table.to_vec()).file_name("lights.json"),
+    );
+    let again = s.submit(form).await;
+    let again = s.wait_succeeded(again["id"].as_str().unwrap()).await;
+    assert!(
+        again["result"]["estimated_intensities"].is_null(),
+        "{again}"
+    );
+    let url = again["artifacts"]["normal.png"].as_str().unwrap();
+    let reread = s
+        .client
+        .get(s.url(url))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    assert_eq!(
+        normals, reread,
+        "lights.json as the table gives other normals"
+    );
+    s.stop().await;
+}

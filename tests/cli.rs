@@ -615,3 +615,29 @@ fn calibrate_finds_two_balls_by_itself_and_writes_the_lights_positions() {
         "{stderr}"
     );
 }
+
+/// `--intensities estimate` writes the estimated table as lights.json and lists the
+/// estimates in result.json; `--intensities` takes only its two values.
+#[test]
+fn intensities_estimate_writes_the_table_it_estimated() {
+    let (out, report) = reconstruct(&res("sphere"), &["--intensities", "estimate"]);
+    let estimated = report["estimated_intensities"]
+        .as_array()
+        .expect("estimates");
+    assert_eq!(
+        estimated.len() as u64,
+        report["light_count"].as_u64().unwrap()
+    );
+    let table: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.path().join("lights.json")).unwrap()).unwrap();
+    assert_eq!(table.as_array().unwrap().len(), estimated.len());
+    assert!(
+        report["artifacts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|a| a == "lights.json")
+    );
+    let e = failure(&["--intensities", "guess"], &res("sphere"));
+    assert!(e.contains("--intensities") && e.contains("estimate"), "{e}");
+}

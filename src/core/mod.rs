@@ -18,6 +18,7 @@ pub mod heap;
 mod histogram;
 pub mod intake;
 pub mod integrate;
+pub mod intensities;
 pub mod lambert;
 pub mod layout;
 pub mod lights;

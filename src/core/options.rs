@@ -62,6 +62,22 @@ pub enum Integration {
     Bilateral,
 }
 
+/// Where the lights' intensities come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Intensities {
+    /// The light table's: a light without one has intensity 1, except a light given by
+    /// position (an LED), whose unknown intensity is estimated as `estimate` does.
+    #[default]
+    Table,
+    /// Every light's relative intensity (mean 1) estimated from the object itself
+    /// (semi-calibrated photometric stereo), whatever the table says; reported in
+    /// result.json and written back as `lights.json`, a table `reconstruct` reads. The
+    /// object must show normals of several kinds: a plane cannot tell the lights apart,
+    /// and is refused.
+    Estimate,
+}
+
 /// How the mesh's vertex normals are made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]
 #[serde(rename_all = "kebab-case")]
@@ -130,6 +146,7 @@ pub struct Options {
     /// wanted (metric depth); absent: relative depth, median 1.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub distance: Option<f64>,
+    pub intensities: Intensities,
 }
 
 impl Default for Options {
@@ -144,6 +161,7 @@ impl Default for Options {
             outputs: None,
             camera: None,
             distance: None,
+            intensities: Intensities::default(),
         }
     }
 }

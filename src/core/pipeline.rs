@@ -16,8 +16,9 @@ use super::commit::{self, Committer};
 use super::error::RunError;
 use super::intake::ImageSet;
 use super::integrate::perspective;
+use super::intensities::Estimated;
 use super::lights::{self, Light};
-use super::options::Options;
+use super::options::{Intensities, Options};
 use super::outputs::{self, Maps};
 use super::progress::{Halt, Progress, Stage};
 use super::reconstruction::{LightSummary, Reconstruction, Report, Timing};
@@ -49,6 +50,8 @@ struct Prepared {
     width: usize,
     height: usize,
     lights: Vec<Light>,
+    /// The lights' intensities, when they were estimated from the object.
+    estimated: Option<Vec<Estimated>>,
     condition: f64,
     clamped: usize,
     albedo: Array2<f32>,
@@ -88,8 +91,16 @@ fn prepare(
 
     step(progress, Stage::Solve)?;
     let polled: &dyn Progress = progress;
-    let surface = timings.time(Stage::Solve, || {
-        solve::solve(stack, opts.solver, &|| polled.halted())
+    let (surface, lights, estimated) = timings.time(Stage::Solve, || {
+        let (lights, estimated) = match opts.intensities {
+            Intensities::Table => (stack.info().lights.clone(), None),
+            Intensities::Estimate => {
+                let (lights, estimated) = estimated_lights(stack)?;
+                (lights, Some(estimated))
+            }
+        };
+        let surface = solve::solve(stack, &lights, opts.solver, &|| polled.halted())?;
+        Ok::<_, InputError>((surface, lights, estimated))
     })?;
     not_halted(polled)?;
     let set = stack.info();
@@ -148,7 +159,8 @@ fn prepare(
     Ok(Prepared {
         width: set.width,
         height: set.height,
-        lights: set.lights.clone(),
+        lights,
+        estimated,
         condition,
         clamped,
         albedo,
@@ -162,6 +174,36 @@ fn prepare(
         mask_file: set.mask_file.clone(),
         notes: set.notes.clone(),
     })
+}
+
+/// The set's lights with their relative intensities estimated from the object (the
+/// pre-pass's sampled pixels, [`robust::estimate_intensities`]), and the estimates as the
+/// report lists them.
+fn estimated_lights(stack: &dyn Stack) -> Result<(Vec<Light>, Vec<Estimated>), InputError> {
+    let info = stack.info();
+    let e = robust::estimate_intensities(&info.lights, info.bit_depth, stack.samples(), info.width)
+        .ok_or_else(|| {
+            InputError::Lights(
+                "the lights' intensities cannot be estimated from this object: its lit pixels \
+                 do not show normals of enough kinds to tell the lights apart (a plane, or \
+                 too little of the object lit); give the intensities in the light table"
+                    .into(),
+            )
+        })?;
+    let lights: Vec<Light> = (info.lights.iter().zip(&e))
+        .map(|(l, &intensity)| Light {
+            intensity,
+            rgb: None,
+            ..l.clone()
+        })
+        .collect();
+    let estimated = (lights.iter())
+        .map(|l| Estimated {
+            name: l.name.clone(),
+            intensity: l.intensity,
+        })
+        .collect();
+    Ok((lights, estimated))
 }
 
 /// The surface gradients integration starts from: of the heights (orthographic), or of
@@ -272,6 +314,7 @@ impl Prepared {
             object_pixels: object,
             artifacts: Vec::new(),
             mask_file: self.mask_file,
+            estimated_intensities: self.estimated,
             notes: self.notes,
         };
         Reconstruction {
@@ -470,6 +513,11 @@ pub fn run(
     not_halted(polled)?;
     rec.report.timings_ms.push(Timing::new(Stage::Mesh, start));
 
+    if rec.report.estimated_intensities.is_some() {
+        let table = lights::to_json(&rec.lights);
+        commits.write(dir, "lights.json", &mut |f| f.write_all(&table))?;
+        written.push("lights.json".into());
+    }
     // In the order of ARTIFACTS, whichever batch wrote them.
     written.sort_by_key(|n| outputs::ARTIFACTS.iter().position(|(a, _)| a == n));
     written.push("result.json".into());

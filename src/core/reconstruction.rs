@@ -6,6 +6,7 @@ use ndarray::{Array2, Array3};
 use serde::Serialize;
 
 use super::camera::Pinhole;
+use super::intensities::Estimated;
 use super::lights::Light;
 use super::options::Options;
 use super::progress::Stage;
@@ -97,6 +98,10 @@ pub struct Report {
     pub artifacts: Vec<String>,
     /// The mask file used, if any (e.g. a folder's `mask.png`).
     pub mask_file: Option<String>,
+    /// The lights' relative intensities (mean 1) estimated from the object, with
+    /// `intensities: estimate`; `lights.json` is then the table with them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub estimated_intensities: Option<Vec<Estimated>>,
     /// What intake ignored or chose on the caller's behalf (unnamed images, an unused
     /// `mask.png`, …).
     pub notes: Vec<String>,

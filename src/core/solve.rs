@@ -67,11 +67,20 @@ impl Surface {
 
 const SCALE: f32 = 1.0 / 65535.0;
 
-/// Solve every pixel of the set with the chosen solver, band by band as `stack` reads
-/// them: each band is solved as it arrives, so only one band of the images is held.
-/// Once `halt` says stop, the bands not yet read are left at zero.
-pub fn solve(stack: &mut dyn Stack, solver: Solver, halt: Halt) -> Result<Surface, InputError> {
-    let info = stack.info().clone_without_mask();
+/// Solve every pixel of the set under `lights` (the set's table, or it with estimated
+/// intensities) with the chosen solver, band by band as `stack` reads them: each band is
+/// solved as it arrives, so only one band of the images is held. Once `halt` says stop,
+/// the bands not yet read are left at zero.
+pub fn solve(
+    stack: &mut dyn Stack,
+    lights: &[Light],
+    solver: Solver,
+    halt: Halt,
+) -> Result<Surface, InputError> {
+    let info = SetInfo {
+        lights: lights.to_vec(),
+        ..stack.info().clone_without_mask()
+    };
     let (rows, cols) = (info.height, info.width);
     let mut surface = Surface::zeros(rows, cols, info.colour);
     let robust = (solver == Solver::Robust)
@@ -449,7 +458,7 @@ mod tests {
             &pixels,
             0.7,
         );
-        let surf = solve(&mut InMemory::new(&set), Solver::L2, NEVER).unwrap();
+        let surf = solve(&mut InMemory::new(&set), &set.lights, Solver::L2, NEVER).unwrap();
         for (c, n) in pixels.iter().enumerate() {
             assert!(
                 (surf.albedo[[0, c]] - 0.7).abs() < 1e-3,
@@ -471,7 +480,7 @@ mod tests {
             0.0,
         );
         for solver in [Solver::L2, Solver::Weighted] {
-            let surf = solve(&mut InMemory::new(&set), solver, NEVER).unwrap();
+            let surf = solve(&mut InMemory::new(&set), &set.lights, solver, NEVER).unwrap();
             assert_eq!(surf.albedo[[0, 0]], 0.0);
             assert_eq!(surf.normals.sum(), 0.0);
         }

@@ -802,7 +802,7 @@ fn summarize_near(report: &NearReport) -> serde_json::Value {
 
 /// The report's headline numbers (as in `result.json`).
 fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
-    const KEYS: [&str; 19] = [
+    const KEYS: [&str; 20] = [
         "width",
         "height",
         "light_count",
@@ -822,6 +822,7 @@ fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
         "black_level",
         "noise_sigma",
         "counts",
+        "estimated_intensities",
     ];
     let full = serde_json::to_value(report).unwrap_or_default();
     let mut out = serde_json::Map::new();

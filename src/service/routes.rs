@@ -14,6 +14,7 @@ use uuid::Uuid;
 
 use crate::core::Options;
 use crate::core::error::panic_message;
+use crate::core::intensities::Estimated;
 use crate::core::normalmap::{Convention, Counts};
 use crate::core::outputs::{self, ARTIFACTS};
 
@@ -139,6 +140,10 @@ pub struct ResultSummary {
     /// Near-light jobs: the unit of depth (and of the table's positions and distance), as
     /// the light table gives it; null when it gives none.
     pub unit: Option<String>,
+    /// The lights' relative intensities (mean 1) estimated from the object (with the
+    /// `intensities: estimate` option, or for LEDs whose table gives none); the
+    /// `lights.json` artifact is the light table with them.
+    pub estimated_intensities: Option<Vec<Estimated>>,
 }
 
 /// A page of jobs, newest first.

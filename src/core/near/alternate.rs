@@ -6,13 +6,13 @@
 use ndarray::{Array2, Array3, ArrayView2, Axis};
 use rayon::prelude::*;
 
-use super::intensities::Gram;
 use super::maps::{changes, split};
 use super::pieces::pieces;
 use super::point::{Scene, Scratch};
 use super::scale::{Observed, stride_for};
 use super::surface::{Iteration, NearSettings, NearSurface};
 use crate::core::integrate::{self, perspective};
+use crate::core::intensities::Gram;
 use crate::core::lights::Light;
 use crate::core::progress::Halt;
 

@@ -4,7 +4,6 @@
 
 mod alternate;
 mod enlarge;
-mod intensities;
 mod maps;
 mod model;
 mod pieces;
@@ -18,7 +17,6 @@ mod shrink;
 mod solve;
 mod surface;
 
-pub use intensities::Gram;
 pub use model::{irradiance, light_vectors};
 pub use pixel::{Fit, fit};
 pub use run::{NearReport, run};

@@ -17,7 +17,8 @@ use crate::core::bands::{SetInfo, Stack};
 use crate::core::camera::Pinhole;
 use crate::core::commit::{self, Committer};
 use crate::core::error::RunError;
-use crate::core::options::{Integration, MaskMode, Options};
+use crate::core::intensities::Estimated;
+use crate::core::options::{Integration, Intensities, MaskMode, Options};
 use crate::core::outputs::{self, Heights, Maps};
 use crate::core::pipeline::{not_halted, step};
 use crate::core::progress::{Progress, Stage};
@@ -52,13 +53,6 @@ pub struct NearReport {
     pub notes: Vec<String>,
 }
 
-/// One light's estimated intensity.
-#[derive(Debug, Clone, Serialize)]
-pub struct Estimated {
-    pub name: String,
-    pub intensity: f64,
-}
-
 /// Reconstruct `stack` (lights with positions) under `camera` from the working
 /// `distance`, and write its artifacts into `dir`. The mask is the set's own with
 /// `--mask given`, else every pixel with three lit observations; `opts` gives the
@@ -83,7 +77,8 @@ pub fn run(
         _ => None,
     };
     // An LED whose table gave no intensity is estimated, and then every one is (relative).
-    let estimate = (set.lights.iter()).any(|l| l.emitter.is_some_and(|e| !e.intensity_known));
+    let estimate = opts.intensities == Intensities::Estimate
+        || (set.lights.iter()).any(|l| l.emitter.is_some_and(|e| !e.intensity_known));
     let settings = NearSettings {
         integration: opts.integration,
         estimate_intensities: estimate,

@@ -6,16 +6,17 @@ use crate::core::error::InputError;
 use crate::core::outputs;
 
 /// The job options (`Options` fields) a near-light run reads: the mask mode, the
-/// integration, the mesh, the outputs, and the camera and working distance (which
-/// otherwise come from the light table). The solver, shading light and condition bound
-/// are the distant reconstruction's.
-pub const OPTIONS: [&str; 6] = [
+/// integration, the mesh, the outputs, the camera and working distance (which otherwise
+/// come from the light table), and where the intensities come from. The solver, shading
+/// light and condition bound are the distant reconstruction's.
+pub const OPTIONS: [&str; 7] = [
     "mask",
     "integration",
     "mesh",
     "outputs",
     "camera",
     "distance",
+    "intensities",
 ];
 
 /// Every artifact a near-light run can be asked for, in the order it writes them: the

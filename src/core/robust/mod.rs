@@ -22,7 +22,10 @@
 use ndarray::Axis;
 use rayon::prelude::*;
 
+mod intensities;
 mod lanes;
+
+pub use intensities::estimate_intensities;
 
 use super::bands::{InMemory, Samples, Stack, SurfaceRows};
 use super::intake::ImageSet;

@@ -362,7 +362,16 @@ function showSummary(job) {
     ["object pixels", r.object_pixels ?? "–"],
     // A normals job's: what the reader did with each pixel of the map.
     ...(r.counts ? [["normal map pixels", mapCounts(r.counts)]] : []),
-    ["heights", r.height_min != null ? `${fmt(r.height_min)} to ${fmt(r.height_max)} px` : "–"],
+    r.depth_min != null
+      ? ["depth", `${fmt(r.depth_min)} to ${fmt(r.depth_max)}${r.unit ? ` ${r.unit}` : ""}`]
+      : ["heights", r.height_min != null ? `${fmt(r.height_min)} to ${fmt(r.height_max)} px` : "–"],
+    // A near-light job's alternations of solve and integration.
+    ...(r.iterations != null
+      ? [["near-light iterations", `${r.iterations}${r.converged === false ? " (the normals had not settled)" : ""}`]]
+      : []),
+    ...(r.estimated_intensities
+      ? [["estimated intensities", `${r.estimated_intensities.map((e) => fmt(e.intensity)).join(", ")} (as a light table: lights.json)`]]
+      : []),
     ["mean confidence", fmt(r.confidence_mean)],
     ["reprojection RMS", fmt(r.reprojection_rms)],
     ["unreliable pixels", r.unreliable_pixels ?? "–"],

@@ -7,8 +7,27 @@
 //! the complement of the pixel's light matrix; over all pixels, `x` is the eigenvector of
 //! `M = Σ D P D` with the smallest eigenvalue (up to scale: intensities and albedo share
 //! one). Near lights give every pixel its own `l̂`, which the sum takes as it comes.
+//!
+//! The object must show normals of enough kinds: every pixel of a plane says the same,
+//! and leaves a smallest eigenvalue that is not alone (several intensity sets explain it
+//! equally); the intensities are then refused rather than guessed.
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
 
 use crate::core::lambert::invert3;
+
+/// The second-smallest eigenvalue of `M` must be at least this many times the smallest
+/// for the smallest one's eigenvector to be the answer: noise lifts both alike, an object
+/// that identifies the intensities lifts only the second.
+const MIN_GAP: f64 = 2.0;
+
+/// One light's estimated intensity, as reports list it.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct Estimated {
+    pub name: String,
+    pub intensity: f64,
+}
 
 /// `M = Σ D P D` over the pixels added, `k × k`, row-major.
 #[derive(Debug, Clone)]
@@ -62,27 +81,26 @@ impl Gram {
     }
 
     /// The intensities (mean 1) of the smallest eigenvector, by inverse iteration from
-    /// `start`; None when it is not of one sign (some light never explained) or `M` is
-    /// empty.
+    /// `start`; None when it is not of one sign (some light never explained), when `M` is
+    /// empty, or when the object does not tell the intensities apart ([`MIN_GAP`]).
     pub fn intensities(&self, start: &[f64]) -> Option<Vec<f64>> {
         let k = self.k;
         let trace: f64 = (0..k).map(|i| self.m[i * k + i]).sum();
         if trace <= 0.0 {
             return None;
         }
-        let mut shifted = self.m.clone();
+        let x = self.smallest(&self.m, trace, start.iter().map(|e| 1.0 / e).collect())?;
+        // The next eigenvalue: the smallest once x's is lifted past every other.
+        let mut deflated = self.m.clone();
         for i in 0..k {
-            shifted[i * k + i] += 1e-9 * trace / k as f64;
-        }
-        let chol = cholesky(&shifted, k)?;
-        let mut x: Vec<f64> = start.iter().map(|e| 1.0 / e).collect();
-        for _ in 0..50 {
-            x = solve_cholesky(&chol, k, &x);
-            let norm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !(norm.is_finite() && norm > 0.0) {
-                return None;
+            for j in 0..k {
+                deflated[i * k + j] += trace * x[i] * x[j];
             }
-            x.iter_mut().for_each(|v| *v /= norm);
+        }
+        let ones = vec![1.0; k];
+        let y = self.smallest(&deflated, trace, ones)?;
+        if self.rayleigh(&self.m, &y) < MIN_GAP * self.rayleigh(&self.m, &x) {
+            return None;
         }
         let sign = x.iter().sum::<f64>().signum();
         if x.iter().any(|v| v * sign <= 0.0) {
@@ -91,6 +109,34 @@ impl Gram {
         let e: Vec<f64> = x.iter().map(|v| 1.0 / (v * sign)).collect();
         let mean = e.iter().sum::<f64>() / k as f64;
         Some(e.iter().map(|v| v / mean).collect())
+    }
+
+    /// The unit eigenvector of `m` (`k × k`, trace `trace`) with the smallest eigenvalue,
+    /// by inverse iteration from `x`.
+    fn smallest(&self, m: &[f64], trace: f64, mut x: Vec<f64>) -> Option<Vec<f64>> {
+        let k = self.k;
+        let mut shifted = m.to_vec();
+        for i in 0..k {
+            shifted[i * k + i] += 1e-9 * trace / k as f64;
+        }
+        let chol = cholesky(&shifted, k)?;
+        for _ in 0..50 {
+            x = solve_cholesky(&chol, k, &x);
+            let norm = x.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if !(norm.is_finite() && norm > 0.0) {
+                return None;
+            }
+            x.iter_mut().for_each(|v| *v /= norm);
+        }
+        Some(x)
+    }
+
+    /// `xᵀ m x` for a unit `x`.
+    fn rayleigh(&self, m: &[f64], x: &[f64]) -> f64 {
+        let k = self.k;
+        (0..k)
+            .map(|i| x[i] * (0..k).map(|j| m[i * k + j] * x[j]).sum::<f64>())
+            .sum()
     }
 }
 
@@ -157,5 +203,31 @@ mod tests {
         for (g, e) in got.iter().zip(e) {
             assert!((g - e / mean).abs() < 1e-4, "{got:?}");
         }
+    }
+
+    /// A tilted plane (one normal everywhere) with a little noise says nothing about the
+    /// intensities: refused, not guessed.
+    #[test]
+    fn a_plane_does_not_identify_the_intensities() {
+        let dirs: Vec<[f32; 3]> = (0..6)
+            .map(|k| {
+                let a = k as f32;
+                let v = [0.5 * a.cos(), 0.5 * a.sin(), 0.8];
+                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                v.map(|c| c / n)
+            })
+            .collect();
+        let n = [0.1f32, -0.2, 0.97];
+        let mut gram = Gram::new(6);
+        for i in 0..400 {
+            let obs: Vec<f32> = (dirs.iter().enumerate())
+                .map(|(k, l)| {
+                    let noise = 1e-3 * (((i * 7 + k * 13) % 17) as f32 / 8.0 - 1.0);
+                    0.7 * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]) + noise
+                })
+                .collect();
+            gram.add(&dirs, &obs, &[true; 6]);
+        }
+        assert!(gram.intensities(&[1.0; 6]).is_none());
     }
 }
