@@ -51,27 +51,30 @@ impl Camera {
         }
     }
 
-    /// The unit ball's centre, camera at the origin (pinhole): on the ray through the
-    /// circle's centre, at the distance where it subtends the circle's angular radius,
-    /// measured at the edge point across the line from the principal point, where the
-    /// outline is least stretched by the projection.
+    /// The unit ball's centre, camera at the origin (pinhole), from its outline: the
+    /// silhouette of a ball is the cone of half-angle α around the ray to its centre, at θ
+    /// from the axis, and its image an ellipse ([`cone_of`]). The ellipse's centre is not
+    /// the image of the ball's centre (it lies beyond, by 2 px at 140 px off the axis of a
+    /// 576 px lens for a ball 140 px across: 3° of light direction), and its semi-axes
+    /// differ (by 3 % there: 1.5 % of the ball's distance).
     fn centre(&self, circle: &Circle) -> Option<[f64; 3]> {
-        let Self::Perspective { principal, .. } = *self else {
+        let Self::Perspective {
+            focal_px,
+            principal,
+        } = *self
+        else {
             return None;
         };
-        let to_centre = self.ray(circle.cx, circle.cy)?;
         let (ox, oy) = (circle.cx - principal[0], circle.cy - principal[1]);
         let len = (ox * ox + oy * oy).sqrt();
-        let (tx, ty) = if len > 1e-9 {
-            (-oy / len, ox / len)
+        let (theta, alpha) = cone_of(focal_px, len, circle.r)?;
+        let to_centre = if len > 1e-9 {
+            let k = focal_px * theta.tan() / len;
+            self.ray(principal[0] + k * ox, principal[1] + k * oy)?
         } else {
-            (1.0, 0.0)
+            self.ray(circle.cx, circle.cy)?
         };
-        let edge = self.ray(circle.cx + circle.r * tx, circle.cy + circle.r * ty)?;
-        // atan2 rather than acos: the angle stays exact when it is tiny (long lenses).
-        let half_angle = norm(cross(to_centre, edge)).atan2(dot(to_centre, edge));
-        let distance = 1.0 / half_angle.sin();
-        Some(to_centre.map(|v| v * distance))
+        Some(to_centre.map(|v| v / alpha.sin()))
     }
 
     /// The point of the unit ball seen at (x, y), camera at the origin, in ball radii
@@ -101,6 +104,44 @@ impl Camera {
     }
 }
 
+/// The angle θ of a ball's centre from the optical axis and the half-angle α of its
+/// silhouette cone, for the ellipse it images to under a pinhole of focal length `focal`
+/// px: centre `len` px from the principal point, mean semi-axis `r` px (what a circle
+/// fitted to it measures). The cone's edges in the plane of the axis image at
+/// f·tan(θ ∓ α) (the semi-axis along it and the centre), its width across is
+/// f·sin α / √(cos²θ − sin²α); solved by Newton's method from the circle's own angles.
+/// None where no cone in front of the camera images so.
+fn cone_of(focal: f64, len: f64, r: f64) -> Option<(f64, f64)> {
+    let image = |theta: f64, alpha: f64| -> [f64; 2] {
+        let (near, far) = (focal * (theta - alpha).tan(), focal * (theta + alpha).tan());
+        let across = focal * alpha.sin() / (theta.cos().powi(2) - alpha.sin().powi(2)).sqrt();
+        [0.5 * (near + far), 0.5 * (0.5 * (far - near) + across)]
+    };
+    let mut x = [len.atan2(focal), r.atan2(focal.hypot(len))];
+    let step = 1e-7;
+    for _ in 0..30 {
+        let y = image(x[0], x[1]);
+        let res = [len - y[0], r - y[1]];
+        if res.iter().all(|v| v.abs() <= 1e-9 * (1.0 + r)) {
+            break;
+        }
+        let (dt, da) = (image(x[0] + step, x[1]), image(x[0], x[1] + step));
+        let j = [
+            [(dt[0] - y[0]) / step, (da[0] - y[0]) / step],
+            [(dt[1] - y[1]) / step, (da[1] - y[1]) / step],
+        ];
+        let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
+        if !(det.is_finite() && det.abs() > 1e-12) {
+            return None;
+        }
+        x[0] += (res[0] * j[1][1] - j[0][1] * res[1]) / det;
+        x[1] += (j[0][0] * res[1] - res[0] * j[1][0]) / det;
+    }
+    let (theta, alpha) = (x[0], x[1]);
+    (alpha > 0.0 && theta + alpha < std::f64::consts::FRAC_PI_2 && alpha.is_finite())
+        .then_some((theta, alpha))
+}
+
 /// `d` (a ray travelling towards the surface) reflected about unit normal `n`.
 fn reflect(d: [f64; 3], n: [f64; 3]) -> [f64; 3] {
     let k = 2.0 * dot(d, n);
@@ -111,18 +152,6 @@ pub(super) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn norm(v: [f64; 3]) -> f64 {
-    dot(v, v).sqrt()
-}
-
 pub(super) fn normalise(v: [f64; 3]) -> [f64; 3] {
     let n = dot(v, v).sqrt();
     v.map(|c| c / n)
@@ -131,6 +160,50 @@ pub(super) fn normalise(v: [f64; 3]) -> [f64; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A ball's silhouette traced ray by ray through a pinhole: its outline's centre and
+    /// mean semi-axis give back the ball's direction and angular size.
+    #[test]
+    fn the_cone_of_an_off_axis_ball_is_recovered_from_its_ellipse() {
+        let f = 576.0;
+        for (centre, radius) in [([138.24, 3.0, -576.0], 69.12), ([0.0, 0.0, -400.0], 50.0)] {
+            let dist = dot(centre, centre).sqrt();
+            let hits = |x: f64, y: f64| {
+                let d = normalise([x, y, -f]);
+                let b = dot(d, centre);
+                b * b - (dist * dist - radius * radius) >= 0.0
+            };
+            // Extents along the line from the principal point and across it, 0.01 px.
+            let u = if centre[0].hypot(centre[1]) > 0.0 {
+                let l = centre[0].hypot(centre[1]);
+                [centre[0] / l, centre[1] / l]
+            } else {
+                [1.0, 0.0]
+            };
+            let along: Vec<f64> = (-40000..40000)
+                .map(|i| f64::from(i) * 0.01)
+                .filter(|&t| hits(t * u[0], t * u[1]))
+                .collect();
+            let (lo, hi) = (along[0], along[along.len() - 1]);
+            let mid = 0.5 * (lo + hi);
+            let across: Vec<f64> = (-20000..20000)
+                .map(|i| f64::from(i) * 0.01)
+                .filter(|&s| hits(mid * u[0] - s * u[1], mid * u[1] + s * u[0]))
+                .collect();
+            let r = 0.25 * (hi - lo) + 0.25 * (across[across.len() - 1] - across[0]);
+            let (theta, alpha) = cone_of(f, mid, r).unwrap();
+            let true_theta = centre[0].hypot(centre[1]).atan2(-centre[2]);
+            let true_alpha = (radius / dist).asin();
+            assert!(
+                (theta - true_theta).abs() < 2e-4,
+                "θ {theta} vs {true_theta}"
+            );
+            assert!(
+                (alpha / true_alpha - 1.0).abs() < 2e-3,
+                "α {alpha} vs {true_alpha}"
+            );
+        }
+    }
 
     fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
         dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
@@ -168,19 +241,18 @@ mod tests {
             principal[0] + f * p[0] / -p[2],
             principal[1] + f * p[1] / -p[2],
         );
-        // The outline's circle: centre projected, radius from the tangent cone.
-        let to_c = normalise(c);
+        // The outline's circle as a fit to it measures: the ellipse's centre and mean
+        // semi-axis (the silhouette cone, half-angle β, at θ from the axis).
         let beta = (1.0 / dot(c, c).sqrt()).asin();
-        let centre = (
-            principal[0] + f * c[0] / -c[2],
-            principal[1] + f * c[1] / -c[2],
-        );
-        // The tangential half-width is exact: f·tanβ / cos(axis angle) at the centre's depth.
-        let r = f * beta.tan() / to_c[2].abs();
+        let theta = c[0].hypot(c[1]).atan2(-c[2]);
+        let u = [c[0] / c[0].hypot(c[1]), c[1] / c[0].hypot(c[1])];
+        let (near, far) = (f * (theta - beta).tan(), f * (theta + beta).tan());
+        let across = f * beta.sin() / (theta.cos().powi(2) - beta.sin().powi(2)).sqrt();
+        let mid = 0.5 * (near + far);
         let circle = Circle {
-            cx: centre.0,
-            cy: centre.1,
-            r,
+            cx: principal[0] + mid * u[0],
+            cy: principal[1] + mid * u[1],
+            r: 0.5 * (0.5 * (far - near) + across),
         };
         let cam = Camera::Perspective {
             focal_px: f,

@@ -1,5 +1,6 @@
 //! Light-calibration captures: chrome (mirror) spheres photographed once per light by an
-//! orthographic camera, and a matte white sphere under the same lights.
+//! orthographic camera (or a pinhole, [`ChromeSet::camera_distance`]), and a matte white
+//! sphere under the same lights.
 //!
 //! Each pixel integrates what the ball reflects over its footprint (`SUPERSAMPLE`²
 //! samples), so a light of finite angular size leaves a highlight with a real, finite
@@ -10,7 +11,10 @@
 //! textured backdrop (stripes and a checkerboard) lit by the same light.
 //!
 //! Frame: x = column right, y = row down, z towards the camera, in pixels; the image
-//! plane z = 0 passes through every ball's centre.
+//! plane z = 0 passes through every ball's centre. A pinhole camera sits on the axis
+//! through the image centre at `camera_distance` above that plane, with that focal length
+//! in pixels, so the plane is imaged one unit a pixel and the balls' centres where they
+//! are; their outlines are then a little larger, and ellipses off the axis.
 
 mod render;
 mod set;
@@ -61,6 +65,10 @@ pub struct ChromeSet {
     pub light_size: f64,
     /// More balls, (centre, radius) in pixels, rendered like the first.
     pub extra_balls: Vec<([f64; 2], f64)>,
+    /// A pinhole camera this far above the plane z = 0 (and of this focal length, pixels),
+    /// its principal point at the image centre; None: orthographic. The chrome balls only
+    /// (the matte sphere is rendered orthographically).
+    pub camera_distance: Option<f64>,
     pub bit_depth: u8,
     pub noise_sigma: f64,
     pub black_level: f64,

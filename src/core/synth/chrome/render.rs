@@ -24,17 +24,20 @@ impl ChromeSet {
             .into_par_iter()
             .map(|i| {
                 let light = self.light(i);
-                let img = self.supersampled(|x, y| match hit(&balls, x, y) {
-                    Some((b, n)) => {
-                        let p = [x, y, balls[b].1 * n[2]];
-                        let view = Ray {
-                            from: b,
-                            p,
-                            d: reflect(n),
-                        };
-                        CHROME * self.trace(&balls, view, &light, &room, BOUNCES)
-                    }
-                    None => self.backdrop_at(x, y, light.towards([x, y, 0.0])),
+                let img = self.supersampled(|x, y| match self.camera_distance {
+                    None => match hit(&balls, x, y) {
+                        Some((b, n)) => {
+                            let p = [x, y, balls[b].1 * n[2]];
+                            let view = Ray {
+                                from: b,
+                                p,
+                                d: reflect(n),
+                            };
+                            CHROME * self.trace(&balls, view, &light, &room, BOUNCES)
+                        }
+                        None => self.backdrop_at(x, y, light.towards([x, y, 0.0])),
+                    },
+                    Some(d) => self.pinhole_sample(&balls, d, (x, y), &light, &room),
                 });
                 self.expose(img, i)
             })
@@ -46,6 +49,10 @@ impl ChromeSet {
     /// near light), on the same backdrop.
     pub fn render_matte(&self, intensities: &[f64]) -> Vec<Array2<u16>> {
         self.check();
+        assert!(
+            self.camera_distance.is_none(),
+            "matte spheres are rendered orthographically"
+        );
         let balls = self.balls();
         let count = self.lights.len().min(intensities.len());
         (0..count)
@@ -76,6 +83,41 @@ impl ChromeSet {
                 self.expose(img, i + 1000)
             })
             .collect()
+    }
+
+    /// What the pinhole at `distance` above the image centre sees through image point
+    /// (x, y): a ball, mirroring, or the backdrop in the plane z = 0.
+    fn pinhole_sample(
+        &self,
+        balls: &[([f64; 2], f64)],
+        distance: f64,
+        (x, y): (f64, f64),
+        light: &Light,
+        room: &[Patch],
+    ) -> f64 {
+        let (cx, cy) = (
+            0.5 * (self.width as f64 - 1.0),
+            0.5 * (self.height as f64 - 1.0),
+        );
+        let eye = Ray {
+            from: usize::MAX,
+            p: [cx, cy, distance],
+            d: normalise([x - cx, y - cy, -distance]),
+        };
+        match nearest_ball(balls, &eye) {
+            Some((b, t)) => {
+                let (c, r) = balls[b];
+                let p = add(eye.p, scale(eye.d, t));
+                let n = scale(sub(p, [c[0], c[1], 0.0]), 1.0 / r);
+                let d = sub(eye.d, scale(n, 2.0 * dot(eye.d, n)));
+                CHROME * self.trace(balls, Ray { from: b, p, d }, light, room, BOUNCES)
+            }
+            None => {
+                let t = distance / -eye.d[2];
+                let p = add(eye.p, scale(eye.d, t));
+                self.backdrop_at(p[0], p[1], light.towards([p[0], p[1], 0.0]))
+            }
+        }
     }
 
     /// Panics on a set that cannot be rendered.

@@ -27,6 +27,7 @@ impl ChromeSet {
             light_positions: None,
             light_size: 0.0,
             extra_balls: Vec::new(),
+            camera_distance: None,
             bit_depth,
             noise_sigma: 0.004,
             black_level: 0.01,
