@@ -1,7 +1,7 @@
 //! The worker pool.
 //!
 //! The queue is the repo's: `--workers` plain threads each claim the next queued job
-//! (tenants take turns, see [`JobRepo::claim`](super::repo::JobRepo::claim)), so never
+//! (tenants take turns, see [`Queue::claim`](super::repo::Queue::claim)), so never
 //! more than that many run here at once. A claim is a lease: the background heartbeat
 //! extends the leases of the jobs held here, and learns there of jobs cancelled on
 //! another instance or lost (reaped after their lease ran out). Idle workers wait for the

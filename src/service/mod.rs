@@ -5,8 +5,7 @@
 //!   out), documented with `#[utoipa::path]`.
 //! - [`events`]: a job's server-sent event stream.
 //! - [`jobs`]: the worker pool that claims and runs reconstructions.
-//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite); [`pg`]: the same in
-//!   PostgreSQL.
+//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite, or PostgreSQL).
 //! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory,
 //!   or [`s3`]: an S3-compatible object store).
 //! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
@@ -29,7 +28,6 @@ mod idempotency;
 pub mod jobs;
 mod metrics;
 mod openapi;
-pub mod pg;
 mod prefetch;
 pub mod problem;
 mod quota;
@@ -168,7 +166,9 @@ impl AppState {
                     SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?,
                 )
             }
-            Some(url) => Arc::new(pg::PgRepo::connect(url).context("opening the job database")?),
+            Some(url) => {
+                Arc::new(repo::PostgresRepo::connect(url).context("opening the job database")?)
+            }
         };
         let store: Arc<dyn BlobStore> = match &config.store {
             None => Arc::new(
