@@ -42,13 +42,11 @@ use crate::core::stream::{self, Prescanned, Streamed};
 use crate::core::{InputError, Options};
 
 use super::Inner;
-use super::blobs::{
-    LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry, is_unavailable,
-};
 use super::budget::{self, Reservation, Use};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
+use super::store::{self, LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry};
 use super::upload;
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};
 
@@ -329,8 +327,8 @@ enum Stop {
 }
 
 /// A store error: unavailable (the job waits) or the job's failure.
-fn store_error(e: std::io::Error, doing: &str) -> Stop {
-    if is_unavailable(&e) {
+fn store_error(e: store::Error, doing: &str) -> Stop {
+    if e.is_unavailable() {
         Stop::StoreUnavailable(format!("{doing}: {e}"))
     } else {
         ApiError::internal(format!("{doing}: {e}")).into()
