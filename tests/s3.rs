@@ -1,6 +1,7 @@
 //! `--store s3://…` against a real S3 server (SeaweedFS `weed mini`, see
-//! `common/weed.rs`): jobs and calibrations whose bytes live in the bucket answer exactly
-//! as on the data directory, the objects are really there and go with DELETE and
+//! `common/weed.rs`): the store keeps the contract the data directory's keeps
+//! (`store::contract`), jobs and calibrations whose bytes live in the bucket answer
+//! exactly as on the data directory, the objects are really there and go with DELETE and
 //! retention, and an outage answers 503 with Retry-After while accepted jobs wait it out.
 
 mod common;
@@ -399,8 +400,7 @@ async fn s3_down_refuses_submissions_with_503_and_accepted_jobs_wait_it_out() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole() {
-    use photostereo::service::blobs::BlobStore;
-    use photostereo::service::s3::{PART_BYTES, S3Store};
+    use photostereo::service::store::{BlobStore, PART_BYTES, S3Store};
     let Some(weed) = Weed::start("a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole")
     else {
         return;
@@ -469,4 +469,31 @@ async fn a_file_larger_than_a_part_goes_up_in_parts_and_comes_back_whole() {
     .await
     .unwrap();
     assert!(keys(&bucket, &format!("parts/jobs/{id}")).await.is_empty());
+}
+
+/// The store's contract (the same suite the data directory's store runs in its unit
+/// tests), on a prefix of its own in the bucket.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn s3_keeps_the_store_contract() {
+    use photostereo::service::store::{S3Store, contract};
+    let Some(weed) = Weed::start("s3_keeps_the_store_contract") else {
+        return;
+    };
+    let data = tempfile::tempdir().unwrap();
+    let rt = tokio::runtime::Handle::current();
+    let store = {
+        let _env = weed::ENV.lock().await;
+        weed.set_env();
+        // Settled at once: a start may take any job's objects for leftovers.
+        S3Store::open(
+            &weed.store_url("contract"),
+            &data.path().join("scratch"),
+            rt.clone(),
+            Duration::ZERO,
+        )
+        .unwrap()
+    };
+    tokio::task::spawn_blocking(move || contract::run(&store, &rt))
+        .await
+        .unwrap();
 }

@@ -29,7 +29,6 @@ use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
 
 use super::AppState;
-use super::blobs::Served;
 use super::config::{Config, MAX_LIGHTS_BYTES};
 use super::download::{self, not_modified, not_modified_response};
 use super::error::ApiError;
@@ -40,6 +39,7 @@ use super::routes::{
     ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, open_submission, owned_calibration,
     request_id,
 };
+use super::store::Served;
 use super::tenants::Caller;
 use super::upload::{self, BodyTap};
 use super::util::{format_duration, now_ms, rfc3339, strong_etag};

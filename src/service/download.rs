@@ -11,8 +11,8 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
 use super::AppState;
-use super::blobs::Served;
 use super::error::ApiError;
+use super::store::Served;
 
 /// What a request's `Range` asks of a file of `len` bytes.
 #[derive(Debug, PartialEq, Eq)]
@@ -98,8 +98,8 @@ pub(super) async fn stored(
         Wanted::Part(r) if r != (0..len) => Some(r),
         _ => None,
     };
-    let gone = |e: std::io::Error| {
-        if e.kind() == std::io::ErrorKind::NotFound {
+    let gone = |e: super::store::Error| {
+        if e.is_not_found() {
             ApiError::not_found(format!("{name} is gone from the store"))
         } else {
             ApiError::from(e)

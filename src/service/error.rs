@@ -359,11 +359,11 @@ impl From<tokio::task::JoinError> for ApiError {
     }
 }
 
-/// An I/O error is the server's fault, except an object store that does not answer for
+/// A store error is the server's fault, except an object store that does not answer for
 /// now: 503, to be retried.
-impl From<std::io::Error> for ApiError {
-    fn from(e: std::io::Error) -> Self {
-        if super::blobs::is_unavailable(&e) {
+impl From<super::store::Error> for ApiError {
+    fn from(e: super::store::Error) -> Self {
+        if e.is_unavailable() {
             tracing::warn!(error = %e, "the object store does not answer");
             Self::unavailable(
                 super::config::RETRY_AFTER_SECS,
@@ -372,5 +372,12 @@ impl From<std::io::Error> for ApiError {
         } else {
             Self::internal(format!("i/o: {e}"))
         }
+    }
+}
+
+/// An I/O error of the service's own files is the server's fault.
+impl From<std::io::Error> for ApiError {
+    fn from(e: std::io::Error) -> Self {
+        Self::internal(format!("i/o: {e}"))
     }
 }

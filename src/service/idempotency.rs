@@ -5,11 +5,12 @@
 //! restart), scoped by route (`"jobs"`, and any other creating route that uses this).
 //!
 //! A route uses it in four steps: [`key_from`] before reading the body, a [`PartHasher`]
-//! fed while the body is read, [`JobRepo::idempotent`](super::repo::JobRepo::idempotent)
-//! to look for an earlier answer ([`replay`] it), and
-//! [`JobRepo::remember`](super::repo::JobRepo::remember) after creating the resource (an
-//! earlier answer it returns means a concurrent request with the same key won: undo and
-//! replay that one).
+//! fed while the body is read,
+//! [`Idempotency::idempotent`](super::repo::Idempotency::idempotent) to look for an
+//! earlier answer ([`replay`] it), and
+//! [`Idempotency::remember`](super::repo::Idempotency::remember) after creating the
+//! resource (an earlier answer it returns means a concurrent request with the same key
+//! won: undo and replay that one).
 
 use std::time::Duration;
 

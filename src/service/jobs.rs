@@ -1,7 +1,7 @@
 //! The worker pool.
 //!
 //! The queue is the repo's: `--workers` plain threads each claim the next queued job
-//! (tenants take turns, see [`JobRepo::claim`](super::repo::JobRepo::claim)), so never
+//! (tenants take turns, see [`Queue::claim`](super::repo::Queue::claim)), so never
 //! more than that many run here at once. A claim is a lease: the background heartbeat
 //! extends the leases of the jobs held here, and learns there of jobs cancelled on
 //! another instance or lost (reaped after their lease ran out). Idle workers wait for the
@@ -42,13 +42,11 @@ use crate::core::stream::{self, Prescanned, Streamed};
 use crate::core::{InputError, Options};
 
 use super::Inner;
-use super::blobs::{
-    LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry, is_unavailable,
-};
 use super::budget::{self, Reservation, Use};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
+use super::store::{self, LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry};
 use super::upload;
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};
 
@@ -329,8 +327,8 @@ enum Stop {
 }
 
 /// A store error: unavailable (the job waits) or the job's failure.
-fn store_error(e: std::io::Error, doing: &str) -> Stop {
-    if is_unavailable(&e) {
+fn store_error(e: store::Error, doing: &str) -> Stop {
+    if e.is_unavailable() {
         Stop::StoreUnavailable(format!("{doing}: {e}"))
     } else {
         ApiError::internal(format!("{doing}: {e}")).into()

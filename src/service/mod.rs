@@ -5,10 +5,9 @@
 //!   out), documented with `#[utoipa::path]`.
 //! - [`events`]: a job's server-sent event stream.
 //! - [`jobs`]: the worker pool that claims and runs reconstructions.
-//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite); [`pg`]: the same in
-//!   PostgreSQL.
-//! - [`blobs`]: job inputs and artifacts behind [`blobs::BlobStore`] (a local directory,
-//!   or [`s3`]: an S3-compatible object store).
+//! - [`repo`]: job records behind [`repo::JobRepo`] (SQLite, or PostgreSQL).
+//! - [`store`]: job inputs and artifacts behind [`store::BlobStore`] (a local directory,
+//!   or an S3-compatible object store).
 //! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
 //! - [`config`]: [`ServeArgs`] (flags + environment) and [`Config`].
 //! - [`connections`]: the accept loop, the connection cap and timeouts.
@@ -16,7 +15,6 @@
 //! [`router`] is what tests call; [`serve`] is `photostereo serve`.
 
 mod app;
-pub mod blobs;
 mod budget;
 mod calibrations;
 pub mod config;
@@ -29,14 +27,13 @@ mod idempotency;
 pub mod jobs;
 mod metrics;
 mod openapi;
-pub mod pg;
 mod prefetch;
 pub mod problem;
 mod quota;
 pub mod repo;
 pub mod routes;
-pub mod s3;
 mod slots;
+pub mod store;
 pub mod tenants;
 mod upload;
 mod util;
@@ -72,13 +69,13 @@ pub use health::{HealthcheckArgs, healthcheck};
 pub use problem::Problem;
 pub use upload::{parse_options, unpack_archive};
 
-use blobs::{BlobStore, LocalStore};
 use budget::{Budget, Reservation};
 use jobs::Workers;
 use metrics::{Metrics, Snapshot};
 use prefetch::{Prefetch, Prefetcher};
 use repo::{JobRepo, JobStatus, RepoResult, SqliteRepo};
 use slots::{Busy, Slot, Slots};
+use store::{BlobStore, LocalStore};
 use tenants::{Caller, Keyring};
 use util::now_ms;
 
@@ -168,7 +165,9 @@ impl AppState {
                     SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?,
                 )
             }
-            Some(url) => Arc::new(pg::PgRepo::connect(url).context("opening the job database")?),
+            Some(url) => {
+                Arc::new(repo::PostgresRepo::connect(url).context("opening the job database")?)
+            }
         };
         let store: Arc<dyn BlobStore> = match &config.store {
             None => Arc::new(
@@ -176,7 +175,7 @@ impl AppState {
                     .with_context(|| format!("opening {}", config.data_dir.display()))?,
             ),
             // Another instance may be committing an upload the repo does not know yet.
-            Some(url) => Arc::new(s3::S3Store::open(
+            Some(url) => Arc::new(store::S3Store::open(
                 url,
                 &config.data_dir.join("scratch"),
                 tokio::runtime::Handle::current(),
@@ -958,7 +957,7 @@ fn reap(inner: &Inner) {
 
 /// What a store listing found; nothing (and a warning) when the store does not answer,
 /// so that a start never waits for it.
-fn listed(ids: std::io::Result<Vec<Uuid>>, what: &str) -> Vec<Uuid> {
+fn listed(ids: store::Result<Vec<Uuid>>, what: &str) -> Vec<Uuid> {
     ids.unwrap_or_else(|e| {
         tracing::warn!(error = %e, "cannot list the stored {what}; leftovers stay");
         Vec::new()

@@ -19,7 +19,6 @@ use crate::core::normalmap::{Convention, Counts};
 use crate::core::outputs::{self, ARTIFACTS};
 
 use super::AppState;
-use super::blobs::Served;
 use super::download::{self, artifact_response, not_modified, not_modified_response};
 use super::error::ApiError;
 use super::idempotency::{self, PartHasher};
@@ -27,6 +26,7 @@ use super::problem::{PROBLEM_JSON, Problem};
 use super::repo::{
     Admission, CalibrationRecord, Callback, CallbackState, JobRecord, JobStatus, Remembered,
 };
+use super::store::Served;
 use super::tenants::Caller;
 use super::upload;
 use super::util::{format_duration, now_ms, rfc3339, strong_etag};

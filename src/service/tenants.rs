@@ -232,6 +232,19 @@ fn check_secret(secret: &str) -> Result<(), String> {
 mod tests {
     use super::*;
 
+    /// Jobs recorded before tenants existed belong to the open API's tenant: the
+    /// migrations' default is this tenant's name.
+    #[test]
+    fn jobs_recorded_before_tenants_belong_to_the_open_tenant() {
+        let default = format!("NOT NULL DEFAULT '{OPEN_TENANT}'");
+        for migration in [
+            include_str!("repo/sqlite/migrations/002_tenants.sql"),
+            include_str!("repo/postgres/migrations/001_jobs_idempotency_calibrations.sql"),
+        ] {
+            assert!(migration.contains(&default), "{migration}");
+        }
+    }
+
     #[test]
     fn flags_and_file_lines_name_tenants() {
         let dir = tempfile::tempdir().unwrap();

@@ -39,14 +39,14 @@ use crate::core::options::MaskMode;
 use crate::core::outputs;
 use crate::core::{InputError, Options};
 
-use super::blobs::{
-    LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, NORMALS_FILE, NormalsEntry,
-    image_file,
-};
 use super::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use super::error::ApiError;
 use super::idempotency::PartHasher;
 use super::prefetch::Prefetch;
+use super::store::{
+    LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, ManifestEntry, NORMALS_FILE, NormalsEntry,
+    image_file,
+};
 
 /// The request body, shared between the multipart parser and the handler: it enforces the
 /// body size limit, and lets the handler drain what is left after refusing an upload, so

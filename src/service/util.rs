@@ -166,19 +166,6 @@ pub fn strong_etag(crc: u32, len: u64) -> String {
     format!("\"{crc:08x}-{len:x}\"")
 }
 
-/// Flush a directory's entries (new names, renames) to disk.
-pub fn sync_dir(path: &Path) -> io::Result<()> {
-    #[cfg(unix)]
-    {
-        std::fs::File::open(path)?.sync_all()
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = path;
-        Ok(())
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1,12 +1,6 @@
 //! [`BlobStore`] in an S3-compatible object store (`--store s3://bucket/prefix`), through
 //! the `object_store` crate, so that every instance sharing the bucket can serve every
-//! job's artifacts and every calibration's files:
-//!
-//! ```text
-//! {prefix}/jobs/{id}/input/{file}              a job's inputs (manifest.json uploaded last)
-//! {prefix}/jobs/{id}/outputs/{attempt}/{name}  an attempt's artifacts (the record keeps each key)
-//! {prefix}/calibrations/{id}/{name}            a calibration's lights.csv, overlay.png, lights.png[, positions.csv]
-//! ```
+//! job's artifacts and every calibration's files (the keys: [`layout`](super::layout)).
 //!
 //! Uploads and reconstructions are staged in a local scratch directory
 //! (`{data}/scratch/`, laid out as [`LocalStore`]'s and emptied at start); a commit streams
@@ -14,19 +8,19 @@
 //! upload of [`PART_BYTES`] parts with at most [`PARTS_IN_FLIGHT`] in flight, so no file is
 //! ever whole in memory. A job's worker fetches its inputs back into the scratch
 //! directory, but for the images its upload's first pass already decoded on the same
-//! instance ([`super::prefetch`]). Files go up and come back [`FILES_IN_FLIGHT`] at a
+//! instance (the service's prefetch). Files go up and come back [`FILES_IN_FLIGHT`] at a
 //! time. An attempt writes under a key of its own and its keys are recorded with the job,
 //! so nothing is renamed and no half-written artifact can be served.
 //!
 //! The store's API is async; its callers here are blocking threads, which drive each
 //! call with the runtime's [`Handle::block_on`]. Only [`BlobStore::read`] (serving) is
-//! async. Every failure to reach the store is [`Unavailable`].
+//! async. Every failure to reach the store is [`Error::Unavailable`].
 
 use std::io::{self, Read, Write};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use anyhow::Context;
 use futures_util::future::BoxFuture;
@@ -40,11 +34,15 @@ use object_store::{
 use tokio::runtime::Handle;
 use uuid::Uuid;
 
-use super::blobs::{
-    BlobStore, ByteStream, LocalArtifacts, LocalStore, MANIFEST_FILE, Served, Unavailable,
+use super::error::{Error, Result};
+use super::layout::{
+    CALIBRATIONS, Dirs, FILES_PARTIAL, INPUT, INPUT_PARTIAL, JOBS, Keys, OUTPUT_PARTIAL, OUTPUTS,
+    PROBES,
 };
-use super::repo::ArtifactInfo;
-use super::util::now_ms;
+use super::local::LocalStore;
+use super::manifest::MANIFEST_FILE;
+use super::traits::{BlobStore, ByteStream, LocalArtifacts, Served};
+use crate::service::repo::ArtifactInfo;
 
 /// Size of one part of a multipart upload (S3's smallest part but the last is 5 MiB).
 pub const PART_BYTES: usize = 5 << 20;
@@ -57,11 +55,12 @@ const FILES_IN_FLIGHT: usize = 4;
 /// The store behind `--store s3://…`.
 pub struct S3Store {
     store: Arc<dyn ObjectStore>,
-    /// The key prefix every object of this service starts with (may be empty).
-    prefix: Key,
+    /// Where objects go under the bucket's prefix.
+    keys: Keys,
     /// Staging and a running job's files.
     scratch: LocalStore,
-    scratch_root: PathBuf,
+    /// The scratch directory's layout.
+    dirs: Dirs,
     rt: Handle,
     /// How old a job's or calibration's newest object must be before a start may take
     /// it, without a record, for an abandoned upload (another instance may be committing
@@ -119,36 +118,16 @@ impl S3Store {
             .with_context(|| format!("creating the scratch directory {}", scratch.display()))?;
         Ok(Self {
             store: Arc::new(store),
-            prefix: Key::from(prefix),
+            keys: Keys::new(&prefix),
             scratch: local,
-            scratch_root: scratch.to_path_buf(),
+            dirs: Dirs::new(scratch),
             rt,
             settle,
         })
     }
 
-    fn key(&self, parts: &[&str]) -> Key {
-        parts
-            .iter()
-            .fold(self.prefix.clone(), |key, part| key.join(*part))
-    }
-
-    fn job_key(&self, id: Uuid, parts: &[&str]) -> Key {
-        let id = id.to_string();
-        let mut all = vec!["jobs", id.as_str()];
-        all.extend_from_slice(parts);
-        self.key(&all)
-    }
-
-    fn calibration_key(&self, id: Uuid, parts: &[&str]) -> Key {
-        let id = id.to_string();
-        let mut all = vec!["calibrations", id.as_str()];
-        all.extend_from_slice(parts);
-        self.key(&all)
-    }
-
     /// Upload every file of `dir` under `to`, `last` after all the others.
-    fn upload_dir(&self, dir: &Path, to: &Key, last: Option<&str>) -> io::Result<()> {
+    fn upload_dir(&self, dir: &Path, to: &Key, last: Option<&str>) -> Result<()> {
         let mut names: Vec<String> = Vec::new();
         for entry in std::fs::read_dir(dir)? {
             let entry = entry?;
@@ -171,7 +150,7 @@ impl S3Store {
     }
 
     /// Stream local files to their keys, [`FILES_IN_FLIGHT`] at a time.
-    fn upload_files(&self, files: Vec<(PathBuf, Key)>) -> io::Result<()> {
+    fn upload_files(&self, files: Vec<(PathBuf, Key)>) -> Result<()> {
         self.rt.block_on(async {
             futures_util::stream::iter(files.iter().map(|(path, key)| self.put_file(path, key)))
                 .buffer_unordered(FILES_IN_FLIGHT)
@@ -182,7 +161,7 @@ impl S3Store {
     }
 
     /// Stream one local file to `key`.
-    async fn put_file(&self, path: &Path, key: &Key) -> io::Result<()> {
+    async fn put_file(&self, path: &Path, key: &Key) -> Result<()> {
         let mut file = std::fs::File::open(path)?;
         let len = file.metadata()?.len();
         {
@@ -192,13 +171,13 @@ impl S3Store {
                 self.store
                     .put(key, PutPayload::from(bytes))
                     .await
-                    .map_err(unavailable)?;
+                    .map_err(Error::from)?;
                 return Ok(());
             }
-            let upload = self.store.put_multipart(key).await.map_err(unavailable)?;
+            let upload = self.store.put_multipart(key).await.map_err(Error::from)?;
             let mut parts = WriteMultipart::new_with_chunk_size(upload, PART_BYTES);
             let mut buf = vec![0u8; 1 << 20];
-            let sent: io::Result<()> = async {
+            let sent: Result<()> = async {
                 loop {
                     let n = file.read(&mut buf)?;
                     if n == 0 {
@@ -207,13 +186,13 @@ impl S3Store {
                     parts
                         .wait_for_capacity(PARTS_IN_FLIGHT)
                         .await
-                        .map_err(unavailable)?;
+                        .map_err(Error::from)?;
                     parts.write(&buf[..n]);
                 }
             }
             .await;
             match sent {
-                Ok(()) => parts.finish().await.map(|_| ()).map_err(unavailable),
+                Ok(()) => parts.finish().await.map(|_| ()).map_err(Error::from),
                 Err(e) => {
                     let _ = parts.abort().await;
                     Err(e)
@@ -223,18 +202,18 @@ impl S3Store {
     }
 
     /// Fetch `key` into the local file `to`.
-    async fn download(&self, key: Key, to: PathBuf) -> io::Result<()> {
-        let got = self.store.get(&key).await.map_err(unavailable)?;
+    async fn download(&self, key: Key, to: PathBuf) -> Result<()> {
+        let got = self.store.get(&key).await.map_err(Error::from)?;
         let mut chunks = got.into_stream();
         let mut file = std::fs::File::create(&to)?;
         while let Some(chunk) = chunks.next().await {
-            file.write_all(&chunk.map_err(unavailable)?)?;
+            file.write_all(&chunk.map_err(Error::from)?)?;
         }
         Ok(())
     }
 
     /// Delete every object under `prefix`.
-    fn delete_under(&self, prefix: &Key) -> io::Result<()> {
+    fn delete_under(&self, prefix: &Key) -> Result<()> {
         self.rt.block_on(async {
             let found = self
                 .store
@@ -245,20 +224,20 @@ impl S3Store {
                 .delete_stream(found)
                 .try_collect::<Vec<_>>()
                 .await
-                .map_err(unavailable)?;
+                .map_err(Error::from)?;
             Ok(())
         })
     }
 
     /// The ids under `{prefix}/{kind}/` whose newest object is older than `settle`, and
     /// the newest object time of the others.
-    fn settled_ids(&self, kind: &str) -> io::Result<Vec<Uuid>> {
-        let root = self.key(&[kind]);
+    fn settled_ids(&self, kind: &str) -> Result<Vec<Uuid>> {
+        let root = self.keys.key(&[kind]);
         let newest = self.rt.block_on(async {
             let mut newest = std::collections::HashMap::<Uuid, i64>::new();
             let mut listing = self.store.list(Some(&root));
             while let Some(meta) = listing.next().await {
-                let meta = meta.map_err(unavailable)?;
+                let meta = meta.map_err(Error::from)?;
                 let id = meta
                     .location
                     .prefix_match(&root)
@@ -270,9 +249,12 @@ impl S3Store {
                     *slot = (*slot).max(at);
                 }
             }
-            Ok::<_, io::Error>(newest)
+            Ok::<_, Error>(newest)
         })?;
-        let cutoff = now_ms() - self.settle.as_millis() as i64;
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_millis() as i64);
+        let cutoff = now - self.settle.as_millis() as i64;
         Ok(newest
             .into_iter()
             .filter(|(_, at)| *at < cutoff)
@@ -281,20 +263,7 @@ impl S3Store {
     }
 
     fn staged(&self, id: Uuid, what: &str) -> PathBuf {
-        self.scratch_root
-            .join("jobs")
-            .join(id.to_string())
-            .join(what)
-    }
-}
-
-/// Any failure of the object store: the store is down, unreachable, or refused.
-fn unavailable(e: object_store::Error) -> io::Error {
-    match e {
-        object_store::Error::NotFound { path, .. } => {
-            io::Error::new(io::ErrorKind::NotFound, format!("no object {path}"))
-        }
-        other => io::Error::other(Unavailable(other.to_string())),
+        self.dirs.job(id).join(what)
     }
 }
 
@@ -306,33 +275,33 @@ fn union(mut a: Vec<Uuid>, b: Vec<Uuid>) -> Vec<Uuid> {
 }
 
 impl BlobStore for S3Store {
-    fn stage_inputs(&self, id: Uuid) -> io::Result<PathBuf> {
+    fn stage_inputs(&self, id: Uuid) -> Result<PathBuf> {
         self.scratch.stage_inputs(id)
     }
 
-    fn commit_inputs(&self, id: Uuid) -> io::Result<()> {
-        let staged = self.staged(id, "input.partial");
-        self.upload_dir(&staged, &self.job_key(id, &["input"]), Some(MANIFEST_FILE))?;
+    fn commit_inputs(&self, id: Uuid) -> Result<()> {
+        let staged = self.staged(id, INPUT_PARTIAL);
+        self.upload_dir(&staged, &self.keys.job(id, &[INPUT]), Some(MANIFEST_FILE))?;
         self.scratch.remove_job(id)
     }
 
-    fn has_inputs(&self, id: Uuid) -> io::Result<bool> {
-        let key = self.job_key(id, &["input", MANIFEST_FILE]);
+    fn has_inputs(&self, id: Uuid) -> Result<bool> {
+        let key = self.keys.job(id, &[INPUT, MANIFEST_FILE]);
         match self.rt.block_on(self.store.head(&key)) {
             Ok(_) => Ok(true),
             Err(object_store::Error::NotFound { .. }) => Ok(false),
-            Err(e) => Err(unavailable(e)),
+            Err(e) => Err(e.into()),
         }
     }
 
-    fn fetch_inputs(&self, id: Uuid, have: &dyn Fn(&str) -> bool) -> io::Result<PathBuf> {
-        let dir = self.staged(id, "input");
+    fn fetch_inputs(&self, id: Uuid, have: &dyn Fn(&str) -> bool) -> Result<PathBuf> {
+        let dir = self.staged(id, INPUT);
         match std::fs::remove_dir_all(&dir) {
-            Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
+            Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e.into()),
             _ => {}
         }
         std::fs::create_dir_all(&dir)?;
-        let root = self.job_key(id, &["input"]);
+        let root = self.keys.job(id, &[INPUT]);
         self.rt.block_on(async {
             let keys: Vec<Key> = self
                 .store
@@ -340,7 +309,7 @@ impl BlobStore for S3Store {
                 .map_ok(|meta| meta.location)
                 .try_collect()
                 .await
-                .map_err(unavailable)?;
+                .map_err(Error::from)?;
             futures_util::stream::iter(keys.into_iter().filter_map(|key| {
                 let name = key.filename().filter(|n| !have(n))?.to_string();
                 Some(self.download(key, dir.join(name)))
@@ -352,12 +321,12 @@ impl BlobStore for S3Store {
         Ok(dir)
     }
 
-    fn remove_inputs(&self, id: Uuid) -> io::Result<()> {
+    fn remove_inputs(&self, id: Uuid) -> Result<()> {
         self.scratch.remove_inputs(id)?;
-        self.delete_under(&self.job_key(id, &["input"]))
+        self.delete_under(&self.keys.job(id, &[INPUT]))
     }
 
-    fn stage_outputs(&self, id: Uuid) -> io::Result<PathBuf> {
+    fn stage_outputs(&self, id: Uuid) -> Result<PathBuf> {
         self.scratch.stage_outputs(id)
     }
 
@@ -366,11 +335,11 @@ impl BlobStore for S3Store {
         id: Uuid,
         attempt: &str,
         artifacts: &mut [ArtifactInfo],
-    ) -> io::Result<()> {
-        let staged = self.staged(id, "output.partial");
+    ) -> Result<()> {
+        let staged = self.staged(id, OUTPUT_PARTIAL);
         let mut files = Vec::new();
         for info in artifacts.iter_mut() {
-            let key = self.job_key(id, &["outputs", attempt, &info.name]);
+            let key = self.keys.job(id, &[OUTPUTS, attempt, &info.name]);
             info.key = Some(key.to_string());
             files.push((staged.join(&info.name), key));
         }
@@ -378,105 +347,106 @@ impl BlobStore for S3Store {
         self.scratch.discard_outputs(id, attempt)
     }
 
-    fn discard_outputs(&self, id: Uuid, attempt: &str) -> io::Result<()> {
+    fn discard_outputs(&self, id: Uuid, attempt: &str) -> Result<()> {
         self.scratch.discard_outputs(id, attempt)?;
-        self.delete_under(&self.job_key(id, &["outputs", attempt]))
+        self.delete_under(&self.keys.job(id, &[OUTPUTS, attempt]))
     }
 
     fn read(
         &self,
         file: Served<'_>,
         range: Option<Range<u64>>,
-    ) -> BoxFuture<'static, io::Result<ByteStream>> {
+    ) -> BoxFuture<'static, Result<ByteStream>> {
         let key = match file {
             Served::Artifact { info, .. } => info.key.as_deref().map(Key::from),
-            Served::Calibration { id, info } => Some(self.calibration_key(id, &[&info.name])),
+            Served::Calibration { id, info } => Some(self.keys.calibration(id, &[&info.name])),
         };
         let store = self.store.clone();
         Box::pin(async move {
             let key = key.ok_or_else(|| {
-                io::Error::new(io::ErrorKind::NotFound, "the artifact has no object key")
+                Error::from(io::Error::new(
+                    io::ErrorKind::NotFound,
+                    "the artifact has no object key",
+                ))
             })?;
             let options = GetOptions {
                 range: range.map(GetRange::Bounded),
                 ..GetOptions::default()
             };
-            let got = store.get_opts(&key, options).await.map_err(unavailable)?;
-            Ok(got.into_stream().map_err(unavailable).boxed())
+            let got = store.get_opts(&key, options).await.map_err(Error::from)?;
+            Ok(got.into_stream().map_err(Error::from).boxed())
         })
     }
 
-    fn local_artifacts(
-        &self,
-        _id: Uuid,
-        artifacts: &[&ArtifactInfo],
-    ) -> io::Result<LocalArtifacts> {
+    fn local_artifacts(&self, _id: Uuid, artifacts: &[&ArtifactInfo]) -> Result<LocalArtifacts> {
         let dir = self
-            .scratch_root
+            .dirs
+            .root()
             .join(format!("fetched-{}", Uuid::new_v4().simple()));
         std::fs::create_dir_all(&dir)?;
         let local = LocalArtifacts::fetched(dir.clone());
         for info in artifacts {
             let key = info.key.as_deref().map(Key::from).ok_or_else(|| {
-                io::Error::new(io::ErrorKind::NotFound, "the artifact has no object key")
+                Error::from(io::Error::new(
+                    io::ErrorKind::NotFound,
+                    "the artifact has no object key",
+                ))
             })?;
             self.rt.block_on(self.download(key, dir.join(&info.name)))?;
         }
         Ok(local)
     }
 
-    fn remove_job(&self, id: Uuid) -> io::Result<()> {
+    fn remove_job(&self, id: Uuid) -> Result<()> {
         self.scratch.remove_job(id)?;
-        self.delete_under(&self.job_key(id, &[]))
+        self.delete_under(&self.keys.job(id, &[]))
     }
 
-    fn job_ids(&self) -> io::Result<Vec<Uuid>> {
-        Ok(union(self.scratch.job_ids()?, self.settled_ids("jobs")?))
+    fn job_ids(&self) -> Result<Vec<Uuid>> {
+        Ok(union(self.scratch.job_ids()?, self.settled_ids(JOBS)?))
     }
 
-    fn remove_partials(&self, id: Uuid) -> io::Result<()> {
+    fn remove_partials(&self, id: Uuid) -> Result<()> {
         self.scratch.remove_partials(id)
     }
 
-    fn free_bytes(&self) -> io::Result<u64> {
+    fn free_bytes(&self) -> Result<u64> {
         self.scratch.free_bytes()
     }
 
-    fn probe_writable(&self) -> io::Result<()> {
+    fn probe_writable(&self) -> Result<()> {
         self.scratch.probe_writable()?;
-        let key = self.key(&["probes", &Uuid::new_v4().simple().to_string()]);
+        let key = self
+            .keys
+            .key(&[PROBES, &Uuid::new_v4().simple().to_string()]);
         self.rt.block_on(async {
             self.store
                 .put(&key, PutPayload::from_static(b"ok"))
                 .await
-                .map_err(unavailable)?;
-            self.store.delete(&key).await.map_err(unavailable)
+                .map_err(Error::from)?;
+            self.store.delete(&key).await.map_err(Error::from)
         })
     }
 
-    fn stage_calibration(&self, id: Uuid) -> io::Result<PathBuf> {
+    fn stage_calibration(&self, id: Uuid) -> Result<PathBuf> {
         self.scratch.stage_calibration(id)
     }
 
-    fn commit_calibration(&self, id: Uuid) -> io::Result<()> {
-        let staged = self
-            .scratch_root
-            .join("calibrations")
-            .join(id.to_string())
-            .join("files.partial");
-        self.upload_dir(&staged, &self.calibration_key(id, &[]), None)?;
+    fn commit_calibration(&self, id: Uuid) -> Result<()> {
+        let staged = self.dirs.calibration(id).join(FILES_PARTIAL);
+        self.upload_dir(&staged, &self.keys.calibration(id, &[]), None)?;
         self.scratch.remove_calibration(id)
     }
 
-    fn remove_calibration(&self, id: Uuid) -> io::Result<()> {
+    fn remove_calibration(&self, id: Uuid) -> Result<()> {
         self.scratch.remove_calibration(id)?;
-        self.delete_under(&self.calibration_key(id, &[]))
+        self.delete_under(&self.keys.calibration(id, &[]))
     }
 
-    fn calibration_ids(&self) -> io::Result<Vec<Uuid>> {
+    fn calibration_ids(&self) -> Result<Vec<Uuid>> {
         Ok(union(
             self.scratch.calibration_ids()?,
-            self.settled_ids("calibrations")?,
+            self.settled_ids(CALIBRATIONS)?,
         ))
     }
 }

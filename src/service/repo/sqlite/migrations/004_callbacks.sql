@@ -1,0 +1,2 @@
+-- 4: jobs' webhooks.
+ALTER TABLE jobs ADD COLUMN callback TEXT;
