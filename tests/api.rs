@@ -2374,6 +2374,21 @@ async fn a_near_light_job_refuses_options_and_outputs_it_cannot_honour() {
         .unwrap();
     expect_problem(r, 422, &["field `outputs`", "\"lights.json\""]).await;
 
+    // An LED aimed back at the camera lights nothing it sees: refused before the job.
+    let table = std::fs::read_to_string(set.path().join("light_directions.json")).unwrap();
+    let mut table: Value = serde_json::from_str(&table).unwrap();
+    table["lights"][3]["axis"] = serde_json::json!([0.0, 0.0, 1.0]);
+    let name = table["lights"][3]["name"].as_str().unwrap().to_string();
+    let mut flipped = Form::new().part(
+        "lights",
+        Part::text(table.to_string()).file_name("lights.json"),
+    );
+    for img in images_of(set.path()) {
+        flipped = flipped.part("images", file_part(&img));
+    }
+    let r = post(flipped).await.unwrap();
+    expect_problem(r, 422, &["faces away", &name]).await;
+
     // What it takes, with a selection of what it writes: only those are written.
     let options = r#"{"mask": "auto", "integration": "poisson", "mesh": {"max_vertices": 2000}, "outputs": ["depth.exr", "mesh.glb"]}"#;
     let job = s.submit(form(options)).await;
@@ -2416,50 +2431,26 @@ async fn a_job_estimates_its_lights_intensities_on_request() {
         let i = e["intensity"].as_f64().unwrap();
         assert!((i - 1.0).abs() < 0.01, "the set's lights are equal: {job}");
     }
-    let get = |name: &str| {
-        let url = job["artifacts"][name]
-            .as_str()
+    let artifact = |job: &Value, name: &str| {
+        (job["artifacts"][name].as_str())
             .unwrap_or_else(|| panic!("no {name} in {job}"))
-            .to_string();
-        let s = &s;
-        async move {
-            s.client
-                .get(s.url(&url))
-                .send()
-                .await
-                .unwrap()
-                .bytes()
-                .await
-                .unwrap()
-        }
+            .to_string()
     };
-    let table = get("lights.json").await;
-    let normals = get("normal.png").await;
+    let table = s.get_bytes(&artifact(&job, "lights.json")).await;
+    let normals = s.get_bytes(&artifact(&job, "normal.png")).await;
 
     let mut form = Form::new();
     for img in images_of(&set) {
         form = form.part("images", file_part(&img));
     }
-    let form = form.part(
-        "lights",
-        Part::bytes(table.to_vec()).file_name("lights.json"),
-    );
+    let form = form.part("lights", Part::bytes(table).file_name("lights.json"));
     let again = s.submit(form).await;
     let again = s.wait_succeeded(again["id"].as_str().unwrap()).await;
     assert!(
         again["result"]["estimated_intensities"].is_null(),
         "{again}"
     );
-    let url = again["artifacts"]["normal.png"].as_str().unwrap();
-    let reread = s
-        .client
-        .get(s.url(url))
-        .send()
-        .await
-        .unwrap()
-        .bytes()
-        .await
-        .unwrap();
+    let reread = s.get_bytes(&artifact(&again, "normal.png")).await;
     assert_eq!(
         normals, reread,
         "lights.json as the table gives other normals"

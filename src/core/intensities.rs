@@ -176,18 +176,23 @@ fn solve_cholesky(l: &[f64], k: usize, b: &[f64]) -> Vec<f64> {
 mod tests {
     use super::*;
 
-    /// Six distant lights of different brightness over a hemisphere of normals: the
-    /// intensities come back exactly (up to their mean).
-    #[test]
-    fn intensities_of_a_noiseless_sphere() {
-        let dirs: Vec<[f32; 3]> = (0..6)
+    /// Six unit directions around the view axis, 32° off it.
+    fn six_lights() -> Vec<[f32; 3]> {
+        (0..6)
             .map(|k| {
                 let a = k as f32;
                 let v = [0.5 * a.cos(), 0.5 * a.sin(), 0.8];
                 let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
                 v.map(|c| c / n)
             })
-            .collect();
+            .collect()
+    }
+
+    /// Six distant lights of different brightness over a hemisphere of normals: the
+    /// intensities come back exactly (up to their mean).
+    #[test]
+    fn intensities_of_a_noiseless_sphere() {
+        let dirs = six_lights();
         let e = [1.0, 1.2, 0.8, 0.9, 1.1, 1.0];
         let mut gram = Gram::new(6);
         for i in 0..400 {
@@ -209,14 +214,7 @@ mod tests {
     /// intensities: refused, not guessed.
     #[test]
     fn a_plane_does_not_identify_the_intensities() {
-        let dirs: Vec<[f32; 3]> = (0..6)
-            .map(|k| {
-                let a = k as f32;
-                let v = [0.5 * a.cos(), 0.5 * a.sin(), 0.8];
-                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-                v.map(|c| c / n)
-            })
-            .collect();
+        let dirs = six_lights();
         let n = [0.1f32, -0.2, 0.97];
         let mut gram = Gram::new(6);
         for i in 0..400 {

@@ -655,7 +655,7 @@ fn run_near(
     clock: &mut StageClock<'_>,
 ) -> Result<NearReport, Stop> {
     let (width, height) = (set.info().width, set.info().height);
-    let (camera, distance) = upload::near_rig(options, &rig, width, height)?;
+    let (camera, distance) = upload::near_rig(options, &rig, &set.info().lights, (width, height))?;
     let report = near::run(&mut set, camera, distance, rig.unit, options, out, clock);
     finished(report, clock)
 }

@@ -552,7 +552,7 @@ pub async fn receive(
     let first = ordered[0];
     let (width, height) = (first.width as usize, first.height as usize);
     if near {
-        near_rig(&options, &parsed.rig, width, height)?;
+        near_rig(&options, &parsed.rig, &lights, (width, height))?;
     } else {
         options.check_camera(width, height)?;
     }
@@ -572,12 +572,13 @@ pub async fn receive(
 
 /// The camera and working distance of a near-light job: the job's (`camera` part or
 /// option, `distance` option) or else its light table's; a 422 naming what neither gives,
-/// or a camera that cannot have taken the `width × height` images.
+/// a camera that cannot have taken the `width × height` images, or an LED of `lights`
+/// facing away from the object.
 pub(super) fn near_rig(
     options: &Options,
     rig: &lights::Rig,
-    width: usize,
-    height: usize,
+    lights: &[lights::Light],
+    (width, height): (usize, usize),
 ) -> Result<(Pinhole, f64), ApiError> {
     let camera = options.camera.or(rig.camera);
     let distance = options.distance.or(rig.distance);
@@ -601,6 +602,7 @@ pub(super) fn near_rig(
     };
     camera.check(width, height).map_err(InputError::from)?;
     crate::core::options::check_distance(Some(distance), Some(&camera))?;
+    crate::core::near::check_cones(lights, &camera, distance, (width, height))?;
     Ok((camera, distance))
 }
 

@@ -94,6 +94,12 @@ impl TestServer {
         r.json().await.unwrap()
     }
 
+    pub async fn get_bytes(&self, path: &str) -> Vec<u8> {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), 200, "GET {path}");
+        r.bytes().await.unwrap().to_vec()
+    }
+
     /// Submit a form; asserts 202 + Location and returns the job.
     pub async fn submit(&self, form: Form) -> Value {
         let r = self

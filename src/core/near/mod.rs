@@ -17,7 +17,7 @@ mod shrink;
 mod solve;
 mod surface;
 
-pub use model::{irradiance, light_vectors};
+pub use model::{check_cones, irradiance, light_vectors};
 pub use pixel::{Fit, fit};
 pub use run::{NearReport, run};
 pub use selection::{ARTIFACTS, OPTIONS, check_outputs};

@@ -5,6 +5,8 @@
 //! distance `reference` (multiplied by `reference²`), so that an albedo solved under near
 //! lights reads like one solved under distant lights of the table's intensities.
 
+use crate::core::camera::Pinhole;
+use crate::core::error::InputError;
 use crate::core::lights::Light;
 
 /// The irradiance vector `s · l` one light casts on the point `x` (camera frame, the
@@ -46,6 +48,52 @@ pub fn light_vectors(lights: &[Light], x: [f64; 3], reference: f64, out: &mut [[
     }
 }
 
+/// Refuses a table with an LED that lights nothing the camera sees: one with a cone (an
+/// axis and μ > 0) that leaves dark every point of the frame at the working `distance`
+/// (the corners, the edges' midpoints and the centre of a `width × height` image), its
+/// axis pointing away from the object.
+pub fn check_cones(
+    lights: &[Light],
+    camera: &Pinhole,
+    distance: f64,
+    (width, height): (usize, usize),
+) -> Result<(), InputError> {
+    let (w, h) = (
+        width.saturating_sub(1) as f64,
+        height.saturating_sub(1) as f64,
+    );
+    let frame: Vec<[f64; 3]> = [0.0, 0.5, 1.0]
+        .iter()
+        .flat_map(|&u| [0.0, 0.5, 1.0].map(|v| (u * w, v * h)))
+        .map(|(x, y)| {
+            [
+                (x - camera.cx) / camera.fx * distance,
+                (y - camera.cy) / camera.fy * distance,
+                -distance,
+            ]
+        })
+        .collect();
+    for light in lights {
+        let Some(e) = &light.emitter else { continue };
+        let Some(axis) = e.axis.filter(|_| e.anisotropy > 0.0) else {
+            continue;
+        };
+        let lit = frame.iter().any(|x| {
+            let v = [0, 1, 2].map(|k| x[k] - e.position[k]);
+            v[0] * axis[0] + v[1] * axis[1] + v[2] * axis[2] > 0.0
+        });
+        if !lit {
+            return Err(InputError::Lights(format!(
+                "the LED of {:?} faces away from the object: its axis {axis:?} leaves every \
+                 point of the frame at the working distance ({distance}) outside its cone; an \
+                 axis points from the LED towards the scene (the scene lies at negative z)",
+                light.name
+            )));
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -60,6 +108,22 @@ mod tests {
             intensity_known: true,
         });
         l
+    }
+
+    /// An LED above the frame aimed at it passes; the same aimed back at the camera is
+    /// refused, naming it; an isotropic one has no cone to miss.
+    #[test]
+    fn an_led_facing_away_is_refused() {
+        let camera = Pinhole::centred(100.0, 64, 64);
+        let at = |axis: [f64; 3], mu: f64| {
+            let mut l = led([30.0, 0.0, -20.0], Some(axis), mu);
+            l.name = "im7.png".into();
+            check_cones(&[l], &camera, 100.0, (64, 64))
+        };
+        assert!(at([-0.3, 0.0, -1.0], 2.0).is_ok());
+        let e = at([0.0, 0.0, 1.0], 2.0).unwrap_err().to_string();
+        assert!(e.contains("im7.png") && e.contains("faces away"), "{e}");
+        assert!(at([0.0, 0.0, 1.0], 0.0).is_ok());
     }
 
     /// Straight above at the working distance: the light's own intensity along +z; twice
