@@ -50,8 +50,8 @@ struct Prepared {
     width: usize,
     height: usize,
     lights: Vec<Light>,
-    /// The lights' intensities, when they were estimated from the object.
-    estimated: Option<Vec<Estimated>>,
+    /// Whether `lights`' intensities were estimated from the object.
+    estimated: bool,
     condition: f64,
     clamped: usize,
     albedo: Array2<f32>,
@@ -91,16 +91,14 @@ fn prepare(
 
     step(progress, Stage::Solve)?;
     let polled: &dyn Progress = progress;
-    let (surface, lights, estimated) = timings.time(Stage::Solve, || {
-        let (lights, estimated) = match opts.intensities {
-            Intensities::Table => (stack.info().lights.clone(), None),
-            Intensities::Estimate => {
-                let (lights, estimated) = estimated_lights(stack)?;
-                (lights, Some(estimated))
-            }
+    let estimated = opts.intensities == Intensities::Estimate;
+    let (surface, lights) = timings.time(Stage::Solve, || {
+        let lights = match opts.intensities {
+            Intensities::Table => stack.info().lights.clone(),
+            Intensities::Estimate => estimated_lights(stack)?,
         };
         let surface = solve::solve(stack, &lights, opts.solver, &|| polled.halted())?;
-        Ok::<_, InputError>((surface, lights, estimated))
+        Ok::<_, InputError>((surface, lights))
     })?;
     not_halted(polled)?;
     let set = stack.info();
@@ -177,9 +175,8 @@ fn prepare(
 }
 
 /// The set's lights with their relative intensities estimated from the object (the
-/// pre-pass's sampled pixels, [`robust::estimate_intensities`]), and the estimates as the
-/// report lists them.
-fn estimated_lights(stack: &dyn Stack) -> Result<(Vec<Light>, Vec<Estimated>), InputError> {
+/// pre-pass's sampled pixels, [`robust::estimate_intensities`]).
+fn estimated_lights(stack: &dyn Stack) -> Result<Vec<Light>, InputError> {
     let info = stack.info();
     let e = robust::estimate_intensities(&info.lights, info.bit_depth, stack.samples(), info.width)
         .ok_or_else(|| {
@@ -190,20 +187,13 @@ fn estimated_lights(stack: &dyn Stack) -> Result<(Vec<Light>, Vec<Estimated>), I
                     .into(),
             )
         })?;
-    let lights: Vec<Light> = (info.lights.iter().zip(&e))
+    Ok((info.lights.iter().zip(&e))
         .map(|(l, &intensity)| Light {
             intensity,
             rgb: None,
             ..l.clone()
         })
-        .collect();
-    let estimated = (lights.iter())
-        .map(|l| Estimated {
-            name: l.name.clone(),
-            intensity: l.intensity,
-        })
-        .collect();
-    Ok((lights, estimated))
+        .collect())
 }
 
 /// The surface gradients integration starts from: of the heights (orthographic), or of
@@ -314,7 +304,14 @@ impl Prepared {
             object_pixels: object,
             artifacts: Vec::new(),
             mask_file: self.mask_file,
-            estimated_intensities: self.estimated,
+            estimated_intensities: self.estimated.then(|| {
+                (self.lights.iter())
+                    .map(|l| Estimated {
+                        name: l.name.clone(),
+                        intensity: l.intensity,
+                    })
+                    .collect()
+            }),
             notes: self.notes,
         };
         Reconstruction {
