@@ -1,5 +1,10 @@
-//! A set of many images is read in bands and never held whole. Its own test binary (as
-//! `tests/memory.rs` is), so that no other test's allocations move the peak it measures.
+//! A set of many images is read in bands and never held whole, and each kind of job
+//! peaks within what the service reserves for it. Its own test binary (as
+//! `tests/memory.rs` is), so that no other test's allocations move the peaks it measures;
+//! its tests take turns for the same reason.
+
+/// Held by each test while it measures.
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// Peak resident size of this process (VmHWM), bytes; reset to the current size by
 /// writing 5 to /proc/self/clear_refs.
@@ -23,6 +28,7 @@ fn many_images_reconstruct_without_holding_the_stack() {
     use photostereo::core::intake::{DirMask, Limits};
     use photostereo::core::{Options, RunToEnd, pipeline, stream, synth};
     const MB: u64 = 1 << 20;
+    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
     let (size, count) = (768, 200);
     let stack = (size * size * 2 * count) as u64;
     let dir = tempfile::tempdir().unwrap();
@@ -56,4 +62,91 @@ fn many_images_reconstruct_without_holding_the_stack() {
         mb(grown),
         mb(stack)
     );
+}
+
+/// Each kind of job peaks within the bound the service reserves for it (the core's
+/// `peak_bytes`): a distant job, a near-light job (a ring of 24 LEDs over a relief plate)
+/// and a normal map integrated, each of 2048² (where most of a bound is its per-pixel
+/// term), one after the other so that no job's allocations move another's peak.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[test]
+fn each_kind_of_job_peaks_within_what_the_service_reserves() {
+    use photostereo::core::intake::{DirMask, Limits};
+    use photostereo::core::{
+        Options, RunToEnd, near, normalmap, normals_in, pipeline, stream, synth,
+    };
+    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    const MB: f64 = (1 << 20) as f64;
+    let size = 2048;
+    let pixels = (size * size) as u64;
+    let dir = tempfile::tempdir().unwrap();
+    let rig = synth::ring_relief_of(size, 24);
+    let near_set = dir.path().join("near");
+    rig.write(&near_set).unwrap();
+    // The same images under the best distant table.
+    let distant_set = dir.path().join("distant");
+    std::fs::create_dir_all(&distant_set).unwrap();
+    let mut csv = String::new();
+    for l in rig.distant_table() {
+        std::fs::copy(near_set.join(&l.name), distant_set.join(&l.name)).unwrap();
+        let d = l.direction;
+        csv += &format!(
+            "{}, {}, {}, {}, {}\n",
+            l.name, d[0], d[1], d[2], l.intensity
+        );
+    }
+    std::fs::write(distant_set.join("light_directions.csv"), csv).unwrap();
+    let (camera, distance) = (rig.camera, rig.distance);
+    drop(rig);
+
+    let scratch = dir.path();
+    let limits = Limits::default();
+    let open = |set: &std::path::Path| {
+        stream::open_dir(set, DirMask::Folder, &limits, scratch).expect("opening the set")
+    };
+    let check = |name: &str, bound: u64, job: &dyn Fn()| {
+        photostereo::core::heap::release_free_heap();
+        std::fs::write("/proc/self/clear_refs", "5").expect("resetting the peak");
+        let base = peak();
+        job();
+        let grown = peak().saturating_sub(base);
+        eprintln!(
+            "{name} {size}²: peak grew by {:.1} MB ({:.1} bytes per pixel); reserved {:.1} MB",
+            grown as f64 / MB,
+            grown as f64 / pixels as f64,
+            bound as f64 / MB
+        );
+        assert!(
+            grown <= bound,
+            "a {name} job grew by {:.1} MB, over the {:.1} MB the service reserves",
+            grown as f64 / MB,
+            bound as f64 / MB
+        );
+    };
+    let options = Options::default();
+    check("distant", pipeline::peak_bytes(pixels), &|| {
+        let out = scratch.join("out-distant");
+        pipeline::run(open(&distant_set), &options, &out, &mut RunToEnd).unwrap();
+    });
+    check("near", near::peak_bytes(pixels), &|| {
+        let out = scratch.join("out-near");
+        let mut set = open(&near_set);
+        near::run(
+            &mut set,
+            camera,
+            distance,
+            None,
+            &options,
+            &out,
+            &mut RunToEnd,
+        )
+        .unwrap();
+    });
+    check("normals", normals_in::peak_bytes(pixels), &|| {
+        let map = scratch.join("out-distant/normal.png");
+        let map = normalmap::read(&map, None, Default::default(), None, &limits).unwrap();
+        let settings = normals_in::Settings::of(&options);
+        let out = scratch.join("out-normals");
+        normals_in::run(map, &settings, &out, &mut RunToEnd).unwrap();
+    });
 }

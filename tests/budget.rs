@@ -369,8 +369,8 @@ fn calibration_dirs(root: &std::path::Path) -> Vec<std::path::PathBuf> {
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn a_job_waits_queued_for_room_in_the_budget() {
     let dir = tempfile::tempdir().unwrap();
-    // A job of 320×240 (the chrome set's size) may need 60 B/px and a 32 MiB band, 36
-    // MiB; so may a calibration: two do not fit in 64 MiB.
+    // A job of 320×240 (the chrome set's size) may need 104 B/px, a 32 MiB band and 16 MiB:
+    // 56 MiB; a calibration more: two do not fit in 64 MiB.
     let flags = [
         "--memory-budget",
         "64MiB",

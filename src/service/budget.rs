@@ -17,22 +17,17 @@ use tokio::sync::Notify;
 
 use super::config::Config;
 use crate::core::outputs::shaded_png_capacity;
-use crate::core::stream::BAND_BYTES;
+use crate::core::{near, normals_in, pipeline};
 
-/// A job's peak per pixel of one image: its output maps at the integration (see
-/// docs/architecture.md, "Limits on what a job costs").
-pub const JOB_BYTES_PER_PIXEL: u64 = 60;
-
-/// A job of `pixels` per image at its peak: the maps plus one band of every image.
-pub fn job_peak_bytes(pixels: u64) -> u64 {
-    JOB_BYTES_PER_PIXEL * pixels + BAND_BYTES as u64
-}
-
-/// The most any job may need: its images at `--max-pixels`. A worker reserves this
-/// before it claims a job (it cannot know the job's size before), and cuts it to the
-/// job's own estimate once the job's images are opened.
+/// The most any job may need: its images (or normal map) at `--max-pixels`, of whichever
+/// kind costs most (the core's bounds: `pipeline`, `near` and `normals_in::peak_bytes`).
+/// A worker reserves this before it claims a job (it cannot know the job's size or kind
+/// before), and cuts it to the job's own bound once the job's inputs are opened.
 pub fn job_worst_bytes(config: &Config) -> u64 {
-    job_peak_bytes(config.max_pixels)
+    let pixels = config.max_pixels;
+    (pipeline::peak_bytes(pixels))
+        .max(near::peak_bytes(pixels))
+        .max(normals_in::peak_bytes(pixels))
 }
 
 /// A calibration's documented peak, reserved while it computes: the core's bound for

@@ -76,7 +76,7 @@ pub struct ServeArgs {
     pub max_images: usize,
 
     /// Most pixels in one image, width × height (413 past it): a job's output maps are
-    /// sized by it, about 60 bytes per pixel at the job's peak, whatever the image count.
+    /// sized by it, 80–104 bytes per pixel at the job's peak, whatever the image count.
     #[arg(long, env = "PHOTOSTEREO_MAX_PIXELS", default_value_t = 33_554_432)]
     pub max_pixels: u64,
 
@@ -219,7 +219,7 @@ pub struct ServeArgs {
     pub decode_ahead: Option<u32>,
 
     /// Memory that jobs, calibrations and re-shades may hold together, counted by their
-    /// estimated peaks (a job: about 60 bytes per pixel of one image plus a band): a job
+    /// estimated peaks (a job: 80–104 bytes per pixel of one image plus a band): a job
     /// that does not fit waits in the queue, a calibration within its request, and a
     /// re-shade is answered 503 with Retry-After [default: three quarters of the
     /// machine's memory, or of the cgroup's memory limit when lower].

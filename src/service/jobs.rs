@@ -603,7 +603,7 @@ fn execute(
         Some(map) => {
             let limits = inner.config.limits();
             let map = read_normal_map(&input, map, manifest.mask.as_ref(), &options, &limits)?;
-            memory.shrink_to(budget::job_peak_bytes((map.width * map.height) as u64));
+            memory.shrink_to(normals_in::peak_bytes((map.width * map.height) as u64));
             let settings = normals_in::Settings::of(&options);
             let report = normals_in::run(map, &settings, &out, clock);
             summarize(&finished(report, clock)?)
@@ -614,9 +614,12 @@ fn execute(
             let near = table.is_near().then(|| table.rig.clone());
             let set = open_inputs(inner, scanned, table.lights, &input, &manifest, clock)?;
             let set = set.noted(manifest.notes.clone());
-            // The images' size is known now: keep the job's own estimate of the budget.
-            let info = set.info();
-            memory.shrink_to(budget::job_peak_bytes((info.width * info.height) as u64));
+            // The images' size and the job's kind are known now: keep the job's own bound.
+            let pixels = (set.info().width * set.info().height) as u64;
+            memory.shrink_to(match near {
+                Some(_) => near::peak_bytes(pixels),
+                None => pipeline::peak_bytes(pixels),
+            });
             if let Some(rig) = near {
                 let report = run_near(set, rig, &options, &out, clock);
                 return commit(inner, id, attempt, &out, summarize_near(&report?));

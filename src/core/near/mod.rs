@@ -19,7 +19,7 @@ mod surface;
 
 pub use model::{check_cones, irradiance, light_vectors};
 pub use pixel::{Fit, fit};
-pub use run::{NearReport, run};
+pub use run::{NearReport, peak_bytes, run};
 pub use selection::{ARTIFACTS, OPTIONS, check_outputs};
 pub use solve::solve;
 pub use surface::{COARSE_PIXELS, Iteration, NearSettings, NearSurface};

@@ -23,6 +23,7 @@ use crate::core::outputs::{self, Heights, Maps};
 use crate::core::pipeline::{not_halted, step};
 use crate::core::progress::{Progress, Stage};
 use crate::core::reconstruction::{Reconstruction, Report as RunReport, Timing};
+use crate::core::stream::BAND_BYTES;
 
 /// What a near-light reconstruction wrote: `result.json`.
 #[derive(Debug, Clone, Serialize)]
@@ -51,6 +52,15 @@ pub struct NearReport {
     pub timings_ms: Vec<Timing>,
     pub artifacts: Vec<String>,
     pub notes: Vec<String>,
+}
+
+/// The most [`run`] holds for a set of `pixels` per image, whatever the number of
+/// images: its maps, the surface and the log-depth integration of each full-resolution
+/// pass, one band of every image and the decoders' and threads' state (a 2048² job grew
+/// by 80–100 bytes per pixel in all, 1.15–1.25 × a distant job). The service reserves it before a
+/// near job starts; `tests/bands_memory.rs` measures a job against it.
+pub fn peak_bytes(pixels: u64) -> u64 {
+    104 * pixels + BAND_BYTES as u64 + (16 << 20)
 }
 
 /// Reconstruct `stack` (lights with positions) under `camera` from the working
