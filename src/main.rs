@@ -795,7 +795,7 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
             None => (Align::Offset, "px, offset"),
             Some(_) => (Align::Scale, "truth's unit, scaled"),
         };
-        for solver in [Solver::L2, Solver::Weighted, Solver::Robust] {
+        for solver in [Solver::L2, Solver::Weighted, Solver::Robust, Solver::Glossy] {
             let opts = Options {
                 solver,
                 integration,

@@ -34,6 +34,7 @@ pub mod pipeline;
 pub mod preview;
 pub mod progress;
 pub mod reconstruction;
+pub mod reflectance;
 pub mod render;
 pub mod robust;
 pub mod solve;

@@ -252,6 +252,7 @@ pub fn run(
         lights: Vec::new(),
         albedo: map.mask.mapv(f32::from),
         albedo_rgb: None,
+        gloss: None,
         confidence: map.mask.mapv(f32::from),
         unreliable: Array2::from_elem(dim, false),
         curl: Array2::zeros(dim),

@@ -21,7 +21,7 @@ use super::lights::{self, Light};
 use super::options::{Intensities, Options};
 use super::outputs::{self, Maps};
 use super::progress::{Halt, Progress, Stage};
-use super::reconstruction::{LightSummary, Reconstruction, Report, Timing};
+use super::reconstruction::{Gloss, LightSummary, Reconstruction, Report, Timing};
 use super::solve::{self, Surface};
 use super::stream::BAND_BYTES;
 use super::{heap, integrate, mask, robust};
@@ -65,6 +65,7 @@ struct Prepared {
     clamped: usize,
     albedo: Array2<f32>,
     albedo_rgb: Option<Array3<f32>>,
+    gloss: Option<Gloss>,
     normals: Array3<f32>,
     mask: Array2<bool>,
     confidence: Array2<f32>,
@@ -120,6 +121,7 @@ fn prepare(
         mut unreliable,
         estimate,
         mut albedo_rgb,
+        mut gloss,
     } = surface;
 
     step(progress, Stage::Mask)?;
@@ -154,6 +156,17 @@ fn prepare(
         });
     let solve_sums = SolveSums::of(&mask, &residual, &inliers);
     drop((residual, inliers));
+    if let Some(g) = &mut gloss {
+        Zip::from(&mut g.specular)
+            .and(&mut g.roughness)
+            .and(&mut g.used)
+            .and(&mask)
+            .par_for_each(|s, r, u, &m| {
+                if !m {
+                    (*s, *r, *u) = (0.0, 0.0, false);
+                }
+            });
+    }
     if let Some(rgb) = &mut albedo_rgb {
         Zip::from(rgb.rows_mut())
             .and(&mask)
@@ -172,6 +185,7 @@ fn prepare(
         clamped,
         albedo,
         albedo_rgb,
+        gloss,
         normals,
         mask,
         confidence,
@@ -329,6 +343,7 @@ impl Prepared {
             lights: self.lights,
             albedo: self.albedo,
             albedo_rgb: self.albedo_rgb,
+            gloss: self.gloss,
             normals: self.normals,
             mask: self.mask,
             heights,

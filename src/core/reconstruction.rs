@@ -22,6 +22,9 @@ pub struct Reconstruction {
     pub albedo: Array2<f32>,
     /// Per-channel albedo `(rows, cols, 3)` when the inputs were colour.
     pub albedo_rgb: Option<Array3<f32>>,
+    /// The `glossy` solver's specular albedo, roughness and where the lobe was kept (0
+    /// and false off the mask); `albedo` is then the diffuse albedo.
+    pub gloss: Option<Gloss>,
     /// Unit normals `(rows, cols, 3)`, all zero off the mask.
     pub normals: Array3<f32>,
     pub mask: Array2<bool>,
@@ -35,6 +38,25 @@ pub struct Reconstruction {
     /// Mask pixels with fewer than 3 usable observations (their normals are a fallback).
     pub unreliable: Array2<bool>,
     pub report: Report,
+}
+
+/// The lobe model's maps over the whole image: specular albedo, roughness, and where the
+/// lobe was kept (elsewhere the pixel is Lambertian: both maps 0).
+#[derive(Debug, Clone)]
+pub struct Gloss {
+    pub specular: Array2<f32>,
+    pub roughness: Array2<f32>,
+    pub used: Array2<bool>,
+}
+
+impl Gloss {
+    pub fn zeros(rows: usize, cols: usize) -> Self {
+        Self {
+            specular: Array2::zeros((rows, cols)),
+            roughness: Array2::zeros((rows, cols)),
+            used: Array2::from_elem((rows, cols), false),
+        }
+    }
 }
 
 impl Reconstruction {

@@ -14,6 +14,8 @@ use super::lambert::{invert3, pseudo_inverse, render_observation};
 use super::lights::Light;
 use super::options::Solver;
 use super::progress::Halt;
+use super::reconstruction::Gloss;
+use super::reflectance::{self, GlossRows};
 use super::robust::{self, CaptureEstimate};
 
 /// The raw per-pixel solution, before masking and clamping.
@@ -36,6 +38,8 @@ pub struct Surface {
     /// For colour sets: each channel's albedo fitted against the normals (see
     /// [`colour_albedo`]), everywhere; the mask is applied later.
     pub albedo_rgb: Option<Array3<f32>>,
+    /// The `glossy` solver's lobe maps.
+    pub gloss: Option<Gloss>,
 }
 
 impl Surface {
@@ -49,6 +53,7 @@ impl Surface {
             unreliable: Array2::from_elem((rows, cols), false),
             estimate: None,
             albedo_rgb: colour.then(|| Array3::zeros((rows, cols, 3))),
+            gloss: None,
         }
     }
 
@@ -83,16 +88,29 @@ pub fn solve(
     };
     let (rows, cols) = (info.height, info.width);
     let mut surface = Surface::zeros(rows, cols, info.colour);
-    let robust = (solver == Solver::Robust)
+    let robust = matches!(solver, Solver::Robust | Solver::Glossy)
         .then(|| robust::Robust::new(&info.lights, info.bit_depth, stack.samples(), cols));
     let linear = Linear::new(&info, solver);
     surface.estimate = robust.as_ref().map(|r| r.estimate);
+    let mut gloss = (solver == Solver::Glossy).then(|| Gloss::zeros(rows, cols));
     each_band(stack, halt, |band_rows, band| {
         let (r0, r1) = (band_rows.start, band_rows.end);
         let out = surface.rows_mut(r0..r1);
         match &robust {
             Some(r) => r.solve_rows(&band.planes, cols, out, halt),
             None => linear.solve_rows(&band.planes, cols, out, halt),
+        }
+        if let (Some(g), Some(e)) = (&mut gloss, &surface.estimate) {
+            reflectance::refine_rows(
+                &band.planes,
+                cols,
+                &info.lights,
+                e.black_level as f64,
+                e.noise_sigma as f64,
+                surface.rows_mut(r0..r1),
+                GlossRows::of(g, r0, r1),
+                halt,
+            );
         }
         if let (Some(rgb), Some(_)) = (&mut surface.albedo_rgb, band.moments) {
             let normals = surface.normals.slice(s![r0..r1, .., ..]);
@@ -104,6 +122,7 @@ pub fn solve(
             );
         }
     })?;
+    surface.gloss = gloss;
     Ok(surface)
 }
 
@@ -301,7 +320,7 @@ fn linear_row_body(
                 [gx[c], gy[c], gz[c]] = weighted(lights, obs);
             }
         }
-        Solver::Robust => unreachable!("handled by robust::solve"),
+        Solver::Robust | Solver::Glossy => unreachable!("handled by robust::solve"),
     }
     sq.fill(0.0);
     for (l, row) in lights.iter().zip(rows) {

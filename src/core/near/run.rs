@@ -126,6 +126,7 @@ pub fn run(
         lights: set.lights.clone(),
         albedo: surface.albedo.mapv(|a| a.clamp(0.0, 1.0)),
         albedo_rgb: None,
+        gloss: None,
         confidence: mask.mapv(f32::from),
         unreliable: Array2::from_elem(dim, false),
         curl: Array2::zeros(dim),

@@ -1,0 +1,339 @@
+//! One pixel's fit of a diffuse term and a GGX lobe with its normal.
+//!
+//! It starts from the robust solve's Lambertian normal and albedo, picks the lobe's width
+//! from a grid (the albedos are linear given the normal and the width), then refines
+//! normal, albedos and width together by Levenberg–Marquardt under Cauchy weights, so
+//! that a cast shadow or a mismatched lobe's tail does not pull the normal. The lobe is
+//! kept only where it explains the pixel clearly better than the Lambertian fit under the
+//! same robust loss, with a penalty for its two extra parameters (Lambertian where nothing
+//! more is explained, so matte surfaces keep the robust solve's normals).
+
+use super::linear::{nonnegative_pair, solve_spd};
+use super::lobe::{dot, ggx_lobe};
+
+/// One observation of a pixel: the light's unit direction and intensity, and the value
+/// seen with the black level removed ([0, 1] units). Shadowed and clipped values are the
+/// caller's to leave out.
+#[derive(Debug, Clone, Copy)]
+pub struct Observation {
+    pub light: [f64; 3],
+    pub intensity: f64,
+    pub value: f64,
+}
+
+/// A pixel's material under the lobe model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fitted {
+    pub normal: [f64; 3],
+    /// Diffuse albedo (as the Lambertian albedo: value = albedo · n·l under a unit light).
+    pub diffuse: f64,
+    /// Specular albedo: the lobe's scale.
+    pub specular: f64,
+    /// GGX roughness, √alpha.
+    pub roughness: f64,
+}
+
+impl Fitted {
+    /// The value this material shows under `light` (unit) of `intensity`, black level
+    /// not included.
+    pub fn predict(&self, light: [f64; 3], intensity: f64) -> f64 {
+        let nl = dot(self.normal, light);
+        if nl <= 0.0 {
+            return 0.0;
+        }
+        let alpha = self.roughness * self.roughness;
+        intensity * (self.diffuse * nl + self.specular * ggx_lobe(self.normal, light, alpha))
+    }
+}
+
+/// Roughness values the lobe's width is first picked from (mirror-like to broad).
+const ROUGHNESS_GRID: [f64; 11] = [
+    0.04, 0.06, 0.09, 0.13, 0.18, 0.25, 0.33, 0.43, 0.55, 0.7, 0.85,
+];
+const MIN_ROUGHNESS: f64 = 0.04;
+const MAX_ROUGHNESS: f64 = 0.95;
+/// Fewest observations a five-parameter fit is tried on.
+const MIN_OBSERVATIONS: usize = 8;
+/// The lobe must lower the robust loss by this factor, beyond its parameters' penalty.
+const MIN_GAIN: f64 = 0.8;
+
+/// Fit the lobe model to `obs`, starting from the Lambertian `normal` and `albedo`
+/// (the robust solve's), with `noise` the images' noise (σ, [0, 1] units). `None` when
+/// the Lambertian fit explains the pixel as well (or there is too little to fit).
+pub fn fit(obs: &[Observation], normal: [f64; 3], albedo: f64, noise: f64) -> Option<Fitted> {
+    if obs.len() < MIN_OBSERVATIONS || normal[2] <= 0.0 {
+        return None;
+    }
+    // The Cauchy loss's scale: residuals well beyond it (a cast shadow, a lobe's
+    // mismatched tail) weigh little.
+    let scale = (3.0 * noise).max(0.004);
+    let lambert = Fitted {
+        normal,
+        diffuse: albedo,
+        specular: 0.0,
+        roughness: 1.0,
+    };
+    let lambert_loss = loss(obs, &lambert, scale);
+    let start = grid_start(obs, normal)?;
+    let fitted = refine(obs, start, scale);
+    let fitted_loss = loss(obs, &fitted, scale);
+    // Two more parameters than the Lambertian fit, each worth about σ² ln m of loss at
+    // the noise level (BIC).
+    let penalty = 2.0 * noise.max(1e-4).powi(2) * (obs.len() as f64).ln();
+    (fitted.specular > 0.0 && fitted_loss + penalty < MIN_GAIN * lambert_loss).then_some(fitted)
+}
+
+/// The Cauchy loss Σ c² ln(1 + (r/c)²) of `model` over `obs`.
+fn loss(obs: &[Observation], model: &Fitted, scale: f64) -> f64 {
+    let c2 = scale * scale;
+    obs.iter()
+        .map(|o| {
+            let r = model.predict(o.light, o.intensity) - o.value;
+            c2 * (r * r / c2).ln_1p()
+        })
+        .sum()
+}
+
+/// The best width on the grid for `normal`, with its non-negative albedos (least squares).
+fn grid_start(obs: &[Observation], normal: [f64; 3]) -> Option<Fitted> {
+    let mut best: Option<(f64, Fitted)> = None;
+    for roughness in ROUGHNESS_GRID {
+        let alpha = roughness * roughness;
+        let (mut uu, mut uv, mut vv, mut uy, mut vy, mut yy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        for o in obs {
+            let u = o.intensity * dot(normal, o.light).max(0.0);
+            let v = o.intensity * ggx_lobe(normal, o.light, alpha);
+            (uu, uv, vv) = (uu + u * u, uv + u * v, vv + v * v);
+            (uy, vy, yy) = (uy + u * o.value, vy + v * o.value, yy + o.value * o.value);
+        }
+        let (a, b) = nonnegative_pair(uu, uv, vv, uy, vy);
+        let sse = yy - 2.0 * (a * uy + b * vy) + a * a * uu + 2.0 * a * b * uv + b * b * vv;
+        if best.as_ref().is_none_or(|(s, _)| sse < *s) {
+            let model = Fitted {
+                normal,
+                diffuse: a,
+                specular: b,
+                roughness,
+            };
+            best = Some((sse, model));
+        }
+    }
+    best.map(|(_, m)| m).filter(|m| m.specular > 0.0)
+}
+
+/// Parameters of the refinement: two tangent offsets of the normal from a base, the two
+/// albedos and ln alpha.
+type Params = [f64; 5];
+
+/// The model at `p` around `base` (with its tangents `t1`, `t2`).
+fn model_at(base: &Base, p: &Params) -> Fitted {
+    let n = [0, 1, 2].map(|k| base.n[k] + p[0] * base.t1[k] + p[1] * base.t2[k]);
+    let len = dot(n, n).sqrt();
+    Fitted {
+        normal: n.map(|c| c / len),
+        diffuse: p[2],
+        specular: p[3],
+        roughness: (p[4].exp()).sqrt(),
+    }
+}
+
+struct Base {
+    n: [f64; 3],
+    t1: [f64; 3],
+    t2: [f64; 3],
+}
+
+impl Base {
+    fn at(n: [f64; 3]) -> Self {
+        // Any unit vector not parallel to n gives the tangents.
+        let a = if n[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
+        let t1 = normalise(cross(n, a));
+        let t2 = cross(n, t1);
+        Self { n, t1, t2 }
+    }
+}
+
+/// Levenberg–Marquardt on the weighted squares, the Cauchy weights renewed from the
+/// residuals a few times (iteratively re-weighted least squares).
+fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
+    let mut current = start;
+    let c2 = scale * scale;
+    let mut weights = vec![0.0; obs.len()];
+    let mut residuals = vec![0.0; obs.len()];
+    for _round in 0..3 {
+        for (w, o) in weights.iter_mut().zip(obs) {
+            let r = current.predict(o.light, o.intensity) - o.value;
+            *w = 1.0 / (1.0 + r * r / c2);
+        }
+        let base = Base::at(current.normal);
+        let alpha = current.roughness * current.roughness;
+        let mut p: Params = [0.0, 0.0, current.diffuse, current.specular, alpha.ln()];
+        let mut cost = weighted_sse(obs, &weights, &model_at(&base, &p), &mut residuals);
+        let mut lambda = 1e-3;
+        for _step in 0..8 {
+            let (jtj, jtr) = normal_equations(obs, &weights, &base, &p, &residuals);
+            let mut improved = false;
+            for _try in 0..4 {
+                let mut a = jtj;
+                for (k, row) in a.iter_mut().enumerate() {
+                    row[k] += lambda * jtj[k][k].max(1e-12);
+                }
+                let Some(delta) = solve_spd(&a, &jtr.map(|v| -v)) else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let mut q = p;
+                for k in 0..5 {
+                    q[k] += delta[k];
+                }
+                q[2] = q[2].max(0.0);
+                q[3] = q[3].max(0.0);
+                q[4] = q[4].clamp(
+                    (MIN_ROUGHNESS * MIN_ROUGHNESS).ln(),
+                    (MAX_ROUGHNESS * MAX_ROUGHNESS).ln(),
+                );
+                let mut trial = vec![0.0; obs.len()];
+                let c = weighted_sse(obs, &weights, &model_at(&base, &q), &mut trial);
+                if c < cost {
+                    (p, cost, residuals) = (q, c, trial);
+                    lambda = (lambda / 3.0).max(1e-9);
+                    improved = true;
+                    break;
+                }
+                lambda *= 4.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        current = model_at(&base, &p);
+    }
+    current
+}
+
+fn weighted_sse(obs: &[Observation], weights: &[f64], m: &Fitted, out: &mut [f64]) -> f64 {
+    let mut sum = 0.0;
+    for ((r, o), w) in out.iter_mut().zip(obs).zip(weights) {
+        *r = m.predict(o.light, o.intensity) - o.value;
+        sum += w * *r * *r;
+    }
+    sum
+}
+
+/// JᵀWJ and JᵀWr at `p`, the Jacobian by forward differences.
+fn normal_equations(
+    obs: &[Observation],
+    weights: &[f64],
+    base: &Base,
+    p: &Params,
+    residuals: &[f64],
+) -> ([[f64; 5]; 5], [f64; 5]) {
+    let mut jac = vec![[0.0; 5]; obs.len()];
+    for k in 0..5 {
+        let h = 1e-6 * p[k].abs().max(1e-2);
+        let mut q = *p;
+        q[k] += h;
+        let m = model_at(base, &q);
+        for (row, (o, r)) in jac.iter_mut().zip(obs.iter().zip(residuals)) {
+            row[k] = (m.predict(o.light, o.intensity) - o.value - r) / h;
+        }
+    }
+    let mut jtj = [[0.0; 5]; 5];
+    let mut jtr = [0.0; 5];
+    for ((row, w), r) in jac.iter().zip(weights).zip(residuals) {
+        for a in 0..5 {
+            jtr[a] += w * row[a] * r;
+            for b in 0..=a {
+                jtj[a][b] += w * row[a] * row[b];
+            }
+        }
+    }
+    for a in 0..5 {
+        for b in a + 1..5 {
+            jtj[a][b] = jtj[b][a];
+        }
+    }
+    (jtj, jtr)
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn normalise(v: [f64; 3]) -> [f64; 3] {
+    let l = dot(v, v).sqrt();
+    v.map(|c| c / l)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lights(count: usize) -> Vec<[f64; 3]> {
+        // Two rings, 20° and 45° from the axis.
+        (0..count)
+            .map(|i| {
+                let polar = if i % 2 == 0 { 20f64 } else { 45f64 }.to_radians();
+                let az = i as f64 / count as f64 * std::f64::consts::TAU;
+                [polar.sin() * az.cos(), polar.sin() * az.sin(), polar.cos()]
+            })
+            .collect()
+    }
+
+    fn observe(truth: &Fitted, lights: &[[f64; 3]]) -> Vec<Observation> {
+        lights
+            .iter()
+            .map(|&l| Observation {
+                light: l,
+                intensity: 1.0,
+                value: truth.predict(l, 1.0),
+            })
+            .filter(|o| o.value > 0.0)
+            .collect()
+    }
+
+    fn angle(a: [f64; 3], b: [f64; 3]) -> f64 {
+        dot(a, b).clamp(-1.0, 1.0).acos().to_degrees()
+    }
+
+    /// A broad lobe's pixel: from a Lambertian start several degrees off, the fit finds
+    /// the normal, the albedos and the roughness.
+    #[test]
+    fn a_broad_lobe_is_fitted_with_its_normal() {
+        let normal = normalise([0.2, -0.1, 1.0]);
+        let truth = Fitted {
+            normal,
+            diffuse: 0.4,
+            specular: 0.3,
+            roughness: 0.4,
+        };
+        let obs = observe(&truth, &lights(24));
+        let start = normalise([0.28, -0.05, 1.0]);
+        let got = fit(&obs, start, 0.5, 0.001).expect("the lobe is kept");
+        assert!(angle(got.normal, normal) < 0.05, "{got:?}");
+        assert!((got.roughness - 0.4).abs() < 0.01, "{got:?}");
+        assert!((got.diffuse - 0.4).abs() < 0.005 && (got.specular - 0.3).abs() < 0.01);
+    }
+
+    /// A Lambertian pixel keeps its Lambertian fit.
+    #[test]
+    fn a_matte_pixel_is_left_lambertian() {
+        let normal = normalise([-0.3, 0.1, 1.0]);
+        let truth = Fitted {
+            normal,
+            diffuse: 0.6,
+            specular: 0.0,
+            roughness: 0.3,
+        };
+        let obs = observe(&truth, &lights(24));
+        assert_eq!(fit(&obs, normal, 0.6, 0.001), None);
+    }
+}
