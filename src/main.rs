@@ -56,12 +56,18 @@ enum Command {
     },
     /// Score every solver on each data set with ground truth (a folder like res/) and
     /// print a Markdown table: angular error, depth error (MAE and RMS after the median
-    /// offset, or under the set's camera the median scale: MADE), solve time.
+    /// offset, or under the set's camera the median scale: MADE), solve time. With
+    /// --holdout-lights, score them on one capture without ground truth instead.
     Evaluate {
         dir: PathBuf,
         /// Integration method for the depth column.
         #[arg(long, value_parser = kebab::<Integration>, default_value = "robust-poisson")]
         integration: Integration,
+        /// `dir` is one capture (any folder `reconstruct` reads): reconstruct it from
+        /// three quarters of its lights, four times over, and report how well each
+        /// solver predicts the images it was not given (median relative error).
+        #[arg(long)]
+        holdout_lights: bool,
     },
     /// Time the core (decode, full job, each stage), its peak memory and, with --http /
     /// --load, the in-process HTTP service on rendered data sets; prints Markdown tables.
@@ -831,6 +837,41 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `evaluate --holdout-lights`: each solver's prediction of left-out images of one capture.
+fn evaluate_holdout(dir: PathBuf) -> anyhow::Result<()> {
+    use photostereo::core::holdout;
+    let set = intake::load_dir(&dir, DirMask::Folder, &Limits::default())?;
+    anyhow::ensure!(
+        set.lights.len() >= 2 * holdout::FOLDS,
+        "--holdout-lights needs at least {} images (each quarter of the lights is left \
+         out in turn); {} has {}",
+        2 * holdout::FOLDS,
+        dir.display(),
+        set.lights.len()
+    );
+    println!("| solver | median relative error | mean | observations |");
+    println!("|---|---:|---:|---:|");
+    for solver in [Solver::L2, Solver::Robust, Solver::Glossy] {
+        let opts = Options {
+            solver,
+            ..Options::default()
+        };
+        let score = holdout::holdout(&set, &opts)?;
+        println!(
+            "| {} | {:.4} | {:.4} | {} |",
+            serde_json::to_value(solver)?.as_str().unwrap_or_default(),
+            score.median_relative,
+            score.mean_relative,
+            score.observations
+        );
+    }
+    println!(
+        "\nEach quarter of the lights (every 4th) left out in turn; the rest reconstructed \
+         (auto mask); left-out object pixels neither clipped nor darker than 2 % scored."
+    );
+    Ok(())
+}
+
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -852,7 +893,14 @@ fn main() -> ExitCode {
         Command::Integrate(args) => integrate(args),
         Command::Calibrate(args) => calibrate(args),
         Command::Render { dir, only } => render(dir, only),
-        Command::Evaluate { dir, integration } => evaluate(dir, integration),
+        Command::Evaluate {
+            dir,
+            holdout_lights: true,
+            ..
+        } => evaluate_holdout(dir),
+        Command::Evaluate {
+            dir, integration, ..
+        } => evaluate(dir, integration),
         Command::Bench(args) => bench::run(args),
     };
     match result {

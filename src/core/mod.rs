@@ -16,6 +16,7 @@ pub mod commit;
 pub mod error;
 pub mod heap;
 mod histogram;
+pub mod holdout;
 pub mod intake;
 pub mod integrate;
 pub mod intensities;
