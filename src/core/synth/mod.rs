@@ -7,6 +7,7 @@
 mod brdf;
 mod chrome;
 mod depth_scenes;
+mod glossy_scenes;
 mod near_rigs;
 mod render;
 mod scene;
@@ -14,9 +15,10 @@ mod sensor;
 mod transport;
 mod write;
 
-pub use brdf::Specular;
+pub use brdf::{Diffuse, Specular};
 pub use chrome::{ChromeSet, RoomLight, matte_intensities};
 pub use depth_scenes::{DepthScene, depth_scenes, ortho_step_plate, sphere_in_front, step_plate};
+pub use glossy_scenes::{Gloss, GlossyScene, glossy_catalogue};
 pub use near_rigs::{
     NOISE_SIGMA, NearRig, close_ring, dome_sphere, far_ring, ring_relief, ring_relief_of,
 };
@@ -40,6 +42,11 @@ pub struct Capture {
     pub full_well: Option<f64>,
     pub exposure: Exposure,
     pub specular: Option<Specular>,
+    /// The specular lobe's colour per channel (a metal's tinted highlights; a dielectric's
+    /// are white, [1, 1, 1]). A gray scene uses the first.
+    pub specular_tint: [f64; 3],
+    /// The diffuse base: Lambertian, or rough (Oren–Nayar).
+    pub diffuse: Diffuse,
     pub cast_shadows: bool,
     /// Lights of finite size (soft shadows); None for point lights.
     pub area_light: Option<AreaLight>,
@@ -60,6 +67,8 @@ impl Default for Capture {
             full_well: None,
             exposure: Exposure::Gain(1.0),
             specular: None,
+            specular_tint: [1.0; 3],
+            diffuse: Diffuse::Lambert,
             cast_shadows: false,
             area_light: None,
             bounce_rays: None,

@@ -5,7 +5,7 @@ use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
 use super::Capture;
-use super::brdf::normalise;
+use super::brdf::{Diffuse, normalise};
 use super::scene::Scene;
 use super::sensor::{self, Rng};
 use super::transport::{Bounces, Field, Horizons, turn};
@@ -71,7 +71,8 @@ pub fn render(scene: &Scene, lights: &[[f64; 3]], capture: &Capture) -> Rendered
 }
 
 /// The light reaching the camera from each pixel under light `index` (unit `l`), per
-/// channel, before exposure: intensity_c · (albedo_c · E + specular) + albedo_c · E_bounce_c.
+/// channel, before exposure: intensity_c · (albedo_c · E + tint_c · specular) +
+/// albedo_c · E_bounce_c, E the diffuse model's shading.
 fn scene_light(
     occluders: &Occluders,
     bounces: Option<&Bounces>,
@@ -85,6 +86,8 @@ fn scene_light(
         .light_colours
         .as_ref()
         .map_or([1.0; 3], |c| c[index]);
+    // A gray scene has one channel: its lobe takes the tint's first.
+    let tint = capture.specular_tint;
     let mut irradiance = Array2::zeros((s.height, s.width));
     let mut specular = Array2::zeros((s.height, s.width));
     for ((r, c), &inside) in s.mask.indexed_iter() {
@@ -102,7 +105,7 @@ fn scene_light(
         }
     }
     let mut out = Array3::from_shape_fn((s.height, s.width, channels), |(r, c, k)| {
-        colour[k] * (s.albedo[[r, c, k]] * irradiance[[r, c]] + specular[[r, c]])
+        colour[k] * (s.albedo[[r, c, k]] * irradiance[[r, c]] + tint[k] * specular[[r, c]])
     });
     if let Some(b) = bounces {
         for k in 0..channels {
@@ -118,8 +121,9 @@ fn scene_light(
     out
 }
 
-/// Direct irradiance at (r, c) from a unit light along `l` (mean of max(0, n·l) over the
-/// light's directions that the surface does not hide), and the specular value.
+/// Direct diffuse shading at (r, c) from a unit light along `l` (mean of max(0, n·l),
+/// times the diffuse model's factor, over the light's directions that the surface does not
+/// hide), and the specular value.
 fn direct(
     occluders: &Occluders,
     r: usize,
@@ -137,7 +141,11 @@ fn direct(
     let sample = |d: [f64; 3], sums: &mut (f64, f64)| {
         let ndl = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
         if ndl > 0.0 && (!capture.cast_shadows || occluders.lit(r, c, d)) {
-            sums.0 += ndl;
+            sums.0 += match capture.diffuse {
+                // Kept apart so Lambertian scenes render exactly as before.
+                Diffuse::Lambert => ndl,
+                rough => ndl * rough.factor(n, d),
+            };
             if let Some(spec) = capture.specular {
                 sums.1 += spec.value(n, d);
             }
