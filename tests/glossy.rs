@@ -118,7 +118,8 @@ fn table(scenes: Vec<GlossyScene>, columns: &[Column]) -> Vec<Row> {
         "scene", "kind", "lights", "bits", "clip%"
     );
     for (name, _) in columns {
-        header += &format!(" {:>16}", format!("{name} mean/med"));
+        let title = format!("{name} mean/med");
+        header += &format!(" {title:>16}");
     }
     eprintln!("{header}");
     let mut rows = Vec::new();
@@ -128,10 +129,10 @@ fn table(scenes: Vec<GlossyScene>, columns: &[Column]) -> Vec<Row> {
             .iter()
             .map(|(_, solve)| metrics::accuracy(&solve(&shot.set), &shot.truth, &shot.truth.mask))
             .collect();
+        let kind = format!("{:?}", scene.kind);
         let mut line = format!(
-            "{:<26} {:<7} {:>6} {:>4} {:>6.2}",
+            "{:<26} {kind:<7} {:>6} {:>4} {:>6.2}",
             scene.name,
-            format!("{:?}", scene.kind),
             scene.lights.len(),
             scene.capture.bit_depth,
             100.0 * shot.clipped
@@ -189,8 +190,8 @@ fn glossy_catalogue_against_todays_solvers() {
     }
 }
 
-/// The renderer's truth for each material, before any camera: exact, noise-free,
-/// unclipped images of a Lambertian scene solve to the truth normals.
+/// The truth the table is scored against: exact, noise-free, unclipped images of the
+/// Lambertian control solve to the truth normals.
 #[test]
 fn exact_lambertian_images_solve_to_the_truth() {
     let g = synth::glossy_catalogue(SIZE)
