@@ -51,6 +51,7 @@ fn reconstruction(
         lights: Vec::new(),
         albedo,
         albedo_rgb: None,
+        gloss: None,
         normals,
         mask,
         heights,

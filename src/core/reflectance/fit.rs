@@ -74,9 +74,23 @@ pub fn fit(obs: &[Observation], normal: [f64; 3], albedo: f64, noise: f64) -> Op
         roughness: 1.0,
     };
     let lambert_loss = loss(obs, &lambert, scale);
-    let start = grid_start(obs, normal)?;
-    let fitted = refine(obs, start, scale);
-    let fitted_loss = loss(obs, &fitted, scale);
+    // Two starts: the Lambertian normal, and the normal that mirrors the brightest
+    // observation's light into the camera (the lobe's peak), which is nearer the truth
+    // where a strong lobe has pulled the Lambertian fit away.
+    let brightest = obs.iter().max_by(|a, b| a.value.total_cmp(&b.value))?;
+    let mirror = normalise([
+        brightest.light[0],
+        brightest.light[1],
+        brightest.light[2] + 1.0,
+    ]);
+    let (fitted, fitted_loss) = [normal, mirror]
+        .into_iter()
+        .filter_map(|n| grid_start(obs, n))
+        .map(|start| {
+            let fitted = refine(obs, start, scale);
+            (fitted, loss(obs, &fitted, scale))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
     // Two more parameters than the Lambertian fit, each worth about σ² ln m of loss at
     // the noise level (BIC).
     let penalty = 2.0 * noise.max(1e-4).powi(2) * (obs.len() as f64).ln();
