@@ -9,7 +9,7 @@ use std::process::Command;
 mod common;
 
 use common::{PINHOLE_K, benchmark_folder, mean_normal_error_deg, pinhole_sphere_set};
-use photostereo::core::outputs;
+use photostereo::core::{outputs, synth};
 use seed::{SEED_SETS, seed};
 
 fn bin() -> Command {
@@ -97,7 +97,8 @@ fn without_a_selection_the_default_set_is_written() {
         .collect();
     written.sort();
     let mut expected: Vec<String> = (outputs::DEFAULT_OUTPUTS.iter())
-        .filter(|n| **n != "albedo_rgb.png") // gray inputs
+        // Gray inputs, and the default solver, which writes no material maps.
+        .filter(|n| **n != "albedo_rgb.png" && !outputs::GLOSSY_OUTPUTS.contains(n))
         .map(|n| n.to_string())
         .collect();
     expected.sort();
@@ -640,4 +641,80 @@ fn intensities_estimate_writes_the_table_it_estimated() {
     );
     let e = failure(&["--intensities", "guess"], &res("sphere"));
     assert!(e.contains("--intensities") && e.contains("estimate"), "{e}");
+}
+
+/// `--solver glossy` writes the material maps by default, and the roughness it fits on
+/// the rendered glossy sphere is the renderer's (the median over the pixels where the
+/// lobe was kept, within 15 %).
+#[test]
+fn the_glossy_solver_writes_its_material_maps() {
+    let (out, report) = reconstruct(&res("glossy"), &["--solver", "glossy"]);
+    let listed: Vec<&str> = (report["artifacts"].as_array().unwrap().iter())
+        .map(|a| a.as_str().unwrap())
+        .collect();
+    for name in outputs::GLOSSY_OUTPUTS {
+        assert!(listed.contains(&name), "{name} not in {listed:?}");
+    }
+    let truth = synth::catalogue()
+        .into_iter()
+        .find(|(name, ..)| *name == "glossy")
+        .and_then(|(.., capture)| match capture.specular {
+            Some(synth::Specular::CookTorrance { alpha, .. }) => Some(alpha.sqrt()),
+            _ => None,
+        })
+        .expect("the glossy set's GGX lobe");
+    let roughness = image::open(out.path().join("roughness.png"))
+        .unwrap()
+        .into_luma16();
+    let mut kept: Vec<f64> = (roughness.pixels())
+        .map(|p| p.0[0] as f64 / 65535.0)
+        .filter(|&r| r > 0.0)
+        .collect();
+    assert!(kept.len() > 1000, "the lobe kept at {} pixels", kept.len());
+    let mid = kept.len() / 2;
+    let median = *kept.select_nth_unstable_by(mid, f64::total_cmp).1;
+    assert!(
+        (median - truth).abs() <= 0.15 * truth,
+        "roughness {median:.3}, truth {truth}"
+    );
+}
+
+/// `evaluate --holdout-lights` scores each solver on a capture by the images it was not
+/// given: on the rendered glossy sphere the glossy solver predicts them best.
+#[test]
+fn holdout_lights_rank_the_glossy_solver_first_on_a_glossy_set() {
+    let output = bin()
+        .args(["evaluate", "--holdout-lights"])
+        .arg(res("glossy"))
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{output:?}");
+    let table = String::from_utf8(output.stdout).unwrap();
+    let median = |solver: &str| -> f64 {
+        let row = (table.lines())
+            .find(|l| l.starts_with(&format!("| {solver} |")))
+            .unwrap_or_else(|| panic!("no {solver} row in\n{table}"));
+        row.split('|').nth(2).unwrap().trim().parse().unwrap()
+    };
+    let (robust, glossy) = (median("robust"), median("glossy"));
+    assert!(
+        glossy < 0.5 * robust,
+        "glossy {glossy}, robust {robust}\n{table}"
+    );
+}
+
+/// `evaluate --holdout-lights` needs enough images to leave some out.
+#[test]
+fn holdout_lights_refuse_a_set_too_small_to_split() {
+    let output = bin()
+        .args(["evaluate", "--holdout-lights"])
+        .arg(res("bump"))
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("--holdout-lights needs at least 8 images"),
+        "{stderr}"
+    );
 }

@@ -134,7 +134,8 @@ pub struct Options {
     pub max_condition: f64,
     /// Artifact names to write, `"all"` for every one; when absent, the default set:
     /// albedo.png, albedo_rgb.png (colour inputs), mask.png, normal.png, height.png,
-    /// confidence.png, shaded.png, mesh.glb and result.json. A normals job writes only
+    /// confidence.png, specular.png and roughness.png (the glossy solver), shaded.png,
+    /// mesh.glb and result.json. A normals job writes only
     /// mask.png, normal.png, height.png and height.exr (under a camera depth.png and
     /// depth.exr), points.ply, mesh.glb and result.json: all of them when absent; naming
     /// another is refused.

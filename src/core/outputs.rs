@@ -18,7 +18,7 @@ use super::error::RunError;
 use super::mesh::{self, Document, MeshError};
 use super::options::MeshOptions;
 use super::progress::Halt;
-use super::reconstruction::Reconstruction;
+use super::reconstruction::{Gloss, Reconstruction};
 use super::render;
 
 /// Every artifact a job can produce: file name and Content-Type.
@@ -39,6 +39,8 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
     ("curl.png", "image/png"),
     ("confidence.png", "image/png"),
     ("unreliable.png", "image/png"),
+    ("specular.png", "image/png"),
+    ("roughness.png", "image/png"),
     ("shaded.png", "image/png"),
     ("preview.png", "image/png"),
     ("mesh.glb", "model/gltf-binary"),
@@ -52,8 +54,8 @@ pub const ARTIFACTS: &[(&str, &str)] = &[
 /// their most precise lossless form that every viewer opens. The rest (EXRs, the three
 /// normal components, needle/curl/unreliable pictures, the preview, `mesh.gltf`) are 95
 /// of the 127 MB a 2048² job writes with every artifact, and are written on request.
-/// `albedo_rgb.png` is written only for colour inputs; under a camera `height.png` gives
-/// way to [`DEFAULT_DEPTH_OUTPUTS`].
+/// `albedo_rgb.png` is written only for colour inputs, the [`GLOSSY_OUTPUTS`] only by the
+/// `glossy` solver; under a camera `height.png` gives way to [`DEFAULT_DEPTH_OUTPUTS`].
 pub const DEFAULT_OUTPUTS: &[&str] = &[
     "albedo.png",
     "albedo_rgb.png",
@@ -61,6 +63,8 @@ pub const DEFAULT_OUTPUTS: &[&str] = &[
     "normal.png",
     "height.png",
     "confidence.png",
+    "specular.png",
+    "roughness.png",
     "shaded.png",
     "mesh.glb",
     "result.json",
@@ -69,6 +73,10 @@ pub const DEFAULT_OUTPUTS: &[&str] = &[
 /// Added to the default set under a camera: the depth in both forms and the point cloud,
 /// what a perspective reconstruction is for.
 pub const DEFAULT_DEPTH_OUTPUTS: &[&str] = &["depth.png", "depth.exr", "points.ply"];
+
+/// The `glossy` solver's material maps: specular albedo and GGX roughness (0 where the
+/// pixel is Lambertian), each 16-bit over [0, 1]; `albedo.png` is then the diffuse albedo.
+pub const GLOSSY_OUTPUTS: [&str; 2] = ["specular.png", "roughness.png"];
 
 /// In an `outputs` selection, stands for every artifact.
 pub const ALL: &str = "all";
@@ -359,6 +367,8 @@ pub struct Maps<'a> {
     pub confidence: &'a Array2<f32>,
     pub unreliable: &'a Array2<bool>,
     pub heights: Option<Heights<'a>>,
+    /// The `glossy` solver's lobe maps.
+    pub gloss: Option<&'a Gloss>,
 }
 
 /// Integrated heights (or depth, for the depth pictures) and their range over the mask.
@@ -378,6 +388,7 @@ impl<'a> Maps<'a> {
             curl: Some(&rec.curl),
             confidence: &rec.confidence,
             unreliable: &rec.unreliable,
+            gloss: rec.gloss.as_ref(),
             heights: Some({
                 let (min, max) = rec.report.surface_range();
                 Heights {
@@ -409,9 +420,14 @@ pub fn after_integration(name: &str) -> bool {
     )
 }
 
-/// Whether artifact `name` applies to these maps (`albedo_rgb.png` needs colour).
+/// Whether artifact `name` applies to these maps (`albedo_rgb.png` needs colour, the
+/// [`GLOSSY_OUTPUTS`] the `glossy` solver).
 pub fn applies(maps: &Maps, name: &str) -> bool {
-    name != "albedo_rgb.png" || maps.albedo_rgb.is_some()
+    match name {
+        "albedo_rgb.png" => maps.albedo_rgb.is_some(),
+        _ if GLOSSY_OUTPUTS.contains(&name) => maps.gloss.is_some(),
+        _ => true,
+    }
 }
 
 /// Encode one named artifact (mesh files excepted), or None if it does not apply.
@@ -449,6 +465,16 @@ pub fn encode_to(
         "mask.png" => binary_to(out, mask)?,
         "unreliable.png" => binary_to(out, maps.unreliable)?,
         "confidence.png" => png16_to(out, mask, [maps.confidence.view()], value)?,
+        "specular.png" | "roughness.png" => {
+            let Some(gloss) = maps.gloss else {
+                return Ok(false);
+            };
+            let map = match name {
+                "specular.png" => &gloss.specular,
+                _ => &gloss.roughness,
+            };
+            png16_to(out, mask, [map.view()], value)?
+        }
         // The OpenGL normal-map frame: y up, so the seed frame's y is flipped.
         "normal.png" => png16_to(out, mask, [0, 1, 2].map(normal), |k, v| {
             signed(k, if k == 1 { -v } else { v })
@@ -754,6 +780,7 @@ mod tests {
             curl: None,
             confidence: &zero,
             unreliable: &no,
+            gloss: None,
             heights: None,
         };
         let dir = tempfile::tempdir().unwrap();

@@ -268,6 +268,7 @@ impl Prepared {
             curl: None,
             confidence: &self.confidence,
             unreliable: &self.unreliable,
+            gloss: self.gloss.as_ref(),
             heights: None,
         }
     }
