@@ -9,9 +9,9 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
-use super::AppState;
 use super::download::not_modified;
 use super::error::ApiError;
+use super::state::AppState;
 use super::util::strong_etag;
 
 /// name, content type, bytes.

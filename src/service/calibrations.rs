@@ -28,7 +28,6 @@ use crate::core::calibrate::{
 use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
 
-use super::AppState;
 use super::config::{Config, MAX_LIGHTS_BYTES};
 use super::download::{self, not_modified, not_modified_response};
 use super::error::ApiError;
@@ -39,6 +38,7 @@ use super::routes::{
     ApiQuery, IMMUTABLE, ListQuery, PageQuery, Submission, open_submission, owned_calibration,
     request_id,
 };
+use super::state::AppState;
 use super::store::Served;
 use super::tenants::Caller;
 use super::upload::{self, BodyTap};

@@ -13,11 +13,11 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use futures_util::Stream;
 use uuid::Uuid;
 
-use super::AppState;
 use super::error::ApiError;
 use super::problem::Problem;
 use super::repo::{JobRecord, JobStatus};
 use super::routes::{JobId, JobView, owned_job};
+use super::state::AppState;
 use super::tenants::Caller;
 
 /// One server-sent event as a client parses it (documents the stream's shape; the stream

@@ -41,11 +41,11 @@ use crate::core::progress::{Progress, Stage};
 use crate::core::stream::{self, Prescanned, Streamed};
 use crate::core::{InputError, Options};
 
-use super::Inner;
 use super::budget::{self, Reservation, Use};
 use super::error::ApiError;
 use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
+use super::state::Inner;
 use super::store::{self, LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry};
 use super::upload;
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};

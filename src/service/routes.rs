@@ -18,7 +18,6 @@ use crate::core::intensities::Estimated;
 use crate::core::normalmap::{Convention, Counts};
 use crate::core::outputs::{self, ARTIFACTS};
 
-use super::AppState;
 use super::download::{self, artifact_response, not_modified, not_modified_response};
 use super::error::ApiError;
 use super::idempotency::{self, PartHasher};
@@ -26,6 +25,7 @@ use super::problem::{PROBLEM_JSON, Problem};
 use super::repo::{
     Admission, CalibrationRecord, Callback, CallbackState, JobRecord, JobStatus, Remembered,
 };
+use super::state::AppState;
 use super::store::Served;
 use super::tenants::Caller;
 use super::upload;
@@ -1152,7 +1152,7 @@ pub async fn openapi_doc() -> Response {
             header::CONTENT_TYPE,
             HeaderValue::from_static("application/json"),
         )],
-        super::openapi_json(),
+        super::http::openapi::openapi_json(),
     )
         .into_response()
 }

@@ -20,9 +20,9 @@ use sha2::{Digest, Sha256};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use uuid::Uuid;
 
-use super::Inner;
 use super::error::ApiError;
 use super::repo::{CallbackAttempt, CallbackState, JobRecord};
+use super::state::Inner;
 use super::util::{now_ms, rfc3339};
 
 /// Longest one delivery attempt may take (connect, send, read the status line).

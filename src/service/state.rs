@@ -1,0 +1,769 @@
+//! [`AppState`]: what the handlers share. It opens the repo and the store, tidies them at
+//! start, starts the workers and the upkeep loop, and holds the upload, calibration and
+//! re-shade slots, the memory budget, the quotas and the keys in force.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use tokio::sync::watch;
+use uuid::Uuid;
+
+use super::budget::{self, Budget, Reservation};
+use super::config::{self, Config};
+use super::error::ApiError;
+use super::jobs::{self, Workers};
+use super::metrics::{Metrics, Snapshot};
+use super::prefetch::{Prefetch, Prefetcher};
+use super::quota;
+use super::repo::{self, JobRepo, JobStatus, RepoResult, SqliteRepo};
+use super::slots::{Busy, Slot, Slots};
+use super::store::{self, BlobStore, LocalStore};
+use super::tenants::Keyring;
+use super::webhooks;
+use super::worker::upkeep;
+
+/// Everything the handlers and workers share. Cheap to clone.
+#[derive(Clone)]
+pub struct AppState {
+    pub(crate) inner: Arc<Inner>,
+}
+
+pub(crate) struct Inner {
+    pub(crate) config: Config,
+    pub(crate) repo: Arc<dyn JobRepo>,
+    pub(crate) store: Arc<dyn BlobStore>,
+    pub(crate) workers: Workers,
+    /// This instance's name on the leases it holds.
+    pub(crate) owner: String,
+    /// Uploads' images decoded ahead of their jobs.
+    pub(crate) prefetch: Prefetcher,
+    pub(crate) metrics: Metrics,
+    /// Webhook signing secrets by tenant.
+    pub(crate) webhook_secrets: HashMap<String, Vec<u8>>,
+    /// The job resource as JSON (what webhooks deliver).
+    pub(crate) render_job: fn(repo::JobRecord) -> String,
+    /// Where webhook deliveries run (workers are plain threads).
+    pub(crate) runtime: tokio::runtime::Handle,
+    /// Each tenant's submissions of the last minute.
+    pub(crate) submissions: quota::SubmissionRate,
+    /// The API keys in force (replaced whole when the keys file is re-read).
+    pub(crate) keys: std::sync::RwLock<Arc<Keyring>>,
+    pub(crate) shutting_down: AtomicBool,
+    pub(crate) stop: watch::Sender<bool>,
+    /// One slot per upload being received (`max_uploads`, a share per tenant).
+    pub(crate) uploads: Arc<Slots>,
+    /// One slot per calibration being computed (`workers`, a share per tenant), held
+    /// until its work ends even when its client has gone.
+    pub(crate) calibrating: Arc<Slots>,
+    /// One slot per re-shade being computed (`max_reshades`).
+    pub(crate) reshading: Arc<Slots>,
+    /// What jobs, calibrations and re-shades reserve (`memory_budget`).
+    pub(crate) budget: Arc<Budget>,
+    /// Calibrations whose computation runs now, and the most at once.
+    pub(crate) calibrations_computing: std::sync::atomic::AtomicUsize,
+    pub(crate) calibrations_computing_max: std::sync::atomic::AtomicUsize,
+    /// The data directory's lock file, held (flock) while this server uses it, so that a
+    /// second server cannot run the same jobs or tidy away the first one's uploads.
+    pub(crate) data_lock: std::sync::Mutex<Option<std::fs::File>>,
+}
+
+impl AppState {
+    /// Open the data directory (database, job files), put every unfinished job back in the
+    /// queue, start the workers and the background sweeper.
+    pub async fn open(config: Config) -> anyhow::Result<Self> {
+        let state = tokio::task::spawn_blocking(move || Self::open_blocking(config))
+            .await
+            .context("opening the service state")??;
+        state.spawn_background();
+        Ok(state)
+    }
+
+    fn open_blocking(config: Config) -> anyhow::Result<Self> {
+        std::fs::create_dir_all(&config.data_dir).with_context(|| {
+            format!(
+                "cannot create the data directory {}",
+                config.data_dir.display()
+            )
+        })?;
+        if config.database_url.is_some() && config.store.is_none() {
+            anyhow::bail!(
+                "--database-url needs --store: instances that share the job database must share its files"
+            );
+        }
+        anyhow::ensure!(
+            config.job_lease >= Duration::from_secs(1),
+            "--job-lease must be at least 1s"
+        );
+        let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
+        let webhook_secrets = webhooks::parse_secrets(&config.webhook_secrets)?;
+        let data_lock = lock_data_dir(&config.data_dir)?;
+        let repo: Arc<dyn JobRepo> = match &config.database_url {
+            None => {
+                let db = config.data_dir.join("jobs.sqlite");
+                Arc::new(
+                    SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?,
+                )
+            }
+            Some(url) => {
+                Arc::new(repo::PostgresRepo::connect(url).context("opening the job database")?)
+            }
+        };
+        let store: Arc<dyn BlobStore> = match &config.store {
+            None => Arc::new(
+                LocalStore::open(&config.data_dir)
+                    .with_context(|| format!("opening {}", config.data_dir.display()))?,
+            ),
+            // Another instance may be committing an upload the repo does not know yet.
+            Some(url) => Arc::new(store::S3Store::open(
+                url,
+                &config.data_dir.join("scratch"),
+                tokio::runtime::Handle::current(),
+                config.upload_timeout + Duration::from_secs(3600),
+            )?),
+        };
+        let (stop, _) = watch::channel(false);
+        anyhow::ensure!(
+            config.memory_budget >= 64 << 20,
+            "--memory-budget must be at least 64MiB"
+        );
+        let uploads = Slots::new(config.max_uploads, config.tenant_upload_share());
+        let calibrating = Slots::new(config.workers, config.tenant_calibration_share());
+        let reshading = Slots::new(config.max_reshades, config.max_reshades);
+        let budget = Budget::new(config.memory_budget);
+        let submissions = quota::SubmissionRate::new(config.tenant_submissions_per_minute);
+        let inner = Arc::new(Inner {
+            workers: Workers::default(),
+            owner: format!("{}-{}", std::process::id(), Uuid::new_v4().simple()),
+            prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
+            config,
+            repo,
+            store,
+            metrics: Metrics::default(),
+            keys: std::sync::RwLock::new(Arc::new(keys)),
+            submissions,
+            webhook_secrets,
+            render_job: super::routes::job_json,
+            runtime: tokio::runtime::Handle::current(),
+            shutting_down: AtomicBool::new(false),
+            stop,
+            uploads,
+            calibrating,
+            reshading,
+            budget,
+            calibrations_computing: Default::default(),
+            calibrations_computing_max: Default::default(),
+            data_lock: std::sync::Mutex::new(Some(data_lock)),
+        });
+        let requeued = upkeep::recover(&inner)?;
+        if requeued > 0 {
+            tracing::info!(jobs = requeued, "unfinished jobs queued again");
+        }
+        match webhooks::resume(&inner) {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(jobs = n, "undelivered webhooks resumed"),
+            Err(e) => tracing::warn!(error = %e, "cannot resume undelivered webhooks"),
+        }
+        for i in 0..inner.config.workers.max(1) {
+            let worker = inner.clone();
+            let handle = std::thread::Builder::new()
+                .name(format!("photostereo-worker-{i}"))
+                .spawn(move || jobs::worker_loop(worker))
+                .context("starting a worker thread")?;
+            inner.workers.add_thread(handle);
+        }
+        let bell = inner.clone();
+        inner.repo.subscribe(Arc::new(move || bell.workers.ring()));
+        Ok(Self { inner })
+    }
+
+    fn spawn_background(&self) {
+        upkeep::spawn(self.inner.clone(), self.inner.stop.subscribe());
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.inner.config
+    }
+
+    pub fn workers(&self) -> &Workers {
+        &self.inner.workers
+    }
+
+    pub fn store(&self) -> &dyn BlobStore {
+        &*self.inner.store
+    }
+
+    /// The most jobs that were ever running at once (never more than the pool size).
+    pub fn max_running(&self) -> usize {
+        self.inner.workers.running_max()
+    }
+
+    /// Run a repo call off the async runtime.
+    pub async fn repo<T, F>(&self, f: F) -> Result<T, ApiError>
+    where
+        T: Send + 'static,
+        F: FnOnce(&dyn JobRepo) -> RepoResult<T> + Send + 'static,
+    {
+        let repo = self.inner.repo.clone();
+        Ok(tokio::task::spawn_blocking(move || f(&*repo)).await??)
+    }
+
+    /// The keys in force.
+    pub(crate) fn keys(&self) -> Arc<Keyring> {
+        self.inner
+            .keys
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Read `--api-key` and the keys file again (what SIGHUP does). On an error the keys
+    /// in force stay; the error names the line at fault.
+    pub fn reload_keys(&self) -> anyhow::Result<usize> {
+        let config = &self.inner.config;
+        let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
+        let n = keys.count();
+        *self.inner.keys.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(keys);
+        Ok(n)
+    }
+
+    pub fn is_shutting_down(&self) -> bool {
+        self.inner.shutting_down.load(Ordering::SeqCst)
+    }
+
+    /// Stop taking work: readiness fails, new submissions get 503, workers take no new
+    /// jobs (queued ones stay queued for the next start), background tasks stop.
+    pub fn begin_shutdown(&self) {
+        if self.inner.shutting_down.swap(true, Ordering::SeqCst) {
+            return;
+        }
+        self.inner.workers.close();
+        let _ = self.inner.stop.send(true);
+    }
+
+    /// [`begin_shutdown`](Self::begin_shutdown), then let running jobs finish for up to
+    /// the shutdown grace; jobs still running then are interrupted within one step of work
+    /// and run again at the next start.
+    pub async fn shutdown(&self) {
+        self.begin_shutdown();
+        let jobs = &self.inner.workers;
+        let deadline = Instant::now() + self.inner.config.shutdown_grace;
+        while jobs.busy() > 0 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if jobs.busy() > 0 {
+            tracing::warn!(
+                jobs = jobs.busy(),
+                "interrupting running jobs; they run again"
+            );
+            jobs.interrupt_all();
+            let until = Instant::now() + Duration::from_secs(10);
+            while jobs.busy() > 0 && Instant::now() < until {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+        jobs.join_finished_threads();
+        // Let a next server (a restart in the same process) have the data directory.
+        if let Ok(mut lock) = self.inner.data_lock.lock() {
+            lock.take();
+        }
+        tracing::info!("stopped");
+    }
+
+    /// A slot to receive one upload for `tenant`, or 503 when `max_uploads` are under
+    /// way or the tenant holds its share of them.
+    pub(crate) fn upload_slot(&self, tenant: &str) -> Result<Slot, ApiError> {
+        let uploads = &self.inner.uploads;
+        uploads.try_take(tenant).map_err(|busy| {
+            let detail = match busy {
+                Busy::Full => format!(
+                    "{} uploads are being received already (the limit); retry later",
+                    uploads.total()
+                ),
+                Busy::TenantShare => format!(
+                    "tenant {tenant} is sending {} uploads already (its share of the {} upload slots); retry later",
+                    uploads.per_tenant(),
+                    uploads.total()
+                ),
+            };
+            ApiError::unavailable(config::RETRY_AFTER_SECS, detail)
+        })
+    }
+
+    /// A slot and the memory to compute one calibration for `tenant`, waited for (a
+    /// tenant holding its share waits for one of its own to end).
+    pub(crate) async fn calibration_slot(&self, tenant: &str) -> Computing {
+        let slot = self.inner.calibrating.take(tenant).await;
+        let peak = budget::calibration_peak_bytes(&self.inner.config);
+        let memory = self
+            .inner
+            .budget
+            .reserve(budget::Use::Calibration, peak)
+            .await;
+        Computing {
+            inner: self.inner.clone(),
+            _slot: slot,
+            _memory: memory,
+        }
+    }
+
+    /// A slot and the memory to re-shade a `width × height` job now, or 503.
+    pub(crate) fn reshade_slot(
+        &self,
+        tenant: &str,
+        width: u64,
+        height: u64,
+    ) -> Result<(Slot, Reservation), ApiError> {
+        let slot = self.inner.reshading.try_take(tenant).map_err(|_| {
+            ApiError::unavailable(
+                1,
+                format!(
+                    "{} re-shades are being computed already (the limit); retry later",
+                    self.inner.reshading.total()
+                ),
+            )
+        })?;
+        let bytes = budget::reshade_peak_bytes(width, height);
+        let memory = (self.inner.budget)
+            .try_reserve(budget::Use::Reshade, bytes)
+            .ok_or_else(|| {
+                ApiError::unavailable(
+                    1,
+                    format!(
+                        "the memory budget has no room for a re-shade of {width}×{height} now ({bytes} bytes); retry later"
+                    ),
+                )
+            })?;
+        Ok((slot, memory))
+    }
+
+    pub(crate) fn count_submitted(&self) {
+        self.inner.metrics.submitted.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The tenant's quotas before an upload is read: submissions per minute (counting
+    /// this one), jobs queued or running, stored bytes. The insert checks the active
+    /// jobs again ([`Self::over_active_jobs`]), as uploads run concurrently.
+    pub(crate) async fn check_quotas(&self, tenant: &str) -> Result<(), ApiError> {
+        let config = &self.inner.config;
+        self.admit_submission(tenant)?;
+        let t = tenant.to_string();
+        let active = self.repo(move |r| r.active(&t)).await?;
+        if active >= config.tenant_max_jobs as u64 {
+            return Err(self.over_active_jobs(tenant));
+        }
+        let max_bytes = config.tenant_max_stored_bytes;
+        if max_bytes > 0 {
+            let t = tenant.to_string();
+            let stored = self.repo(move |r| r.stored_bytes(&t)).await?;
+            if stored >= max_bytes {
+                return Err(self.refuse(
+                    tenant,
+                    quota::Limit::StoredBytes,
+                    config::RETRY_AFTER_SECS,
+                    format!(
+                        "tenant {tenant} stores {stored} bytes of artifacts, the limit is {max_bytes}: delete finished jobs to make room"
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The submission rate (jobs and calibrations together), counting this one.
+    pub(crate) fn admit_submission(&self, tenant: &str) -> Result<(), ApiError> {
+        self.inner.submissions.admit(tenant).map_err(|wait| {
+            self.refuse(
+                tenant,
+                quota::Limit::SubmissionsPerMinute,
+                quota::retry_secs(wait),
+                format!(
+                    "tenant {tenant} has made {} submissions in the last minute (the limit)",
+                    self.inner.submissions.per_minute()
+                ),
+            )
+        })
+    }
+
+    /// 429 for a tenant at its limit of jobs queued or running.
+    pub(crate) fn over_active_jobs(&self, tenant: &str) -> ApiError {
+        let max = self.inner.config.tenant_max_jobs;
+        self.refuse(
+            tenant,
+            quota::Limit::ActiveJobs,
+            config::RETRY_AFTER_SECS,
+            format!(
+                "tenant {tenant} has {max} jobs queued or running, the limit; retry when one has finished"
+            ),
+        )
+    }
+
+    fn refuse(&self, tenant: &str, limit: quota::Limit, retry: u64, detail: String) -> ApiError {
+        self.inner
+            .metrics
+            .observe_quota_refusal(tenant, limit.as_str());
+        ApiError::quota_exceeded(retry, detail)
+    }
+
+    /// Whether `tenant` has a webhook secret (callbacks need one).
+    pub(crate) fn has_webhook_secret(&self, tenant: &str) -> bool {
+        self.inner.webhook_secrets.contains_key(tenant)
+    }
+
+    /// A job has ended outside a worker (cancelled while queued): deliver its webhook.
+    pub(crate) fn job_ended(&self, id: Uuid) {
+        let inner = self.inner.clone();
+        tokio::task::spawn_blocking(move || webhooks::job_ended(&inner, id));
+    }
+
+    pub(crate) fn count_queue_full(&self) {
+        self.inner
+            .metrics
+            .rejected_queue_full
+            .fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// 507 when the data directory's file system is short of space.
+    pub(crate) async fn check_free_disk(&self) -> Result<(), ApiError> {
+        let min = self.inner.config.min_free_disk;
+        if min == 0 {
+            return Ok(());
+        }
+        let store = self.inner.store.clone();
+        match tokio::task::spawn_blocking(move || store.free_bytes()).await? {
+            Ok(free) if free < min => Err(ApiError::insufficient_storage(format!(
+                "only {free} bytes are free for job data; new jobs need at least {min}"
+            ))),
+            Ok(_) => Ok(()),
+            Err(e) => {
+                tracing::warn!(error = %e, "cannot read free disk space");
+                Ok(())
+            }
+        }
+    }
+
+    /// A staging directory for an upload, removed again unless kept.
+    pub(crate) async fn stage_upload(&self, id: Uuid) -> Result<Staging, ApiError> {
+        self.stage(Staged::Job, id).await
+    }
+
+    /// A fresh staging directory for a calibration's upload.
+    pub(crate) async fn stage_calibration(&self, id: Uuid) -> Result<Staging, ApiError> {
+        self.stage(Staged::Calibration, id).await
+    }
+
+    async fn stage(&self, kind: Staged, id: Uuid) -> Result<Staging, ApiError> {
+        let store = self.inner.store.clone();
+        let path = tokio::task::spawn_blocking(move || match kind {
+            Staged::Job => store.stage_inputs(id),
+            Staged::Calibration => store.stage_calibration(id),
+        })
+        .await??;
+        Ok(Staging {
+            state: self.clone(),
+            kind,
+            id,
+            path,
+            keep: false,
+        })
+    }
+
+    /// A set to decode a new upload's images into ahead of its job, if a slot is free.
+    pub(crate) fn begin_prefetch(&self) -> Option<Prefetch> {
+        self.inner.prefetch.begin()
+    }
+
+    /// Keep an accepted job's decoded images for its worker.
+    pub(crate) fn park_prefetch(&self, id: Uuid, set: Prefetch) {
+        self.inner.prefetch.park(id, set);
+    }
+
+    /// Drop the images decoded ahead for a job, if any.
+    pub(crate) fn remove_prefetch(&self, id: Uuid) {
+        self.inner.prefetch.discard(id);
+    }
+
+    /// Remove a job's files and any images decoded ahead for it (errors are logged).
+    pub(crate) async fn remove_files(&self, id: Uuid) {
+        self.inner.prefetch.discard(id);
+        let store = self.inner.store.clone();
+        match tokio::task::spawn_blocking(move || store.remove_job(id)).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => tracing::warn!(job = %id, error = %e, "cannot remove job files"),
+            Err(e) => tracing::warn!(job = %id, error = %e, "cannot remove job files"),
+        }
+    }
+
+    pub(crate) async fn readiness_problems(&self) -> Vec<String> {
+        let mut problems = Vec::new();
+        if self.is_shutting_down() {
+            problems.push("the service is shutting down".to_string());
+        }
+        let uploads = &self.inner.uploads;
+        if uploads.taken() >= uploads.total() {
+            problems.push(format!(
+                "every upload slot is taken ({} uploads being received)",
+                uploads.total()
+            ));
+        }
+        let budget = &self.inner.budget;
+        let job = budget::job_worst_bytes(&self.inner.config).min(budget.limit());
+        if budget.free() < job {
+            problems.push(format!(
+                "the memory budget has no room for another job ({} of {} bytes free, a job may need {job})",
+                budget.free(),
+                budget.limit()
+            ));
+        }
+        if let Err(e) = self.repo(|r| r.ping()).await {
+            problems.push(format!("the job database does not answer ({})", e.detail()));
+        }
+        let store = self.inner.store.clone();
+        match tokio::task::spawn_blocking(move || store.probe_writable()).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => problems.push(format!("the data directory is not writable: {e}")),
+            Err(e) => problems.push(format!("the data directory check failed: {e}")),
+        }
+        problems
+    }
+
+    pub(crate) async fn render_metrics(&self) -> Result<String, ApiError> {
+        let counts = self.repo(|r| r.counts()).await?;
+        let by_tenant = self.repo(|r| r.counts_by_tenant()).await?;
+        let store = self.inner.store.clone();
+        let free = tokio::task::spawn_blocking(move || store.free_bytes().ok()).await?;
+        let jobs = &self.inner.workers;
+        let queued = counts
+            .iter()
+            .find(|(s, _)| *s == JobStatus::Queued)
+            .map_or(0, |(_, n)| *n as usize);
+        let mut text = self.inner.metrics.render(&Snapshot {
+            jobs_by_status: counts,
+            jobs_by_tenant: by_tenant,
+            queue_depth: queued,
+            queue_capacity: self.inner.config.queue_length,
+            running: jobs.running(),
+            running_max: jobs.running_max(),
+            workers: self.inner.config.workers,
+            free_disk_bytes: free,
+            prefetch_sets: self.inner.prefetch.held(),
+        });
+        self.inner.budget.render(&mut text);
+        self.render_slots(&mut text);
+        Ok(text)
+    }
+
+    /// The slot gauges and refusals (uploads, calibrations, re-shades).
+    fn render_slots(&self, out: &mut String) {
+        use std::fmt::Write as _;
+        let inner = &self.inner;
+        let computing = inner.calibrations_computing.load(Ordering::SeqCst);
+        let most = inner.calibrations_computing_max.load(Ordering::SeqCst);
+        let gauges = [
+            (
+                "photostereo_upload_slots",
+                "Uploads that may be received at once.",
+                inner.uploads.total(),
+            ),
+            (
+                "photostereo_upload_slots_per_tenant",
+                "Upload slots one tenant may hold.",
+                inner.uploads.per_tenant(),
+            ),
+            (
+                "photostereo_uploads_receiving",
+                "Uploads being received now.",
+                inner.uploads.taken(),
+            ),
+            (
+                "photostereo_calibration_slots_taken",
+                "Calibration slots held now (until each calibration's work ends).",
+                inner.calibrating.taken(),
+            ),
+            (
+                "photostereo_calibrations_waiting",
+                "Calibrations waiting for a slot or for memory.",
+                inner.calibrating.waiting(),
+            ),
+            (
+                "photostereo_calibrations_computing",
+                "Calibrations computing now.",
+                computing,
+            ),
+            (
+                "photostereo_calibrations_computing_max",
+                "Most calibrations ever computing at once since start.",
+                most,
+            ),
+            (
+                "photostereo_reshade_slots",
+                "Re-shades that may be computed at once.",
+                inner.reshading.total(),
+            ),
+            (
+                "photostereo_reshades_running",
+                "Re-shades being computed now.",
+                inner.reshading.taken(),
+            ),
+        ];
+        for (name, help, v) in gauges {
+            let _ = writeln!(out, "# HELP {name} {help}\n# TYPE {name} gauge\n{name} {v}");
+        }
+        let name = "photostereo_slot_refusals_total";
+        let _ = writeln!(
+            out,
+            "# HELP {name} Requests refused (503) for want of a slot: every slot taken, or the tenant's share.\n# TYPE {name} counter"
+        );
+        for (what, slots) in [("upload", &inner.uploads), ("reshade", &inner.reshading)] {
+            let (full, share) = slots.refusals();
+            let _ = writeln!(out, "{name}{{slots=\"{what}\",reason=\"full\"}} {full}");
+            let _ = writeln!(
+                out,
+                "{name}{{slots=\"{what}\",reason=\"tenant_share\"}} {share}"
+            );
+        }
+    }
+}
+
+/// A calibration's slot and memory, held by its computation (moved into the blocking
+/// task, so a client that goes away does not free them while the work goes on).
+pub(crate) struct Computing {
+    inner: Arc<Inner>,
+    _slot: Slot,
+    _memory: Reservation,
+}
+
+impl Computing {
+    /// Run the calibration's computation `f` on this thread (a blocking one); the slot and
+    /// the memory are given back when it ends.
+    pub(crate) fn run<T>(self, f: impl FnOnce() -> T) -> T {
+        let counted = CountedWork::start(
+            &self.inner.calibrations_computing,
+            &self.inner.calibrations_computing_max,
+        );
+        let delay = self.inner.config.stage_delay;
+        if !delay.is_zero() {
+            std::thread::sleep(delay);
+        }
+        let out = f();
+        drop(counted);
+        out
+    }
+}
+
+impl Drop for Computing {
+    /// The work has ended (or panicked): its freed memory goes back to the kernel before
+    /// the slot and the reservation do.
+    fn drop(&mut self) {
+        crate::core::heap::release_free_heap();
+    }
+}
+
+/// One unit of work counted in a gauge (and its most at once) while it runs.
+struct CountedWork<'a>(&'a std::sync::atomic::AtomicUsize);
+
+impl<'a> CountedWork<'a> {
+    fn start(
+        now: &'a std::sync::atomic::AtomicUsize,
+        most: &std::sync::atomic::AtomicUsize,
+    ) -> Self {
+        let n = now.fetch_add(1, Ordering::SeqCst) + 1;
+        most.fetch_max(n, Ordering::SeqCst);
+        Self(now)
+    }
+}
+
+impl Drop for CountedWork<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// What a [`Staging`] directory receives.
+#[derive(Debug, Clone, Copy)]
+enum Staged {
+    Job,
+    Calibration,
+}
+
+/// An upload's staging directory; removed (with the job's or calibration's directory)
+/// when dropped unless [`keep`](Staging::keep) was called.
+pub(crate) struct Staging {
+    state: AppState,
+    kind: Staged,
+    id: Uuid,
+    path: PathBuf,
+    keep: bool,
+}
+
+impl Staging {
+    pub(crate) fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Make the upload the job's inputs (or the calibration's files), durably.
+    pub(crate) async fn commit(&mut self) -> Result<(), ApiError> {
+        let store = self.state.inner.store.clone();
+        let (kind, id) = (self.kind, self.id);
+        tokio::task::spawn_blocking(move || match kind {
+            Staged::Job => store.commit_inputs(id),
+            Staged::Calibration => store.commit_calibration(id),
+        })
+        .await??;
+        Ok(())
+    }
+
+    pub(crate) fn keep(&mut self) {
+        self.keep = true;
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if self.keep {
+            return;
+        }
+        let store = self.state.inner.store.clone();
+        let (kind, id) = (self.kind, self.id);
+        let remove = move || {
+            let removed = match kind {
+                Staged::Job => store.remove_job(id),
+                Staged::Calibration => store.remove_calibration(id),
+            };
+            if let Err(e) = removed {
+                tracing::warn!(?kind, %id, error = %e, "cannot remove a refused upload");
+            }
+        };
+        match tokio::runtime::Handle::try_current() {
+            Ok(rt) => {
+                rt.spawn_blocking(remove);
+            }
+            Err(_) => remove(),
+        }
+    }
+}
+
+/// Take the data directory's lock file, or say which directory is in use.
+fn lock_data_dir(dir: &std::path::Path) -> anyhow::Result<std::fs::File> {
+    let path = dir.join("lock");
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .with_context(|| format!("opening {}", path.display()))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => anyhow::bail!(
+            "the data directory {} is in use by another photostereo server (it holds {})",
+            dir.display(),
+            path.display()
+        ),
+        Err(std::fs::TryLockError::Error(e)) => {
+            Err(e).with_context(|| format!("locking {}", path.display()))
+        }
+    }
+}
