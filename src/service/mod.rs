@@ -15,24 +15,20 @@
 //!
 //! [`router`] is what tests call; [`serve`] is `photostereo serve`.
 
-mod app;
 mod budget;
-mod calibrations;
 pub mod config;
 mod connections;
-mod download;
 pub mod error;
-mod events;
 mod health;
 mod http;
 mod idempotency;
+mod intake;
 pub mod jobs;
 mod metrics;
 mod prefetch;
 pub mod problem;
 mod quota;
 pub mod repo;
-pub mod routes;
 mod server;
 mod slots;
 mod state;
@@ -40,6 +36,7 @@ pub mod store;
 pub mod tenants;
 mod upload;
 mod util;
+mod views;
 mod webhooks;
 mod worker;
 

@@ -146,7 +146,7 @@ impl AppState {
             keys: std::sync::RwLock::new(Arc::new(keys)),
             submissions,
             webhook_secrets,
-            render_job: super::routes::job_json,
+            render_job: super::views::job_json,
             runtime: tokio::runtime::Handle::current(),
             shutting_down: AtomicBool::new(false),
             stop,

@@ -10,7 +10,7 @@ use axum::response::{IntoResponse, Response};
 use crate::service::error::ApiError;
 use crate::service::state::AppState;
 use crate::service::tenants::Caller;
-use crate::service::upload;
+use crate::service::upload::{self, BodyTap};
 
 /// `Authorization: Bearer <key>` on the /v1 routes when keys are configured: the key's
 /// [`Caller`] goes into the request's extensions. With no keys, every caller is
@@ -28,7 +28,7 @@ pub(crate) async fn authenticate(
         .nth(1)
         .is_some()
     {
-        let tap = upload::BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
+        let tap = BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
         tokio::spawn(async move { tap.drain(upload::LINGER).await });
         return ApiError::bad_request("send one Authorization header, not several").into_response();
     }
@@ -66,7 +66,7 @@ pub(crate) async fn authenticate(
 /// 401, reading what the client is still uploading in the background (bounded by the body
 /// limit and [`upload::LINGER`]) so that it sees the answer rather than a broken pipe.
 fn refuse_unauthorized(state: &AppState, req: Request, detail: &str) -> Response {
-    let tap = upload::BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
+    let tap = BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
     tokio::spawn(async move { tap.drain(upload::LINGER).await });
     ApiError::unauthorized(detail).into_response()
 }

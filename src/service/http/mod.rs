@@ -1,8 +1,17 @@
 //! The HTTP side: the router, assembled from each resource's routes, its middleware and
 //! the OpenAPI document.
 
+mod app;
+mod artifacts;
+pub(crate) mod calibrations;
+mod events;
+mod extract;
+pub(crate) mod jobs;
 pub(crate) mod middleware;
 pub(crate) mod openapi;
+pub(crate) mod ops;
+mod responses;
+mod submission;
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request};
@@ -12,40 +21,22 @@ use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetReques
 use tower_http::trace::{DefaultOnResponse, TraceLayer};
 use utoipa::OpenApi;
 use utoipa_axum::router::OpenApiRouter;
-use utoipa_axum::routes;
 use utoipa_swagger_ui::SwaggerUi;
 
 use super::state::AppState;
-use super::{app, calibrations, events, routes};
 
 /// The `/v1` routes (behind the API key when one is configured).
 pub(crate) fn api_routes() -> OpenApiRouter<AppState> {
     OpenApiRouter::with_openapi(openapi::ApiDoc::openapi())
-        .routes(routes!(routes::create_job, routes::list_jobs))
-        .routes(routes!(routes::get_job, routes::delete_job))
-        .routes(routes!(routes::get_artifact))
-        .routes(routes!(events::job_events))
-        .routes(routes!(
-            calibrations::create_calibration,
-            calibrations::list_calibrations
-        ))
-        .routes(routes!(
-            calibrations::get_calibration,
-            calibrations::delete_calibration
-        ))
-        .routes(routes!(calibrations::get_lights_csv))
-        .routes(routes!(calibrations::get_overlay))
-        .routes(routes!(calibrations::get_lights_png))
-        .routes(routes!(calibrations::get_positions_csv))
+        .merge(jobs::routes())
+        .merge(artifacts::routes())
+        .merge(events::routes())
+        .merge(calibrations::routes())
 }
 
 /// Health, readiness, metrics, the OpenAPI document (always open).
 pub(crate) fn operations_routes() -> OpenApiRouter<AppState> {
-    OpenApiRouter::default()
-        .routes(routes!(routes::healthz))
-        .routes(routes!(routes::readyz))
-        .routes(routes!(routes::metrics))
-        .routes(routes!(routes::openapi_doc))
+    ops::routes()
 }
 
 /// The whole HTTP app over `state`.
@@ -60,8 +51,8 @@ pub fn router(state: AppState) -> Router {
         .route("/", axum::routing::get(app::page))
         .route("/app/auth.json", axum::routing::get(app::auth))
         .route("/app/{name}", axum::routing::get(app::asset))
-        .fallback(routes::not_found)
-        .method_not_allowed_fallback(routes::method_not_allowed)
+        .fallback(ops::not_found)
+        .method_not_allowed_fallback(ops::method_not_allowed)
         .layer(layer::from_fn_with_state(
             state.clone(),
             middleware::track_http,
@@ -86,6 +77,6 @@ pub fn router(state: AppState) -> Router {
                 .on_response(DefaultOnResponse::new().level(tracing::Level::INFO)),
         )
         .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
-        .layer(CatchPanicLayer::custom(routes::panic_response))
+        .layer(CatchPanicLayer::custom(ops::panic_response))
         .with_state(state)
 }

@@ -13,13 +13,15 @@ use crate::core::camera::Pinhole;
 use crate::core::normalmap::{Convention, Counts};
 use crate::core::outputs::{ALL, ARTIFACTS};
 
-use crate::service::calibrations::{
+use super::calibrations::{
     CalibrationList, CalibrationView, CircleView, HighlightView, LightView, Measured,
     MoreHighlightView, PositionView, SkippedView,
 };
+use super::jobs::{ImageFile, JobList};
+use super::ops::Health;
 use crate::service::problem::Problem;
 use crate::service::repo::JobStatus;
-use crate::service::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
+use crate::service::views::{JobView, ResultSummary};
 
 #[derive(OpenApi)]
 #[openapi(
