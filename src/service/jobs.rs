@@ -47,7 +47,7 @@ use super::prefetch::Prefetch;
 use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
 use super::state::Inner;
 use super::store::{self, LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry};
-use super::upload;
+
 use super::util::{crc32_file, format_duration, now_ms, strong_etag};
 
 /// The pipeline's stages in order; progress is the index of the stage reached over
@@ -655,7 +655,12 @@ fn run_near(
     clock: &mut StageClock<'_>,
 ) -> Result<NearReport, Stop> {
     let (width, height) = (set.info().width, set.info().height);
-    let (camera, distance) = upload::near_rig(options, &rig, &set.info().lights, (width, height))?;
+    let (camera, distance) = crate::service::intake::checks::near_rig(
+        options,
+        &rig,
+        &set.info().lights,
+        (width, height),
+    )?;
     let report = near::run(&mut set, camera, distance, rig.unit, options, out, clock);
     finished(report, clock)
 }

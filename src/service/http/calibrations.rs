@@ -30,12 +30,12 @@ use crate::core::lights;
 use crate::service::error::ApiError;
 use crate::service::idempotency::{self, PartHasher};
 use crate::service::intake::calibration::receive;
+use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::problem::Problem;
 use crate::service::repo::{CalibrationRecord, Remembered, RepoError, readable};
 use crate::service::state::AppState;
 use crate::service::store::Served;
 use crate::service::tenants::Caller;
-use crate::service::upload::{self, BodyTap};
 use crate::service::util::{format_duration, now_ms};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -163,7 +163,7 @@ pub async fn create_calibration(
     let tap = BodyTap::new(body, state.config().max_body_bytes);
     let answer = accept(&state, &caller, parts, &tap).await;
     if answer.is_err() {
-        tokio::spawn(async move { tap.drain(upload::LINGER).await });
+        tokio::spawn(async move { tap.drain(LINGER).await });
     }
     answer
 }

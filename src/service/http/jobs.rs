@@ -15,11 +15,12 @@ use crate::core::normalmap::Convention;
 use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
 use crate::service::idempotency::{self, PartHasher};
+use crate::service::intake::job as intake;
+use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::problem::Problem;
 use crate::service::repo::{Admission, Callback, CallbackState, JobRecord, JobStatus, Remembered};
 use crate::service::state::AppState;
 use crate::service::tenants::Caller;
-use crate::service::upload;
 use crate::service::util::{format_duration, now_ms};
 use crate::service::views::JobView;
 use crate::service::webhooks;
@@ -169,12 +170,12 @@ pub async fn create_job(
     request: Request,
 ) -> Result<Response, ApiError> {
     let (parts, body) = request.into_parts();
-    let tap = upload::BodyTap::new(body, state.config().max_body_bytes);
+    let tap = BodyTap::new(body, state.config().max_body_bytes);
     let answer = accept_job(&state, &caller, parts, &tap).await;
     if answer.is_err() {
         // Answer now, and read what the client is still sending in the background (a
         // lingering close), so that it gets to read the refusal.
-        tokio::spawn(async move { tap.drain(upload::LINGER).await });
+        tokio::spawn(async move { tap.drain(LINGER).await });
     }
     answer
 }
@@ -183,7 +184,7 @@ async fn accept_job(
     state: &AppState,
     caller: &Caller,
     parts: Parts,
-    tap: &upload::BodyTap,
+    tap: &BodyTap,
 ) -> Result<Response, ApiError> {
     let config = state.config();
     let Submission {
@@ -214,7 +215,7 @@ async fn accept_job(
         };
     let received = tokio::time::timeout(
         config.upload_timeout,
-        upload::receive(
+        intake::receive(
             config,
             staging.path(),
             &mut multipart,

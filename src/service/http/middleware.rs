@@ -8,9 +8,9 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
 use crate::service::error::ApiError;
+use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::state::AppState;
 use crate::service::tenants::Caller;
-use crate::service::upload::{self, BodyTap};
 
 /// `Authorization: Bearer <key>` on the /v1 routes when keys are configured: the key's
 /// [`Caller`] goes into the request's extensions. With no keys, every caller is
@@ -29,7 +29,7 @@ pub(crate) async fn authenticate(
         .is_some()
     {
         let tap = BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
-        tokio::spawn(async move { tap.drain(upload::LINGER).await });
+        tokio::spawn(async move { tap.drain(LINGER).await });
         return ApiError::bad_request("send one Authorization header, not several").into_response();
     }
     let keys = state.keys();
@@ -64,10 +64,10 @@ pub(crate) async fn authenticate(
 }
 
 /// 401, reading what the client is still uploading in the background (bounded by the body
-/// limit and [`upload::LINGER`]) so that it sees the answer rather than a broken pipe.
+/// limit and [`LINGER`]) so that it sees the answer rather than a broken pipe.
 fn refuse_unauthorized(state: &AppState, req: Request, detail: &str) -> Response {
     let tap = BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
-    tokio::spawn(async move { tap.drain(upload::LINGER).await });
+    tokio::spawn(async move { tap.drain(LINGER).await });
     ApiError::unauthorized(detail).into_response()
 }
 

@@ -6,13 +6,15 @@ use std::path::Path;
 
 use axum::extract::Multipart;
 
+use super::checks::probe;
+use super::form::PartReader;
+use super::tap::BodyTap;
 use crate::core::InputError;
 use crate::core::calibrate::{self, Circle};
 use crate::core::lights;
 use crate::service::config::{Config, MAX_LIGHTS_BYTES};
 use crate::service::error::ApiError;
 use crate::service::idempotency::PartHasher;
-use crate::service::upload::{self, BodyTap};
 
 /// Longest `circle`, `ball_diameter`, `focal_length` or `skip_bad` part accepted (bytes).
 const MAX_VALUE_BYTES: usize = 256;
@@ -57,26 +59,12 @@ pub(crate) async fn receive(
     hash: &mut PartHasher,
 ) -> Result<Form, ApiError> {
     let mut form = Form::default();
-    let mut count = 0;
-    // Image and mask bytes stored so far (413 past `max_input_bytes`, as for jobs).
-    let mut stored = 0u64;
-    while let Some(mut field) = multipart
-        .next_field()
-        .await
-        .map_err(|e| upload::multipart_error(e, tap, config))?
-    {
-        count += 1;
-        if count > config.max_parts {
-            return Err(ApiError::too_large(format!(
-                "the upload has more than {} parts",
-                config.max_parts
-            )));
-        }
-        let part = field.name().unwrap_or_default().to_string();
-        hash.part(&part, field.file_name());
-        match part.as_str() {
+    let mut parts = PartReader::new(multipart, config, tap, hash, dir, PARTS);
+    while let Some(mut part) = parts.next().await? {
+        let name = part.name().to_string();
+        match name.as_str() {
             "images" | "matte" => {
-                let list = if part == "images" {
+                let list = if name == "images" {
                     &form.images
                 } else {
                     &form.matte
@@ -88,21 +76,18 @@ pub(crate) async fn receive(
                     }
                     .into());
                 }
-                let name = upload::file_name(&field, &part)?;
-                let file = format!("{part}{:03}.img", list.len());
-                let into = Some((&mut stored, name.as_str()));
-                let (head, _) =
-                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash, into)
-                        .await?;
+                let image = part.image_name()?;
+                let file = format!("{name}{:03}.img", list.len());
+                let (head, _) = part.store(&file, Some(&image)).await?;
                 let (width, height, _) =
-                    upload::probe(dir.join(&file), name.clone(), head, config).await?;
+                    probe(part.path(&file), image.clone(), head, config).await?;
                 let stored = Stored {
-                    name,
+                    name: image,
                     file,
                     width,
                     height,
                 };
-                if part == "images" {
+                if name == "images" {
                     check_size(form.images.first(), &stored)?;
                     form.images.push(stored);
                 } else {
@@ -110,35 +95,27 @@ pub(crate) async fn receive(
                 }
             }
             "mask" | "ambient" => {
-                let slot = if part == "mask" {
+                let slot = if name == "mask" {
                     &mut form.mask
                 } else {
                     &mut form.ambient
                 };
-                upload::once(slot, &part)?;
-                let name = field
-                    .file_name()
-                    .filter(|n| !n.is_empty())
-                    .unwrap_or(&part)
-                    .to_string();
-                let file = format!("{part}.img");
-                let into = Some((&mut stored, name.as_str()));
-                let (head, _) =
-                    upload::stream_to_file(&mut field, &dir.join(&file), tap, config, hash, into)
-                        .await?;
+                part.once(slot)?;
+                let image = part.file_name_or_part();
+                let file = format!("{name}.img");
+                let (head, _) = part.store(&file, Some(&image)).await?;
                 let (width, height, _) =
-                    upload::probe(dir.join(&file), name.clone(), head, config).await?;
+                    probe(part.path(&file), image.clone(), head, config).await?;
                 *slot = Some(Stored {
-                    name,
+                    name: image,
                     file,
                     width,
                     height,
                 });
             }
             "names" => {
-                upload::once(&form.names, "names")?;
-                let text =
-                    text_part(&mut field, MAX_LIGHTS_BYTES, "names", tap, config, hash).await?;
+                part.once(&form.names)?;
+                let text = part.text(MAX_LIGHTS_BYTES).await?;
                 form.names = Some(parse_names(&text)?);
             }
             "circle" => {
@@ -147,52 +124,25 @@ pub(crate) async fn receive(
                         "circle: at most {MAX_CIRCLES} circle parts (one per ball) are accepted"
                     )));
                 }
-                let text =
-                    text_part(&mut field, MAX_VALUE_BYTES, "circle", tap, config, hash).await?;
+                let text = part.text(MAX_VALUE_BYTES).await?;
                 form.circles.push(parse_circle(&text)?);
             }
             "ball_diameter" => {
-                upload::once(&form.ball_diameter, "ball_diameter")?;
-                let text = text_part(
-                    &mut field,
-                    MAX_VALUE_BYTES,
-                    "ball_diameter",
-                    tap,
-                    config,
-                    hash,
-                )
-                .await?;
+                part.once(&form.ball_diameter)?;
+                let text = part.text(MAX_VALUE_BYTES).await?;
                 form.ball_diameter = Some(parse_ball_diameter(&text)?);
             }
             "focal_length" => {
-                upload::once(&form.focal_length, "focal_length")?;
-                let text = text_part(
-                    &mut field,
-                    MAX_VALUE_BYTES,
-                    "focal_length",
-                    tap,
-                    config,
-                    hash,
-                )
-                .await?;
+                part.once(&form.focal_length)?;
+                let text = part.text(MAX_VALUE_BYTES).await?;
                 form.focal_length = Some(parse_focal_length(&text)?);
             }
             "skip_bad" => {
-                upload::once(&form.skip_bad, "skip_bad")?;
-                let text =
-                    text_part(&mut field, MAX_VALUE_BYTES, "skip_bad", tap, config, hash).await?;
+                part.once(&form.skip_bad)?;
+                let text = part.text(MAX_VALUE_BYTES).await?;
                 form.skip_bad = Some(parse_flag(&text)?);
             }
-            "" => {
-                return Err(ApiError::bad_request(format!(
-                    "a multipart part has no name; expected {PARTS}"
-                )));
-            }
-            other => {
-                return Err(ApiError::bad_request(format!(
-                    "unknown part {other:?}; expected {PARTS}"
-                )));
-            }
+            _ => return Err(part.unknown()),
         }
     }
     if form.images.is_empty() {
@@ -232,18 +182,6 @@ fn check_size(first: Option<&Stored>, img: &Stored) -> Result<(), ApiError> {
         }
         _ => Ok(()),
     }
-}
-
-async fn text_part(
-    field: &mut axum::extract::multipart::Field<'_>,
-    limit: usize,
-    part: &str,
-    tap: &BodyTap,
-    config: &Config,
-    hash: &mut PartHasher,
-) -> Result<String, ApiError> {
-    let bytes = upload::read_small(field, limit, part, tap, config, hash).await?;
-    String::from_utf8(bytes).map_err(|_| ApiError::invalid(format!("{part}: not UTF-8 text")))
 }
 
 /// One light name per line (blank lines skipped), each one a light table can hold.
