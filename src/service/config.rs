@@ -322,6 +322,8 @@ pub const MAX_LIGHTS_BYTES: usize = 1 << 20;
 pub const MAX_OPTIONS_BYTES: usize = 64 << 10;
 /// Seconds a client is told to wait when the queue is full.
 pub const RETRY_AFTER_SECS: u64 = 5;
+/// How long an `Idempotency-Key`'s answer is kept and replayed.
+pub const IDEMPOTENCY_WINDOW: Duration = Duration::from_secs(24 * 3600);
 
 impl Config {
     /// The defaults of [`ServeArgs`], with the given data directory.

@@ -25,7 +25,7 @@ use super::repo::Remembered;
 pub const HEADER: &str = "idempotency-key";
 
 /// How long a key's answer is kept and replayed.
-pub const WINDOW: Duration = Duration::from_secs(24 * 3600);
+pub const WINDOW: Duration = crate::service::config::IDEMPOTENCY_WINDOW;
 
 /// The `Idempotency-Key` of a request, if it sent one: 1 to 255 visible ASCII characters
 /// (400 otherwise).

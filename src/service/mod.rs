@@ -23,9 +23,7 @@ mod health;
 mod http;
 mod idempotency;
 mod intake;
-pub mod jobs;
 mod metrics;
-mod prefetch;
 pub mod problem;
 mod quota;
 pub mod repo;
@@ -36,7 +34,6 @@ pub mod store;
 pub mod tenants;
 mod util;
 mod views;
-mod webhooks;
 mod worker;
 
 pub use config::{Config, LogFormat, ServeArgs};

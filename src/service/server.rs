@@ -29,7 +29,7 @@ pub async fn serve_with(
         listener,
         router(state.clone()),
         limits,
-        state.inner.metrics.connections.clone(),
+        state.metrics().connections.clone(),
         shutdown,
         move || {
             tracing::info!("shutting down: finishing requests and running jobs");

@@ -2,73 +2,60 @@
 //! start, starts the workers and the upkeep loop, and holds the upload, calibration and
 //! re-shade slots, the memory budget, the quotas and the keys in force.
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::Duration;
 
 use anyhow::Context;
-use tokio::sync::watch;
 use uuid::Uuid;
 
-use super::budget::{self, Budget, Reservation};
+use super::budget::{self, Reservation};
 use super::config::{self, Config};
 use super::error::ApiError;
-use super::jobs::{self, Workers};
 use super::metrics::{Metrics, Snapshot};
-use super::prefetch::{Prefetch, Prefetcher};
 use super::quota;
-use super::repo::{self, JobRepo, JobStatus, RepoResult, SqliteRepo};
+use super::repo::{JobRepo, JobStatus, Problem, RepoResult};
 use super::slots::{Busy, Slot, Slots};
-use super::store::{self, BlobStore, LocalStore};
+use super::store::BlobStore;
 use super::tenants::Keyring;
-use super::webhooks;
-use super::worker::upkeep;
+use super::views;
+use super::worker::{Failure, Prefetch, Render, Runner, Workers};
 
 /// Everything the handlers and workers share. Cheap to clone.
 #[derive(Clone)]
 pub struct AppState {
-    pub(crate) inner: Arc<Inner>,
+    inner: Arc<Inner>,
 }
 
 pub(crate) struct Inner {
-    pub(crate) config: Config,
-    pub(crate) repo: Arc<dyn JobRepo>,
-    pub(crate) store: Arc<dyn BlobStore>,
-    pub(crate) workers: Workers,
-    /// This instance's name on the leases it holds.
-    pub(crate) owner: String,
-    /// Uploads' images decoded ahead of their jobs.
-    pub(crate) prefetch: Prefetcher,
-    pub(crate) metrics: Metrics,
-    /// Webhook signing secrets by tenant.
-    pub(crate) webhook_secrets: HashMap<String, Vec<u8>>,
-    /// The job resource as JSON (what webhooks deliver).
-    pub(crate) render_job: fn(repo::JobRecord) -> String,
-    /// Where webhook deliveries run (workers are plain threads).
-    pub(crate) runtime: tokio::runtime::Handle,
+    /// The jobs' side: the config, the repo, the store, the workers.
+    runner: Arc<Runner>,
     /// Each tenant's submissions of the last minute.
-    pub(crate) submissions: quota::SubmissionRate,
+    submissions: quota::SubmissionRate,
     /// The API keys in force (replaced whole when the keys file is re-read).
-    pub(crate) keys: std::sync::RwLock<Arc<Keyring>>,
-    pub(crate) shutting_down: AtomicBool,
-    pub(crate) stop: watch::Sender<bool>,
+    keys: RwLock<Arc<Keyring>>,
+    shutting_down: AtomicBool,
     /// One slot per upload being received (`max_uploads`, a share per tenant).
-    pub(crate) uploads: Arc<Slots>,
+    uploads: Arc<Slots>,
     /// One slot per calibration being computed (`workers`, a share per tenant), held
     /// until its work ends even when its client has gone.
-    pub(crate) calibrating: Arc<Slots>,
+    calibrating: Arc<Slots>,
     /// One slot per re-shade being computed (`max_reshades`).
-    pub(crate) reshading: Arc<Slots>,
-    /// What jobs, calibrations and re-shades reserve (`memory_budget`).
-    pub(crate) budget: Arc<Budget>,
+    reshading: Arc<Slots>,
     /// Calibrations whose computation runs now, and the most at once.
-    pub(crate) calibrations_computing: std::sync::atomic::AtomicUsize,
-    pub(crate) calibrations_computing_max: std::sync::atomic::AtomicUsize,
-    /// The data directory's lock file, held (flock) while this server uses it, so that a
-    /// second server cannot run the same jobs or tidy away the first one's uploads.
-    pub(crate) data_lock: std::sync::Mutex<Option<std::fs::File>>,
+    calibrations_computing: AtomicUsize,
+    calibrations_computing_max: AtomicUsize,
+}
+
+/// How the jobs' side shows a job: as `GET /v1/jobs/{id}` does, a failure as its problem.
+const RENDER: Render = Render {
+    job: views::job_json,
+    problem: problem_of,
+};
+
+fn problem_of(failure: Failure, instance: &str) -> Problem {
+    ApiError::from(failure).with_instance(instance).problem()
 }
 
 impl AppState {
@@ -99,106 +86,53 @@ impl AppState {
             "--job-lease must be at least 1s"
         );
         let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
-        let webhook_secrets = webhooks::parse_secrets(&config.webhook_secrets)?;
-        let data_lock = lock_data_dir(&config.data_dir)?;
-        let repo: Arc<dyn JobRepo> = match &config.database_url {
-            None => {
-                let db = config.data_dir.join("jobs.sqlite");
-                Arc::new(
-                    SqliteRepo::open(&db).with_context(|| format!("opening {}", db.display()))?,
-                )
-            }
-            Some(url) => {
-                Arc::new(repo::PostgresRepo::connect(url).context("opening the job database")?)
-            }
-        };
-        let store: Arc<dyn BlobStore> = match &config.store {
-            None => Arc::new(
-                LocalStore::open(&config.data_dir)
-                    .with_context(|| format!("opening {}", config.data_dir.display()))?,
-            ),
-            // Another instance may be committing an upload the repo does not know yet.
-            Some(url) => Arc::new(store::S3Store::open(
-                url,
-                &config.data_dir.join("scratch"),
-                tokio::runtime::Handle::current(),
-                config.upload_timeout + Duration::from_secs(3600),
-            )?),
-        };
-        let (stop, _) = watch::channel(false);
-        anyhow::ensure!(
-            config.memory_budget >= 64 << 20,
-            "--memory-budget must be at least 64MiB"
-        );
         let uploads = Slots::new(config.max_uploads, config.tenant_upload_share());
         let calibrating = Slots::new(config.workers, config.tenant_calibration_share());
         let reshading = Slots::new(config.max_reshades, config.max_reshades);
-        let budget = Budget::new(config.memory_budget);
         let submissions = quota::SubmissionRate::new(config.tenant_submissions_per_minute);
+        let runner = Runner::open(config, RENDER)?;
         let inner = Arc::new(Inner {
-            workers: Workers::default(),
-            owner: format!("{}-{}", std::process::id(), Uuid::new_v4().simple()),
-            prefetch: Prefetcher::new(config.decode_ahead, config.limits()),
-            config,
-            repo,
-            store,
-            metrics: Metrics::default(),
-            keys: std::sync::RwLock::new(Arc::new(keys)),
+            runner,
+            keys: RwLock::new(Arc::new(keys)),
             submissions,
-            webhook_secrets,
-            render_job: super::views::job_json,
-            runtime: tokio::runtime::Handle::current(),
             shutting_down: AtomicBool::new(false),
-            stop,
             uploads,
             calibrating,
             reshading,
-            budget,
             calibrations_computing: Default::default(),
             calibrations_computing_max: Default::default(),
-            data_lock: std::sync::Mutex::new(Some(data_lock)),
         });
-        let requeued = upkeep::recover(&inner)?;
-        if requeued > 0 {
-            tracing::info!(jobs = requeued, "unfinished jobs queued again");
-        }
-        match webhooks::resume(&inner) {
-            Ok(0) => {}
-            Ok(n) => tracing::info!(jobs = n, "undelivered webhooks resumed"),
-            Err(e) => tracing::warn!(error = %e, "cannot resume undelivered webhooks"),
-        }
-        for i in 0..inner.config.workers.max(1) {
-            let worker = inner.clone();
-            let handle = std::thread::Builder::new()
-                .name(format!("photostereo-worker-{i}"))
-                .spawn(move || jobs::worker_loop(worker))
-                .context("starting a worker thread")?;
-            inner.workers.add_thread(handle);
-        }
-        let bell = inner.clone();
-        inner.repo.subscribe(Arc::new(move || bell.workers.ring()));
         Ok(Self { inner })
     }
 
     fn spawn_background(&self) {
-        upkeep::spawn(self.inner.clone(), self.inner.stop.subscribe());
+        self.inner.runner.spawn_upkeep();
     }
 
     pub fn config(&self) -> &Config {
-        &self.inner.config
+        &self.inner.runner.config
     }
 
     pub fn workers(&self) -> &Workers {
-        &self.inner.workers
+        &self.inner.runner.pool
+    }
+
+    /// The store, to move into a blocking task.
+    pub(crate) fn store_handle(&self) -> Arc<dyn BlobStore> {
+        self.inner.runner.store.clone()
+    }
+
+    pub(crate) fn metrics(&self) -> &Metrics {
+        &self.inner.runner.metrics
     }
 
     pub fn store(&self) -> &dyn BlobStore {
-        &*self.inner.store
+        &*self.inner.runner.store
     }
 
     /// The most jobs that were ever running at once (never more than the pool size).
     pub fn max_running(&self) -> usize {
-        self.inner.workers.running_max()
+        self.inner.runner.pool.running_max()
     }
 
     /// Run a repo call off the async runtime.
@@ -207,7 +141,7 @@ impl AppState {
         T: Send + 'static,
         F: FnOnce(&dyn JobRepo) -> RepoResult<T> + Send + 'static,
     {
-        let repo = self.inner.repo.clone();
+        let repo = self.inner.runner.repo.clone();
         Ok(tokio::task::spawn_blocking(move || f(&*repo)).await??)
     }
 
@@ -223,7 +157,7 @@ impl AppState {
     /// Read `--api-key` and the keys file again (what SIGHUP does). On an error the keys
     /// in force stay; the error names the line at fault.
     pub fn reload_keys(&self) -> anyhow::Result<usize> {
-        let config = &self.inner.config;
+        let config = &self.inner.runner.config;
         let keys = Keyring::load(&config.api_keys, config.api_keys_file.as_deref())?;
         let n = keys.count();
         *self.inner.keys.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(keys);
@@ -240,8 +174,7 @@ impl AppState {
         if self.inner.shutting_down.swap(true, Ordering::SeqCst) {
             return;
         }
-        self.inner.workers.close();
-        let _ = self.inner.stop.send(true);
+        self.inner.runner.close();
     }
 
     /// [`begin_shutdown`](Self::begin_shutdown), then let running jobs finish for up to
@@ -249,27 +182,7 @@ impl AppState {
     /// and run again at the next start.
     pub async fn shutdown(&self) {
         self.begin_shutdown();
-        let jobs = &self.inner.workers;
-        let deadline = Instant::now() + self.inner.config.shutdown_grace;
-        while jobs.busy() > 0 && Instant::now() < deadline {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        if jobs.busy() > 0 {
-            tracing::warn!(
-                jobs = jobs.busy(),
-                "interrupting running jobs; they run again"
-            );
-            jobs.interrupt_all();
-            let until = Instant::now() + Duration::from_secs(10);
-            while jobs.busy() > 0 && Instant::now() < until {
-                tokio::time::sleep(Duration::from_millis(20)).await;
-            }
-        }
-        jobs.join_finished_threads();
-        // Let a next server (a restart in the same process) have the data directory.
-        if let Ok(mut lock) = self.inner.data_lock.lock() {
-            lock.take();
-        }
+        self.inner.runner.finish().await;
         tracing::info!("stopped");
     }
 
@@ -297,9 +210,10 @@ impl AppState {
     /// tenant holding its share waits for one of its own to end).
     pub(crate) async fn calibration_slot(&self, tenant: &str) -> Computing {
         let slot = self.inner.calibrating.take(tenant).await;
-        let peak = budget::calibration_peak_bytes(&self.inner.config);
+        let peak = budget::calibration_peak_bytes(&self.inner.runner.config);
         let memory = self
             .inner
+            .runner
             .budget
             .reserve(budget::Use::Calibration, peak)
             .await;
@@ -327,7 +241,7 @@ impl AppState {
             )
         })?;
         let bytes = budget::reshade_peak_bytes(width, height);
-        let memory = (self.inner.budget)
+        let memory = (self.inner.runner.budget)
             .try_reserve(budget::Use::Reshade, bytes)
             .ok_or_else(|| {
                 ApiError::unavailable(
@@ -341,14 +255,18 @@ impl AppState {
     }
 
     pub(crate) fn count_submitted(&self) {
-        self.inner.metrics.submitted.fetch_add(1, Ordering::Relaxed);
+        self.inner
+            .runner
+            .metrics
+            .submitted
+            .fetch_add(1, Ordering::Relaxed);
     }
 
     /// The tenant's quotas before an upload is read: submissions per minute (counting
     /// this one), jobs queued or running, stored bytes. The insert checks the active
     /// jobs again ([`Self::over_active_jobs`]), as uploads run concurrently.
     pub(crate) async fn check_quotas(&self, tenant: &str) -> Result<(), ApiError> {
-        let config = &self.inner.config;
+        let config = &self.inner.runner.config;
         self.admit_submission(tenant)?;
         let t = tenant.to_string();
         let active = self.repo(move |r| r.active(&t)).await?;
@@ -390,7 +308,7 @@ impl AppState {
 
     /// 429 for a tenant at its limit of jobs queued or running.
     pub(crate) fn over_active_jobs(&self, tenant: &str) -> ApiError {
-        let max = self.inner.config.tenant_max_jobs;
+        let max = self.inner.runner.config.tenant_max_jobs;
         self.refuse(
             tenant,
             quota::Limit::ActiveJobs,
@@ -403,6 +321,7 @@ impl AppState {
 
     fn refuse(&self, tenant: &str, limit: quota::Limit, retry: u64, detail: String) -> ApiError {
         self.inner
+            .runner
             .metrics
             .observe_quota_refusal(tenant, limit.as_str());
         ApiError::quota_exceeded(retry, detail)
@@ -410,17 +329,17 @@ impl AppState {
 
     /// Whether `tenant` has a webhook secret (callbacks need one).
     pub(crate) fn has_webhook_secret(&self, tenant: &str) -> bool {
-        self.inner.webhook_secrets.contains_key(tenant)
+        self.inner.runner.has_webhook_secret(tenant)
     }
 
     /// A job has ended outside a worker (cancelled while queued): deliver its webhook.
     pub(crate) fn job_ended(&self, id: Uuid) {
-        let inner = self.inner.clone();
-        tokio::task::spawn_blocking(move || webhooks::job_ended(&inner, id));
+        self.inner.runner.job_ended(id);
     }
 
     pub(crate) fn count_queue_full(&self) {
         self.inner
+            .runner
             .metrics
             .rejected_queue_full
             .fetch_add(1, Ordering::Relaxed);
@@ -428,11 +347,11 @@ impl AppState {
 
     /// 507 when the data directory's file system is short of space.
     pub(crate) async fn check_free_disk(&self) -> Result<(), ApiError> {
-        let min = self.inner.config.min_free_disk;
+        let min = self.inner.runner.config.min_free_disk;
         if min == 0 {
             return Ok(());
         }
-        let store = self.inner.store.clone();
+        let store = self.inner.runner.store.clone();
         match tokio::task::spawn_blocking(move || store.free_bytes()).await? {
             Ok(free) if free < min => Err(ApiError::insufficient_storage(format!(
                 "only {free} bytes are free for job data; new jobs need at least {min}"
@@ -456,7 +375,7 @@ impl AppState {
     }
 
     async fn stage(&self, kind: Staged, id: Uuid) -> Result<Staging, ApiError> {
-        let store = self.inner.store.clone();
+        let store = self.inner.runner.store.clone();
         let path = tokio::task::spawn_blocking(move || match kind {
             Staged::Job => store.stage_inputs(id),
             Staged::Calibration => store.stage_calibration(id),
@@ -473,23 +392,23 @@ impl AppState {
 
     /// A set to decode a new upload's images into ahead of its job, if a slot is free.
     pub(crate) fn begin_prefetch(&self) -> Option<Prefetch> {
-        self.inner.prefetch.begin()
+        self.inner.runner.prefetch.begin()
     }
 
     /// Keep an accepted job's decoded images for its worker.
     pub(crate) fn park_prefetch(&self, id: Uuid, set: Prefetch) {
-        self.inner.prefetch.park(id, set);
+        self.inner.runner.prefetch.park(id, set);
     }
 
     /// Drop the images decoded ahead for a job, if any.
     pub(crate) fn remove_prefetch(&self, id: Uuid) {
-        self.inner.prefetch.discard(id);
+        self.inner.runner.prefetch.discard(id);
     }
 
     /// Remove a job's files and any images decoded ahead for it (errors are logged).
     pub(crate) async fn remove_files(&self, id: Uuid) {
-        self.inner.prefetch.discard(id);
-        let store = self.inner.store.clone();
+        self.inner.runner.prefetch.discard(id);
+        let store = self.inner.runner.store.clone();
         match tokio::task::spawn_blocking(move || store.remove_job(id)).await {
             Ok(Ok(())) => {}
             Ok(Err(e)) => tracing::warn!(job = %id, error = %e, "cannot remove job files"),
@@ -509,8 +428,8 @@ impl AppState {
                 uploads.total()
             ));
         }
-        let budget = &self.inner.budget;
-        let job = budget::job_worst_bytes(&self.inner.config).min(budget.limit());
+        let budget = &self.inner.runner.budget;
+        let job = budget::job_worst_bytes(&self.inner.runner.config).min(budget.limit());
         if budget.free() < job {
             problems.push(format!(
                 "the memory budget has no room for another job ({} of {} bytes free, a job may need {job})",
@@ -521,7 +440,7 @@ impl AppState {
         if let Err(e) = self.repo(|r| r.ping()).await {
             problems.push(format!("the job database does not answer ({})", e.detail()));
         }
-        let store = self.inner.store.clone();
+        let store = self.inner.runner.store.clone();
         match tokio::task::spawn_blocking(move || store.probe_writable()).await {
             Ok(Ok(())) => {}
             Ok(Err(e)) => problems.push(format!("the data directory is not writable: {e}")),
@@ -533,25 +452,25 @@ impl AppState {
     pub(crate) async fn render_metrics(&self) -> Result<String, ApiError> {
         let counts = self.repo(|r| r.counts()).await?;
         let by_tenant = self.repo(|r| r.counts_by_tenant()).await?;
-        let store = self.inner.store.clone();
+        let store = self.inner.runner.store.clone();
         let free = tokio::task::spawn_blocking(move || store.free_bytes().ok()).await?;
-        let jobs = &self.inner.workers;
+        let jobs = &self.inner.runner.pool;
         let queued = counts
             .iter()
             .find(|(s, _)| *s == JobStatus::Queued)
             .map_or(0, |(_, n)| *n as usize);
-        let mut text = self.inner.metrics.render(&Snapshot {
+        let mut text = self.inner.runner.metrics.render(&Snapshot {
             jobs_by_status: counts,
             jobs_by_tenant: by_tenant,
             queue_depth: queued,
-            queue_capacity: self.inner.config.queue_length,
+            queue_capacity: self.inner.runner.config.queue_length,
             running: jobs.running(),
             running_max: jobs.running_max(),
-            workers: self.inner.config.workers,
+            workers: self.inner.runner.config.workers,
             free_disk_bytes: free,
-            prefetch_sets: self.inner.prefetch.held(),
+            prefetch_sets: self.inner.runner.prefetch.held(),
         });
-        self.inner.budget.render(&mut text);
+        self.inner.runner.budget.render(&mut text);
         self.render_slots(&mut text);
         Ok(text)
     }
@@ -644,7 +563,7 @@ impl Computing {
             &self.inner.calibrations_computing,
             &self.inner.calibrations_computing_max,
         );
-        let delay = self.inner.config.stage_delay;
+        let delay = self.inner.runner.config.stage_delay;
         if !delay.is_zero() {
             std::thread::sleep(delay);
         }
@@ -706,7 +625,7 @@ impl Staging {
 
     /// Make the upload the job's inputs (or the calibration's files), durably.
     pub(crate) async fn commit(&mut self) -> Result<(), ApiError> {
-        let store = self.state.inner.store.clone();
+        let store = self.state.inner.runner.store.clone();
         let (kind, id) = (self.kind, self.id);
         tokio::task::spawn_blocking(move || match kind {
             Staged::Job => store.commit_inputs(id),
@@ -726,7 +645,7 @@ impl Drop for Staging {
         if self.keep {
             return;
         }
-        let store = self.state.inner.store.clone();
+        let store = self.state.inner.runner.store.clone();
         let (kind, id) = (self.kind, self.id);
         let remove = move || {
             let removed = match kind {
@@ -742,28 +661,6 @@ impl Drop for Staging {
                 rt.spawn_blocking(remove);
             }
             Err(_) => remove(),
-        }
-    }
-}
-
-/// Take the data directory's lock file, or say which directory is in use.
-fn lock_data_dir(dir: &std::path::Path) -> anyhow::Result<std::fs::File> {
-    let path = dir.join("lock");
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .write(true)
-        .open(&path)
-        .with_context(|| format!("opening {}", path.display()))?;
-    match file.try_lock() {
-        Ok(()) => Ok(file),
-        Err(std::fs::TryLockError::WouldBlock) => anyhow::bail!(
-            "the data directory {} is in use by another photostereo server (it holds {})",
-            dir.display(),
-            path.display()
-        ),
-        Err(std::fs::TryLockError::Error(e)) => {
-            Err(e).with_context(|| format!("locking {}", path.display()))
         }
     }
 }

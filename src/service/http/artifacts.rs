@@ -173,7 +173,7 @@ async fn reshade(
         _ => (state.config().max_pixels, 1),
     };
     let (slot, memory) = state.reshade_slot(&caller.tenant, width, height)?;
-    let store = state.inner.store.clone();
+    let store = state.store_handle();
     let id = job.id;
     let needed: Vec<_> = job
         .artifacts

@@ -269,7 +269,7 @@ async fn accept(
 }
 
 async fn remove_files(state: &AppState, id: Uuid) {
-    let store = state.inner.store.clone();
+    let store = state.store_handle();
     match tokio::task::spawn_blocking(move || store.remove_calibration(id)).await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => {

@@ -15,6 +15,7 @@ use crate::core::normalmap::Convention;
 use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
 use crate::service::idempotency::{self, PartHasher};
+use crate::service::intake::checks::check_url;
 use crate::service::intake::job as intake;
 use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::problem::Problem;
@@ -23,7 +24,7 @@ use crate::service::state::AppState;
 use crate::service::tenants::Caller;
 use crate::service::util::{format_duration, now_ms};
 use crate::service::views::JobView;
-use crate::service::webhooks;
+
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
@@ -238,7 +239,7 @@ async fn accept_job(
     }
     let callback = match &received.callback_url {
         Some(url) => {
-            webhooks::check_url(url, &config.webhook_allow_hosts)?;
+            check_url(url, &config.webhook_allow_hosts)?;
             if !state.has_webhook_secret(&caller.tenant) {
                 return Err(ApiError::invalid(format!(
                     "callback_url: tenant {} has no webhook secret on this server (--webhook-secret), so its callbacks could not be signed",

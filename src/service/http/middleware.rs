@@ -28,7 +28,7 @@ pub(crate) async fn authenticate(
         .nth(1)
         .is_some()
     {
-        let tap = BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
+        let tap = BodyTap::new(req.into_body(), state.config().max_body_bytes);
         tokio::spawn(async move { tap.drain(LINGER).await });
         return ApiError::bad_request("send one Authorization header, not several").into_response();
     }
@@ -66,7 +66,7 @@ pub(crate) async fn authenticate(
 /// 401, reading what the client is still uploading in the background (bounded by the body
 /// limit and [`LINGER`]) so that it sees the answer rather than a broken pipe.
 fn refuse_unauthorized(state: &AppState, req: Request, detail: &str) -> Response {
-    let tap = BodyTap::new(req.into_body(), state.inner.config.max_body_bytes);
+    let tap = BodyTap::new(req.into_body(), state.config().max_body_bytes);
     tokio::spawn(async move { tap.drain(LINGER).await });
     ApiError::unauthorized(detail).into_response()
 }
@@ -91,7 +91,7 @@ pub(crate) async fn track_http(
         .unwrap_or_else(|| "unmatched".to_string());
     let started = Instant::now();
     let response = next.run(req).await;
-    state.inner.metrics.observe_http(
+    state.metrics().observe_http(
         method,
         &route,
         response.status().as_u16(),

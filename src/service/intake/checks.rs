@@ -11,7 +11,7 @@ use image::ImageReader;
 use serde::Deserialize;
 
 use crate::core::camera::{self, Pinhole};
-use crate::core::lights::{self, Light};
+use crate::core::lights::Light;
 use crate::core::near;
 use crate::core::normalmap::{self, Convention, NormalMapError};
 use crate::core::outputs;
@@ -19,6 +19,7 @@ use crate::core::{InputError, Options};
 use crate::service::config::Config;
 use crate::service::error::ApiError;
 use crate::service::store::ManifestEntry;
+use crate::service::worker::webhooks::{Target, parse_target};
 
 /// Longest camera file accepted (`camera` part, or a camera file in an archive): a K.txt
 /// or camera.json is a few dozen bytes.
@@ -332,42 +333,6 @@ pub(crate) fn check_calibration_names(
     )))
 }
 
-/// The camera and working distance of a near-light job: the job's (`camera` part or
-/// option, `distance` option) or else its light table's; a 422 naming what neither gives,
-/// a camera that cannot have taken the `width × height` images, or an LED of `lights`
-/// facing away from the object.
-pub(crate) fn near_rig(
-    options: &Options,
-    rig: &lights::Rig,
-    lights: &[lights::Light],
-    (width, height): (usize, usize),
-) -> Result<(Pinhole, f64), ApiError> {
-    let camera = options.camera.or(rig.camera);
-    let distance = options.distance.or(rig.distance);
-    let mut missing = Vec::new();
-    if camera.is_none() {
-        missing.push(
-            "the camera (\"camera\": {\"fx\", \"fy\", \"cx\", \"cy\"} in the light table, or the job's camera part or `camera` option)",
-        );
-    }
-    if distance.is_none() {
-        missing.push(
-            "the working distance to the object along the optical axis (\"distance\" in the light table, or the job's `distance` option)",
-        );
-    }
-    let (Some(camera), Some(distance)) = (camera, distance) else {
-        return Err(InputError::Lights(format!(
-            "lights given by position (near lights) need {}",
-            missing.join(" and ")
-        ))
-        .into());
-    };
-    camera.check(width, height).map_err(InputError::from)?;
-    crate::core::options::check_distance(Some(distance), Some(&camera))?;
-    crate::core::near::check_cones(lights, &camera, distance, (width, height))?;
-    Ok((camera, distance))
-}
-
 /// A near-light job's options name only the fields it takes ([`near::OPTIONS`]) and its
 /// `outputs` only what it writes ([`near::check_outputs`]): a 422 naming the first that
 /// does not apply.
@@ -383,6 +348,11 @@ pub(crate) fn check_near_options(fields: &[String], options: &Options) -> Result
         near::check_outputs(names)?;
     }
     Ok(())
+}
+
+/// Check a `callback_url` against the allow-list (422 naming the problem).
+pub(crate) fn check_url(url: &str, allow: &[String]) -> Result<Target, ApiError> {
+    parse_target(url, allow).map_err(ApiError::invalid)
 }
 
 #[cfg(test)]
@@ -455,5 +425,55 @@ mod tests {
             assert_eq!(e.status().as_u16(), 422, "{bad}");
             assert!(e.detail().contains(needle), "{bad}: {e}");
         }
+    }
+
+    #[test]
+    fn ports_outside_1_to_65535_are_refused() {
+        let allow = vec!["127.0.0.1".to_string()];
+        for bad in ["99999", "65616", "0", "65536", "-1", "80a"] {
+            let url = format!("http://127.0.0.1:{bad}/hook");
+            if let Err(e) = check_url(&url, &allow) {
+                assert_eq!(e.status(), 422, "{url}");
+            } else {
+                panic!("{url} accepted");
+            }
+        }
+        assert_eq!(
+            check_url("http://127.0.0.1:65535/", &allow).unwrap().port,
+            65535
+        );
+        assert_eq!(check_url("http://127.0.0.1:1/", &allow).unwrap().port, 1);
+    }
+
+    #[test]
+    fn only_allow_listed_http_hosts_pass() {
+        let allow = vec!["127.0.0.1".to_string(), "hooks.example.com".to_string()];
+        let t = check_url("http://127.0.0.1:9000/hook?x=1", &allow).unwrap();
+        assert_eq!(
+            (t.host.as_str(), t.port, t.path.as_str()),
+            ("127.0.0.1", 9000, "/hook?x=1")
+        );
+        assert_eq!(
+            check_url("http://HOOKS.example.com", &allow).unwrap().port,
+            80
+        );
+        for (url, needle) in [
+            ("http://10.0.0.1/x", "allow-list"),
+            ("http://127.0.0.2/x", "allow-list"),
+            ("http://localhost/x", "allow-list"),
+            ("https://127.0.0.1/x", "scheme"),
+            ("ftp://127.0.0.1/x", "scheme"),
+            ("/relative", "absolute"),
+            ("http://user@127.0.0.1/x", "user information"),
+            ("not a url", "not a URL"),
+        ] {
+            let e = check_url(url, &allow).unwrap_err();
+            assert_eq!(e.status().as_u16(), 422, "{url}");
+            assert!(e.detail().contains(needle), "{url}: {}", e.detail());
+        }
+        assert!(
+            check_url("http://127.0.0.1/x", &[]).is_err(),
+            "none by default"
+        );
     }
 }

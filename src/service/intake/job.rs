@@ -25,19 +25,20 @@ use crate::core::{InputError, Options};
 use crate::service::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use crate::service::error::ApiError;
 use crate::service::idempotency::PartHasher;
-use crate::service::prefetch::Prefetch;
 use crate::service::store::{
     LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, NORMALS_FILE, NormalsEntry, image_file,
 };
+use crate::service::worker::Prefetch;
 
 use super::archive::{ArchiveLimits, extract_archive};
 use super::checks::{
     MAX_CAMERA_BYTES, StoredImage, check_calibration_names, check_names, check_near_options,
-    check_sizes, choose_camera, near_rig, parse_camera, parse_convention, parse_options, probe,
+    check_sizes, choose_camera, parse_camera, parse_convention, parse_options, probe,
     probe_normals, take_camera_part,
 };
 use super::form::PartReader;
 use super::tap::BodyTap;
+use crate::service::worker::near_rig;
 
 const ARCHIVE_FILE: &str = "archive.zip";
 /// Longest `callback_url` accepted (bytes).
