@@ -14,11 +14,11 @@ use super::budget::{self, Reservation};
 use super::config::{self, Config};
 use super::error::ApiError;
 use super::metrics::{Metrics, Snapshot};
-use super::quota;
 use super::repo::{JobRepo, JobStatus, Problem, RepoResult};
 use super::slots::{Busy, Slot, Slots};
 use super::store::BlobStore;
-use super::tenants::Keyring;
+use super::tenancy::Keyring;
+use super::tenancy::quota;
 use super::views;
 use super::worker::{Failure, Prefetch, Render, Runner, Workers};
 

@@ -15,7 +15,7 @@ use crate::service::problem::Problem;
 use crate::service::repo::{JobRecord, JobStatus};
 use crate::service::state::AppState;
 use crate::service::store::Served;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
 use crate::service::util::strong_etag;
 use crate::service::views::job_url;
 use utoipa_axum::router::OpenApiRouter;

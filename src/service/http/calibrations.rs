@@ -28,14 +28,14 @@ use uuid::Uuid;
 
 use crate::core::lights;
 use crate::service::error::ApiError;
-use crate::service::idempotency::{self, PartHasher};
 use crate::service::intake::calibration::receive;
 use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::problem::Problem;
 use crate::service::repo::{CalibrationRecord, Remembered, RepoError, readable};
 use crate::service::state::AppState;
 use crate::service::store::Served;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
+use crate::service::tenancy::idempotency::{self, PartHasher};
 use crate::service::util::{format_duration, now_ms};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;

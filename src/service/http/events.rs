@@ -22,7 +22,7 @@ use utoipa_axum::routes;
 
 use super::extract::{JobId, owned_job};
 use crate::service::state::AppState;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
 
 /// One server-sent event as a client parses it (documents the stream's shape; the stream
 /// itself is written by axum's `Event`).

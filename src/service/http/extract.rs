@@ -14,7 +14,7 @@ use uuid::Uuid;
 use crate::service::error::ApiError;
 use crate::service::repo::{CalibrationRecord, JobRecord};
 use crate::service::state::AppState;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
 
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]

@@ -14,14 +14,14 @@ use crate::core::Options;
 use crate::core::normalmap::Convention;
 use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
-use crate::service::idempotency::{self, PartHasher};
 use crate::service::intake::checks::check_url;
 use crate::service::intake::job as intake;
 use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::problem::Problem;
 use crate::service::repo::{Admission, Callback, CallbackState, JobRecord, JobStatus, Remembered};
 use crate::service::state::AppState;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
+use crate::service::tenancy::idempotency::{self, PartHasher};
 use crate::service::util::{format_duration, now_ms};
 use crate::service::views::JobView;
 

@@ -10,7 +10,7 @@ use axum::response::{IntoResponse, Response};
 use crate::service::error::ApiError;
 use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::state::AppState;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
 
 /// `Authorization: Bearer <key>` on the /v1 routes when keys are configured: the key's
 /// [`Caller`] goes into the request's extensions. With no keys, every caller is

@@ -8,12 +8,12 @@ use uuid::Uuid;
 
 use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
-use crate::service::idempotency;
 use crate::service::intake::tap::BodyTap;
 use crate::service::repo::Remembered;
 use crate::service::slots::Slot;
 use crate::service::state::AppState;
-use crate::service::tenants::Caller;
+use crate::service::tenancy::Caller;
+use crate::service::tenancy::idempotency;
 use crate::service::util::now_ms;
 
 use super::extract::request_id;

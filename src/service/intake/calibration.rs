@@ -14,7 +14,7 @@ use crate::core::calibrate::{self, Circle};
 use crate::core::lights;
 use crate::service::config::{Config, MAX_LIGHTS_BYTES};
 use crate::service::error::ApiError;
-use crate::service::idempotency::PartHasher;
+use crate::service::tenancy::idempotency::PartHasher;
 
 /// Longest `circle`, `ball_diameter`, `focal_length` or `skip_bad` part accepted (bytes).
 const MAX_VALUE_BYTES: usize = 256;

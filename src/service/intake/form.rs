@@ -14,7 +14,7 @@ use axum::extract::multipart::{Field, MultipartError};
 
 use crate::service::config::Config;
 use crate::service::error::ApiError;
-use crate::service::idempotency::PartHasher;
+use crate::service::tenancy::idempotency::PartHasher;
 
 use super::tap::BodyTap;
 

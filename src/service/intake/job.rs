@@ -24,10 +24,10 @@ use crate::core::options::MaskMode;
 use crate::core::{InputError, Options};
 use crate::service::config::{Config, MAX_LIGHTS_BYTES, MAX_OPTIONS_BYTES};
 use crate::service::error::ApiError;
-use crate::service::idempotency::PartHasher;
 use crate::service::store::{
     LIGHTS_FILE, MANIFEST_FILE, MASK_FILE, Manifest, NORMALS_FILE, NormalsEntry, image_file,
 };
+use crate::service::tenancy::idempotency::PartHasher;
 use crate::service::worker::Prefetch;
 
 use super::archive::{ArchiveLimits, extract_archive};
