@@ -11,11 +11,13 @@
 //!   or an S3-compatible object store).
 //! - [`error`]: [`ApiError`], every failure as RFC 9457 problem+json.
 //! - [`config`]: [`ServeArgs`] (flags + environment) and [`Config`].
+//! - [`client`]: the one HTTP/1.1 client (the health check, webhooks, the bench).
 //! - `connections`: the accept loop, the connection cap and timeouts.
 //!
 //! [`router`] is what tests call; [`serve`] is `photostereo serve`.
 
 mod budget;
+pub mod client;
 pub mod config;
 mod connections;
 pub mod error;

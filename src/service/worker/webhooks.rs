@@ -8,8 +8,8 @@
 //!   not followed.
 //! - `Webhook-Timestamp: <unix seconds>` and `Webhook-Signature: v1=<hex>`, the
 //!   HMAC-SHA256 of `<timestamp>.<body>` under the tenant's webhook secret.
-//! - Plain `http://` over a small HTTP/1.1 client (one request per connection); put a
-//!   TLS-terminating proxy on the allow-list for `https` receivers.
+//! - Plain `http://` over the service's HTTP/1.1 client (`client`, one request per
+//!   connection); put a TLS-terminating proxy on the allow-list for `https` receivers.
 
 use std::collections::HashMap;
 use std::net::IpAddr;
@@ -17,11 +17,12 @@ use std::time::Duration;
 
 use hyper::Uri;
 use sha2::{Digest, Sha256};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use uuid::Uuid;
 
 use crate::service::repo::{CallbackAttempt, CallbackState, JobRecord};
 use crate::service::util::{now_ms, rfc3339};
+
+use crate::service::client::Conn;
 
 use super::runner::Runner;
 
@@ -181,37 +182,25 @@ pub async fn post(
                     target.host
                 )
             })?;
-        let mut stream = tokio::net::TcpStream::connect(addr)
+        let stream = tokio::net::TcpStream::connect(addr)
             .await
             .map_err(|e| format!("cannot connect to {addr}: {e}"))?;
-        let mut head = format!(
-            "POST {} HTTP/1.1\r\nHost: {}:{}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\nUser-Agent: photostereo-webhook\r\n",
-            target.path,
-            target.host,
-            target.port,
-            body.len()
-        );
-        for (name, value) in headers {
-            head.push_str(&format!("{name}: {value}\r\n"));
-        }
-        head.push_str("\r\n");
-        stream
-            .write_all(head.as_bytes())
+        let host = format!("{}:{}", target.host, target.port);
+        let mut conn =
+            Conn::over(stream, host).map_err(|e| format!("cannot connect to {addr}: {e}"))?;
+        let mut fields = vec![
+            ("Content-Type", "application/json"),
+            ("Connection", "close"),
+            ("User-Agent", "photostereo-webhook"),
+        ];
+        fields.extend(headers.iter().map(|(name, value)| (*name, value.as_str())));
+        conn.write_request("POST", &target.path, &fields, Some(body))
             .await
-            .and(stream.write_all(body).await)
             .map_err(|e| format!("sending: {e}"))?;
-        let mut answer = Vec::new();
-        let mut buf = [0u8; 1024];
-        while !answer.windows(2).any(|w| w == b"\r\n") && answer.len() < 8192 {
-            let n = stream
-                .read(&mut buf)
-                .await
-                .map_err(|e| format!("reading the answer: {e}"))?;
-            if n == 0 {
-                break;
-            }
-            answer.extend_from_slice(&buf[..n]);
-        }
+        let answer = conn
+            .read_status_line()
+            .await
+            .map_err(|e| format!("reading the answer: {e}"))?;
         status_code(&answer).ok_or_else(|| {
             let end = answer
                 .iter()
