@@ -1,6 +1,6 @@
-//! [`AppState`]: what the handlers share. It opens the repo and the store, tidies them at
-//! start, starts the workers and the upkeep loop, and holds the upload, calibration and
-//! re-shade slots, the memory budget, the quotas and the keys in force.
+//! [`AppState`]: what the handlers share. It opens the [`Runner`] (the repo, the store,
+//! the workers) and starts its upkeep loop, and holds the keys in force, the submission
+//! rate, the upload, calibration and re-shade slots, and the staging directories.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};

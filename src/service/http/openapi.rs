@@ -2,7 +2,6 @@
 //! `utoipa_axum`'s router; this adds the info, tags, shared schemas, the bearer scheme and
 //! the artifact names.
 
-use std::sync::OnceLock;
 use utoipa::openapi::schema::{ArrayItems, Object, Schema, Type};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::openapi::{ObjectBuilder, RefOr};
@@ -114,22 +113,4 @@ pub(super) fn name_artifacts(doc: &mut utoipa::openapi::OpenApi) {
     {
         outputs.items = ArrayItems::RefOrSchema(Box::new(strings(names().chain([ALL]).collect())));
     }
-}
-
-/// The OpenAPI document served at `/openapi.json` (pretty JSON, trailing newline), also
-/// what `photostereo openapi` prints and `openapi/openapi.json` holds.
-pub fn openapi_json() -> String {
-    static DOC: OnceLock<String> = OnceLock::new();
-    DOC.get_or_init(|| {
-        let mut doc = super::api_routes()
-            .merge(super::operations_routes())
-            .into_openapi();
-        name_artifacts(&mut doc);
-        let mut text = doc
-            .to_pretty_json()
-            .expect("the OpenAPI document serialises");
-        text.push('\n');
-        text
-    })
-    .clone()
 }

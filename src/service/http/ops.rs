@@ -15,13 +15,12 @@ use crate::service::state::AppState;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
-/// `/healthz`, `/readyz`, `/metrics`, `/openapi.json`.
+/// `/healthz`, `/readyz`, `/metrics`.
 pub(crate) fn routes() -> OpenApiRouter<AppState> {
     OpenApiRouter::default()
         .routes(routes!(healthz))
         .routes(routes!(readyz))
         .routes(routes!(metrics))
-        .routes(routes!(openapi_doc))
 }
 
 /// Liveness / readiness answer.
@@ -85,24 +84,6 @@ pub async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError
         text,
     )
         .into_response())
-}
-
-/// This API's OpenAPI document.
-#[utoipa::path(
-    get,
-    path = "/openapi.json",
-    tag = "operations",
-    responses((status = 200, description = "OpenAPI 3.1 document", content_type = "application/json"))
-)]
-pub async fn openapi_doc() -> Response {
-    (
-        [(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static("application/json"),
-        )],
-        super::openapi::openapi_json(),
-    )
-        .into_response()
 }
 
 /// Unknown routes.
