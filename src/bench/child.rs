@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, anyhow, bail};
 
 use super::TempDir;
-use super::client::Conn;
+use super::client;
 use super::memory::{reset_peak_of, status_bytes_of};
 
 /// Longest the server may take to listen and answer /healthz.
@@ -94,7 +94,7 @@ impl ServeChild {
         let start = Instant::now();
         loop {
             let answer = async {
-                let mut c = Conn::connect(self.addr).await?;
+                let mut c = client::connect(self.addr).await?;
                 c.send("GET", "/healthz", &[], None, Duration::from_secs(2))
                     .await
             };

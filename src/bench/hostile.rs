@@ -20,7 +20,7 @@ use tokio::net::TcpStream;
 use super::TempDir;
 use super::args::{BenchArgs, Scenario};
 use super::child::{KEY_A, KEY_B, ServeChild};
-use super::client::{Conn, Response};
+use super::client::{self, Response};
 use super::memory::MB;
 use super::probe::{Prober, Probes};
 use super::sets::{self, SizeResult};
@@ -408,7 +408,7 @@ impl Load<'_> {
             async move {
                 let start = Instant::now();
                 let r = async {
-                    let mut c = Conn::connect(addr).await?;
+                    let mut c = client::connect(addr).await?;
                     let auth = format!("Bearer {KEY_B}");
                     c.send(
                         "GET",
@@ -666,7 +666,7 @@ async fn post(
     body: &Multipart,
 ) -> anyhow::Result<(Response, f64)> {
     let start = Instant::now();
-    let mut c = Conn::connect(addr).await?;
+    let mut c = client::connect(addr).await?;
     let auth = format!("Bearer {key}");
     let content_type = body.content_type();
     let headers = [
@@ -704,10 +704,10 @@ fn job_path(id: &str) -> String {
 async fn wait_succeeded(addr: SocketAddr, id: &str, key: &str) -> anyhow::Result<()> {
     let start = Instant::now();
     let auth = format!("Bearer {key}");
-    let mut conn = Conn::connect(addr).await?;
+    let mut conn = client::connect(addr).await?;
     loop {
         if conn.closed {
-            conn = Conn::connect(addr).await?;
+            conn = client::connect(addr).await?;
         }
         let r = conn
             .send(

@@ -14,7 +14,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 
 use super::args::BenchArgs;
-use super::client::{Conn, REQUEST_TIMEOUT};
+use super::client::{self, Conn, REQUEST_TIMEOUT};
 use super::memory::{own_cpu_ms, reset_peak, status_bytes, tree_cpu_ms};
 use super::sets::SizeResult;
 use super::stats::ms;
@@ -161,7 +161,7 @@ pub(super) async fn http_run(
     let (id, upload, total) = submit_and_wait(addr, set).await?;
     let (cpu, servers_cpu) = (own_cpu_ms() - cpu, tree_cpu_ms(servers) - servers_cpu);
     let peak = status_bytes("VmHWM");
-    let mut conn = Conn::connect(addr).await?;
+    let mut conn = client::connect(addr).await?;
     let r = conn.request("DELETE", &job_path(&id)).await?;
     ensure!(r.status == 204, "deleting job {id}: {}", r.describe());
     let servers_note = if servers.is_empty() {
@@ -243,7 +243,7 @@ async fn submit(addr: SocketAddr, set: &SizeResult) -> anyhow::Result<(String, I
         length += head.len() as u64 + size + 2;
     }
 
-    let mut conn = Conn::connect(addr).await?;
+    let mut conn = client::connect(addr).await?;
     let start = Instant::now();
     let sent = tokio::time::timeout(UPLOAD_TIMEOUT, async {
         let head = format!(
@@ -315,7 +315,7 @@ async fn wait_for(
     deadline: Instant,
     done: impl Fn(&str) -> bool,
 ) -> anyhow::Result<Value> {
-    let mut conn = Conn::connect(addr).await?;
+    let mut conn = client::connect(addr).await?;
     let path = job_path(id);
     loop {
         let r = conn.request("GET", &path).await?;
@@ -333,7 +333,7 @@ async fn wait_for(
         }
         tokio::time::sleep(POLL_EVERY).await;
         if conn.closed {
-            conn = Conn::connect(addr).await?;
+            conn = client::connect(addr).await?;
         }
     }
 }
@@ -349,7 +349,7 @@ pub(super) async fn load_test(
     let outcome = load_with_jobs(args, set, addr, workers, &mut ids).await;
     // Cancel whatever is still queued or running, and wait (bounded) for it to stop.
     for id in &ids {
-        if let Ok(mut c) = Conn::connect(addr).await {
+        if let Ok(mut c) = client::connect(addr).await {
             let _ = c.request("DELETE", &job_path(id)).await;
         }
     }
@@ -405,7 +405,7 @@ async fn load_with_jobs(
         }
     }
     let mut running_after = 0;
-    let mut conn = Conn::connect(addr).await?;
+    let mut conn = client::connect(addr).await?;
     for id in ids.iter() {
         let r = conn.request("GET", &job_path(id)).await?;
         let job: Value = serde_json::from_slice(&r.body).unwrap_or_default();
@@ -443,7 +443,7 @@ async fn status_client(
         let start = Instant::now();
         let outcome: anyhow::Result<()> = async {
             if conn.as_ref().is_none_or(|c| c.closed) {
-                conn = Some(Conn::connect(addr).await?);
+                conn = Some(client::connect(addr).await?);
             }
             let c = conn.as_mut().ok_or_else(|| anyhow!("no connection"))?;
             let r = c.request("GET", &path).await?;

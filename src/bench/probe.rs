@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 
-use super::client::Conn;
+use super::client;
 use super::stats::{ms, percentile};
 
 /// A probe not answered within this is a timeout.
@@ -137,7 +137,7 @@ async fn probe_until(
 async fn probe(addr: SocketAddr, path: String, auth: Option<String>) -> (Probe, Option<String>) {
     let start = Instant::now();
     let exchange = async {
-        let mut c = Conn::connect(addr).await?;
+        let mut c = client::connect(addr).await?;
         let headers: Vec<(&str, &str)> =
             auth.iter().map(|a| ("Authorization", a.as_str())).collect();
         // The outer timeout is the one that counts.

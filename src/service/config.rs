@@ -322,6 +322,8 @@ pub const MAX_LIGHTS_BYTES: usize = 1 << 20;
 pub const MAX_OPTIONS_BYTES: usize = 64 << 10;
 /// Seconds a client is told to wait when the queue is full.
 pub const RETRY_AFTER_SECS: u64 = 5;
+/// How long an `Idempotency-Key`'s answer is kept and replayed.
+pub const IDEMPOTENCY_WINDOW: Duration = Duration::from_secs(24 * 3600);
 
 impl Config {
     /// The defaults of [`ServeArgs`], with the given data directory.
@@ -360,7 +362,7 @@ impl Config {
             webhook_first_retry: Duration::from_secs(1),
             shutdown_grace: Duration::from_secs(30),
             decode_ahead: workers,
-            memory_budget: super::budget::default_budget(),
+            memory_budget: default_budget(),
             tenant_max_uploads: None,
             tenant_max_calibrations: None,
             max_reshades: workers,
@@ -474,6 +476,46 @@ impl From<&ServeArgs> for Config {
     }
 }
 
+/// The default memory budget: three quarters of the memory this process may use (the
+/// machine's, or the cgroup's limit when lower), leaving the rest to the process's
+/// fixed share, the uploads' buffers and the page cache the jobs read their bands from.
+pub fn default_budget() -> u64 {
+    let machine = meminfo_total().unwrap_or(4 << 30);
+    let limit = cgroup_limit().map_or(machine, |c| c.min(machine));
+    limit / 4 * 3
+}
+
+fn meminfo_total() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kb: u64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("MemTotal:"))?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()?;
+    Some(kb * 1024)
+}
+
+/// The memory limit of this process's cgroup (v2 `memory.max`, else v1
+/// `memory.limit_in_bytes`), if one is set.
+fn cgroup_limit() -> Option<u64> {
+    let own = std::fs::read_to_string("/proc/self/cgroup").unwrap_or_default();
+    let v2 = own
+        .lines()
+        .find_map(|l| l.strip_prefix("0::"))
+        .map(|p| format!("/sys/fs/cgroup{}/memory.max", p.trim_end_matches('/')));
+    let candidates = v2.into_iter().chain([
+        "/sys/fs/cgroup/memory.max".to_string(),
+        "/sys/fs/cgroup/memory/memory.limit_in_bytes".to_string(),
+    ]);
+    candidates
+        .filter_map(|p| std::fs::read_to_string(p).ok())
+        .filter_map(|t| t.trim().parse::<u64>().ok())
+        // v1 reports "no limit" as a number near 2⁶³.
+        .find(|&n| n < 1 << 60)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -563,5 +605,11 @@ mod tests {
         );
         let both = Cli::try_parse_from([&db[..], &["--store", "s3://b"]].concat()).unwrap();
         assert!(Config::from(&both.serve).database_url.is_some());
+    }
+
+    #[test]
+    fn the_default_is_below_the_machine() {
+        let d = default_budget();
+        assert!(d > 0 && d < meminfo_total().unwrap());
     }
 }

@@ -17,6 +17,11 @@
 //! refused: a canned 503 written without reading the request, then closed. Running out
 //! of descriptors anyway (other files) closes the longest-idle connection too.
 
+mod limits;
+
+use limits::LINGERING;
+pub use limits::{Limits, raise_open_files_limit};
+
 use std::collections::BTreeMap;
 use std::convert::Infallible;
 use std::future::Future;
@@ -37,12 +42,10 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{Notify, Semaphore, watch};
 
-use super::config::{Config, RETRY_AFTER_SECS};
+use super::config::RETRY_AFTER_SECS;
 use super::error::ApiError;
 use super::metrics::ConnectionCounters;
 
-/// `--max-connections` when the open-files limit leaves room for it.
-pub const DEFAULT_MAX_CONNECTIONS: usize = 4096;
 /// Largest HTTP/1 request head (431 past it), and what a connection buffers of a body:
 /// the bound on a trickling head's memory.
 const MAX_HEAD_BYTES: usize = 32 << 10;
@@ -51,126 +54,11 @@ const MAX_HEAD_BYTES: usize = 32 << 10;
 const H2_STREAMS: u32 = 16;
 const H2_SEND_BUFFER: usize = 64 << 10;
 const H2_WINDOW: u32 = 256 << 10;
-/// Refused connections that may stay open at once to read the request they sent, so that
-/// their client reads the 503 rather than a reset; the others are closed at once.
-const LINGERING: usize = 64;
 const LINGER: Duration = Duration::from_secs(1);
-/// Descriptors kept for the process besides jobs, uploads and connections (database,
-/// store clients, logs, the runtime).
-const BASE_FILES: usize = 256;
 /// At most one log line per kind of trouble in this interval.
 const LOG_EVERY: Duration = Duration::from_secs(10);
 /// A time that has not happened, in [`Registry::now`] units.
 const NEVER: u64 = u64::MAX;
-
-/// The connection settings in force.
-#[derive(Debug, Clone, Copy)]
-pub struct Limits {
-    pub max_connections: usize,
-    pub header_timeout: Duration,
-    pub keep_alive_timeout: Duration,
-    pub send_timeout: Duration,
-}
-
-impl Limits {
-    /// `--max-connections`, or a default the open-files limit has room for beside the files
-    /// the jobs, calibrations and uploads may hold.
-    pub fn resolve(config: &Config) -> Self {
-        let files = open_files_limit();
-        let reserved = reserved_files(config);
-        let max_connections = match (config.max_connections, files) {
-            (Some(n), Some(files)) => {
-                if n.saturating_add(reserved) > files {
-                    tracing::warn!(
-                        max_connections = n,
-                        open_files_limit = files,
-                        reserved_for_files = reserved,
-                        "--max-connections is more than the open-files limit has room for; at the limit, idle connections are closed to make room"
-                    );
-                }
-                n
-            }
-            (Some(n), None) => n,
-            (None, None) => DEFAULT_MAX_CONNECTIONS,
-            (None, Some(files)) => {
-                let room = files.saturating_sub(reserved);
-                if room >= 256 {
-                    room.min(DEFAULT_MAX_CONNECTIONS)
-                } else {
-                    let n = (files / 4).max(16);
-                    tracing::warn!(
-                        open_files_limit = files,
-                        reserved_for_files = reserved,
-                        max_connections = n,
-                        "the open-files limit is low for this configuration; raise it (ulimit -n) or set --max-connections"
-                    );
-                    n
-                }
-            }
-        };
-        Self {
-            max_connections,
-            header_timeout: config.header_timeout,
-            keep_alive_timeout: config.keep_alive_timeout,
-            send_timeout: config.send_timeout,
-        }
-    }
-}
-
-/// Descriptors the rest of the server may hold at once: a spill file per image for each
-/// running job, calibration and upload decoded ahead, a file or two per upload, the
-/// refused connections lingering, and a base.
-fn reserved_files(c: &Config) -> usize {
-    let holders = 2 * c.workers.max(1) + c.decode_ahead;
-    c.max_images
-        .saturating_mul(holders)
-        .saturating_add(2 * c.max_uploads + LINGERING + BASE_FILES)
-}
-
-/// Raise the soft limit on open files to the hard limit (what a server is allowed; the
-/// soft limit is often 1024). Returns the limit in force.
-pub fn raise_open_files_limit() -> Option<usize> {
-    #[cfg(unix)]
-    {
-        let mut limit = libc::rlimit {
-            rlim_cur: 0,
-            rlim_max: 0,
-        };
-        // SAFETY: getrlimit writes into the struct we own.
-        if unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } != 0 {
-            return None;
-        }
-        if limit.rlim_cur < limit.rlim_max {
-            let raised = libc::rlimit {
-                rlim_cur: limit.rlim_max,
-                rlim_max: limit.rlim_max,
-            };
-            // SAFETY: setrlimit reads the struct we own. It fails (EPERM) when the hard
-            // limit is above the kernel's nr_open; the soft limit then stays.
-            if unsafe { libc::setrlimit(libc::RLIMIT_NOFILE, &raised) } == 0 {
-                limit.rlim_cur = limit.rlim_max;
-            }
-        }
-        Some(usize::try_from(limit.rlim_cur).unwrap_or(usize::MAX))
-    }
-    #[cfg(not(unix))]
-    None
-}
-
-fn open_files_limit() -> Option<usize> {
-    #[cfg(unix)]
-    {
-        let mut limit = libc::rlimit {
-            rlim_cur: 0,
-            rlim_max: 0,
-        };
-        // SAFETY: getrlimit writes into the struct we own.
-        (unsafe { libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) } == 0)
-            .then(|| usize::try_from(limit.rlim_cur).unwrap_or(usize::MAX))
-    }
-    #[cfg(not(unix))]
-    None
-}
 
 /// What the open connections are told when the server stops.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

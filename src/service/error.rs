@@ -10,6 +10,7 @@ use crate::core::calibrate::CalibrationError;
 use crate::core::normalmap::NormalMapError;
 
 use super::problem::{PROBLEM_JSON, Problem};
+use super::worker::Failure;
 
 /// An error answer of the API.
 #[derive(Debug)]
@@ -371,6 +372,25 @@ impl From<super::store::Error> for ApiError {
             )
         } else {
             Self::internal(format!("i/o: {e}"))
+        }
+    }
+}
+
+/// A job's failure, as its record keeps it: each kind as the request it stands for would
+/// have been answered.
+impl From<Failure> for ApiError {
+    fn from(e: Failure) -> Self {
+        match e {
+            Failure::Input(e) => e.into(),
+            Failure::NormalMap(e) => e.into(),
+            Failure::Run(e) => e.into(),
+            Failure::Repo(e) => e.into(),
+            Failure::Store(e) => e.into(),
+            Failure::Io(e) => e.into(),
+            Failure::Invalid(detail) => Self::invalid(detail),
+            Failure::Internal(detail) => Self::internal(detail),
+            Failure::Failed(detail) => Self::job_failed(detail),
+            Failure::TimedOut(detail) => Self::job_timeout(detail),
         }
     }
 }

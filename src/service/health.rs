@@ -1,11 +1,12 @@
-//! `photostereo healthcheck`: a tiny HTTP/1.1 client for container health checks (the
-//! runtime image has no curl).
+//! `photostereo healthcheck`: a GET through the service's HTTP/1.1 client, for container
+//! health checks (the runtime image has no curl).
 
 use std::time::Duration;
 
 use anyhow::{Context, bail};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
+
+use super::client::Conn;
 
 /// Arguments of `photostereo healthcheck`.
 #[derive(Debug, Clone, clap::Args)]
@@ -65,7 +66,7 @@ fn parse_url(url: &str) -> anyhow::Result<(String, u16, String)> {
 
 async fn get_status(url: &str) -> anyhow::Result<u16> {
     let (host, port, path) = parse_url(url)?;
-    let mut stream = TcpStream::connect((host.as_str(), port))
+    let stream = TcpStream::connect((host.as_str(), port))
         .await
         .with_context(|| format!("{url}: cannot connect"))?;
     let host_header = if host.contains(':') {
@@ -73,19 +74,13 @@ async fn get_status(url: &str) -> anyhow::Result<u16> {
     } else {
         format!("{host}:{port}")
     };
-    let request = format!(
-        "GET {path} HTTP/1.1\r\nHost: {host_header}\r\nUser-Agent: photostereo-healthcheck\r\nConnection: close\r\n\r\n"
-    );
-    stream.write_all(request.as_bytes()).await?;
-    let mut head = Vec::new();
-    let mut buf = [0u8; 1024];
-    while !head.windows(2).any(|w| w == b"\r\n") && head.len() < 8192 {
-        let n = stream.read(&mut buf).await?;
-        if n == 0 {
-            break;
-        }
-        head.extend_from_slice(&buf[..n]);
-    }
+    let mut conn = Conn::over(stream, host_header)?;
+    let headers = [
+        ("User-Agent", "photostereo-healthcheck"),
+        ("Connection", "close"),
+    ];
+    conn.write_request("GET", &path, &headers, None).await?;
+    let head = conn.read_status_line().await?;
     let line = String::from_utf8_lossy(&head);
     let status_line = line.lines().next().unwrap_or_default();
     let mut fields = status_line.split_whitespace();

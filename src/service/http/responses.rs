@@ -10,9 +10,12 @@ use axum::body::Body;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
-use super::AppState;
-use super::error::ApiError;
-use super::store::Served;
+use crate::service::error::ApiError;
+use crate::service::state::AppState;
+use crate::service::store::Served;
+
+/// Cache lifetime of stored artifacts (they never change once a job has succeeded).
+pub(crate) const IMMUTABLE: &str = "private, max-age=31536000, immutable";
 
 /// What a request's `Range` asks of a file of `len` bytes.
 #[derive(Debug, PartialEq, Eq)]
@@ -98,7 +101,7 @@ pub(super) async fn stored(
         Wanted::Part(r) if r != (0..len) => Some(r),
         _ => None,
     };
-    let gone = |e: super::store::Error| {
+    let gone = |e: crate::service::store::Error| {
         if e.is_not_found() {
             ApiError::not_found(format!("{name} is gone from the store"))
         } else {
@@ -203,5 +206,19 @@ mod tests {
         assert_eq!(ask("bytes=0-9", Some("\"e\""), 100), Wanted::Part(0..10));
         assert_eq!(ask("bytes=0-9", Some("\"old\""), 100), Wanted::Whole);
         assert_eq!(wanted(&HeaderMap::new(), "\"e\"", 100), Wanted::Whole);
+    }
+
+    #[test]
+    fn if_none_match() {
+        let mut h = HeaderMap::new();
+        h.insert(
+            header::IF_NONE_MATCH,
+            HeaderValue::from_static("\"a\", W/\"b\""),
+        );
+        assert!(not_modified(&h, "\"b\""));
+        assert!(not_modified(&h, "\"a\""));
+        assert!(!not_modified(&h, "\"c\""));
+        h.insert(header::IF_NONE_MATCH, HeaderValue::from_static("*"));
+        assert!(not_modified(&h, "\"c\""));
     }
 }

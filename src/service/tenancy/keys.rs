@@ -5,7 +5,7 @@
 //! and from `--api-keys-file` (lines `tenant secret [role]`, re-read on SIGHUP). The
 //! middleware in `mod.rs` turns the presented key into a [`Caller`] in the request's
 //! extensions; handlers take it as an extractor and check ownership through
-//! [`Caller::sees`] (jobs: `routes::owned_job`). Only digests of the secrets are kept.
+//! [`Caller::sees`] (jobs: `http::extract::owned_job`). Only digests of the secrets are kept.
 
 use std::path::Path;
 
@@ -14,7 +14,7 @@ use axum::http::request::Parts;
 use sha2::{Digest, Sha256};
 use subtle::{ConditionallySelectable, ConstantTimeEq};
 
-use super::error::ApiError;
+use crate::service::error::ApiError;
 
 /// The tenant of every job when no keys are configured (and of jobs recorded before
 /// tenants existed).
@@ -238,8 +238,8 @@ mod tests {
     fn jobs_recorded_before_tenants_belong_to_the_open_tenant() {
         let default = format!("NOT NULL DEFAULT '{OPEN_TENANT}'");
         for migration in [
-            include_str!("repo/sqlite/migrations/002_tenants.sql"),
-            include_str!("repo/postgres/migrations/001_jobs_idempotency_calibrations.sql"),
+            include_str!("../repo/sqlite/migrations/002_tenants.sql"),
+            include_str!("../repo/postgres/migrations/001_jobs_idempotency_calibrations.sql"),
         ] {
             assert!(migration.contains(&default), "{migration}");
         }

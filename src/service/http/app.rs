@@ -9,10 +9,10 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
-use super::AppState;
-use super::download::not_modified;
-use super::error::ApiError;
-use super::util::strong_etag;
+use super::responses::not_modified;
+use crate::service::error::ApiError;
+use crate::service::state::AppState;
+use crate::service::util::strong_etag;
 
 /// name, content type, bytes.
 const FILES: &[(&str, &str, &str)] = &[

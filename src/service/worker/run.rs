@@ -1,4 +1,4 @@
-//! The worker pool.
+//! A job run: a worker thread claims the next job and runs it.
 //!
 //! The queue is the repo's: `--workers` plain threads each claim the next queued job
 //! (tenants take turns, see [`Queue::claim`](super::repo::Queue::claim)), so never
@@ -22,13 +22,14 @@ use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use uuid::Uuid;
 
 use crate::core::RunError;
 use crate::core::bands::Stack;
+use crate::core::camera::Pinhole;
 use crate::core::error::panic_message;
 use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;
@@ -40,15 +41,18 @@ use crate::core::pipeline;
 use crate::core::progress::{Progress, Stage};
 use crate::core::stream::{self, Prescanned, Streamed};
 use crate::core::{InputError, Options};
+use crate::service::budget::{self, Reservation, Use};
+use crate::service::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
+use crate::service::store::{
+    self, LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry,
+};
+use crate::service::util::{crc32_file, format_duration, now_ms, strong_etag};
 
-use super::Inner;
-use super::budget::{self, Reservation, Use};
-use super::error::ApiError;
+use super::failure::Failure;
+use super::pool::{RunControl, lock};
 use super::prefetch::Prefetch;
-use super::repo::{ArtifactInfo, Finish, JobStatus, Lease, RepoResult};
-use super::store::{self, LIGHTS_FILE, MANIFEST_FILE, Manifest, ManifestEntry, NormalsEntry};
-use super::upload;
-use super::util::{crc32_file, format_duration, now_ms, strong_etag};
+use super::runner::Runner;
+use super::webhooks;
 
 /// The pipeline's stages in order; progress is the index of the stage reached over
 /// their number.
@@ -61,218 +65,33 @@ pub const STAGES: [Stage; 6] = [
     Stage::Mesh,
 ];
 
-/// What a running job's worker watches for.
-#[derive(Default)]
-pub struct RunControl {
-    /// A `DELETE` cancelled the job.
-    cancel: AtomicBool,
-    /// The service is stopping: stop and run the job again at the next start.
-    interrupt: AtomicBool,
-    /// The lease is no longer held (it ran out and the job went to another worker):
-    /// stop, and record nothing.
-    lost: AtomicBool,
-}
-
-/// A job this instance's worker holds.
-struct Held {
-    lease: Lease,
-    ctl: Arc<RunControl>,
-}
-
-struct Bell {
-    /// Bumped at every ring, so that a worker can tell whether it was rung since it last
-    /// looked at the queue.
-    rung: u64,
-    closed: bool,
-}
-
-/// The worker pool: the bell idle workers wait on, the jobs they hold, and its counters.
-/// The queue itself is the repo's: workers claim from it.
-pub struct Workers {
-    bell: Mutex<Bell>,
-    ringing: Condvar,
-    running: Mutex<HashMap<Uuid, Held>>,
-    running_now: AtomicUsize,
-    running_max: AtomicUsize,
-    /// Workers claiming or holding a job (from asking the repo until done with it).
-    busy: AtomicUsize,
-    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
-}
-
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-impl Default for Workers {
-    fn default() -> Self {
-        Self {
-            bell: Mutex::new(Bell {
-                rung: 0,
-                closed: false,
-            }),
-            ringing: Condvar::new(),
-            running: Mutex::new(HashMap::new()),
-            running_now: AtomicUsize::new(0),
-            running_max: AtomicUsize::new(0),
-            busy: AtomicUsize::new(0),
-            threads: Mutex::new(Vec::new()),
-        }
-    }
-}
-
-impl Workers {
-    /// A job may be waiting: wake the idle workers.
-    pub fn ring(&self) {
-        lock(&self.bell).rung += 1;
-        self.ringing.notify_all();
-    }
-
-    fn rung(&self) -> u64 {
-        lock(&self.bell).rung
-    }
-
-    /// Wait until rung after `seen` (at once if it already was), closed, or `timeout`.
-    fn wait_for_ring(&self, seen: u64, timeout: Duration) {
-        let bell = lock(&self.bell);
-        let _ = self
-            .ringing
-            .wait_timeout_while(bell, timeout, |b| b.rung == seen && !b.closed);
-    }
-
-    /// Claim no more jobs (those queued stay queued in the repo).
-    pub fn close(&self) {
-        lock(&self.bell).closed = true;
-        self.ringing.notify_all();
-    }
-
-    pub fn is_closed(&self) -> bool {
-        lock(&self.bell).closed
-    }
-
-    pub fn running(&self) -> usize {
-        self.running_now.load(Ordering::SeqCst)
-    }
-
-    /// The most jobs ever running at once since start.
-    pub fn running_max(&self) -> usize {
-        self.running_max.load(Ordering::SeqCst)
-    }
-
-    /// Workers busy with a job (including one being claimed).
-    pub fn busy(&self) -> usize {
-        self.busy.load(Ordering::SeqCst)
-    }
-
-    /// The leases of the jobs held here.
-    pub fn leases(&self) -> Vec<Lease> {
-        lock(&self.running).values().map(|h| h.lease).collect()
-    }
-
-    /// Ask a running job to stop (within one step of work). False when no worker here
-    /// has it (the instance that does hears of it at its next heartbeat).
-    pub fn cancel_running(&self, id: Uuid) -> bool {
-        self.signal(id, |ctl| &ctl.cancel)
-    }
-
-    /// The job's lease is gone: its worker stops and records nothing.
-    pub fn lose(&self, id: Uuid) -> bool {
-        self.signal(id, |ctl| &ctl.lost)
-    }
-
-    fn signal(&self, id: Uuid, flag: impl Fn(&RunControl) -> &AtomicBool) -> bool {
-        match lock(&self.running).get(&id) {
-            Some(held) => {
-                flag(&held.ctl).store(true, Ordering::SeqCst);
-                true
-            }
-            None => false,
-        }
-    }
-
-    /// Whether a worker here still holds the job (it may be finishing a cancelled one).
-    pub fn is_held(&self, id: Uuid) -> bool {
-        lock(&self.running).contains_key(&id)
-    }
-
-    /// Ask every running job to stop and go back to the queue.
-    pub fn interrupt_all(&self) {
-        for held in lock(&self.running).values() {
-            held.ctl.interrupt.store(true, Ordering::SeqCst);
-        }
-    }
-
-    fn register(&self, lease: Lease) -> Arc<RunControl> {
-        let ctl = Arc::new(RunControl::default());
-        let held = Held {
-            lease,
-            ctl: ctl.clone(),
-        };
-        lock(&self.running).insert(lease.id, held);
-        ctl
-    }
-
-    fn unregister(&self, id: Uuid) {
-        lock(&self.running).remove(&id);
-    }
-
-    fn begin_running(&self) -> RunningGuard<'_> {
-        let now = self.running_now.fetch_add(1, Ordering::SeqCst) + 1;
-        self.running_max.fetch_max(now, Ordering::SeqCst);
-        RunningGuard(self)
-    }
-
-    pub(crate) fn add_thread(&self, handle: std::thread::JoinHandle<()>) {
-        lock(&self.threads).push(handle);
-    }
-
-    /// Join the worker threads that have exited (all of them after `close` once their
-    /// jobs end).
-    pub(crate) fn join_finished_threads(&self) {
-        let mut threads = lock(&self.threads);
-        let (done, alive): (Vec<_>, Vec<_>) = threads.drain(..).partition(|t| t.is_finished());
-        *threads = alive;
-        drop(threads);
-        for t in done {
-            let _ = t.join();
-        }
-    }
-}
-
-struct RunningGuard<'a>(&'a Workers);
-
-impl Drop for RunningGuard<'_> {
-    fn drop(&mut self) {
-        self.0.running_now.fetch_sub(1, Ordering::SeqCst);
-    }
-}
-
 /// How long an idle worker waits before it looks at the queue again unrung: the fallback
 /// should an announcement from another instance be missed.
 const POLL: Duration = Duration::from_secs(2);
 
 /// A worker thread: claim and run jobs until the pool closes.
-pub(crate) fn worker_loop(inner: Arc<Inner>) {
-    let pool = &inner.workers;
+pub(super) fn worker_loop(runner: Arc<Runner>) {
+    let pool = &runner.pool;
     while !pool.is_closed() {
         let seen = pool.rung();
-        if let Ok(0) = inner.repo.queued() {
+        if let Ok(0) = runner.repo.queued() {
             pool.wait_for_ring(seen, POLL);
             continue;
         }
         // Room in the memory budget for the largest job a worker may claim, before it
         // claims one: until it fits, the job stays queued.
-        let worst = budget::job_worst_bytes(&inner.config);
+        let worst = budget::job_worst_bytes(&runner.config);
         let closed = || pool.is_closed();
-        let Some(mut memory) = inner.budget.reserve_blocking(Use::Job, worst, closed) else {
+        let Some(mut memory) = runner.budget.reserve_blocking(Use::Job, worst, closed) else {
             continue;
         };
         // Busy from the claim on, so that a shutdown waits for a job claimed meanwhile.
         pool.busy.fetch_add(1, Ordering::SeqCst);
-        let claimed = inner
+        let claimed = runner
             .repo
-            .claim(&inner.owner, inner.config.job_lease, now_ms());
+            .claim(&runner.owner, runner.config.job_lease, now_ms());
         if let Ok(Some(lease)) = claimed {
-            process(&inner, lease, &mut memory);
+            process(&runner, lease, &mut memory);
         }
         pool.busy.fetch_sub(1, Ordering::SeqCst);
         if let Ok(Some(_)) = claimed {
@@ -284,7 +103,7 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
             Ok(None) => pool.wait_for_ring(seen, POLL),
             Err(e) => {
                 tracing::warn!(error = %e, "cannot claim a job; trying again");
-                wait_unless_closing(&inner, STORE_RETRY);
+                wait_unless_closing(&runner, STORE_RETRY);
             }
         }
     }
@@ -295,9 +114,9 @@ pub(crate) fn worker_loop(inner: Arc<Inner>) {
 const STORE_RETRY: Duration = Duration::from_secs(2);
 
 /// Sleep for `wait`, or less if the service starts to stop.
-fn wait_unless_closing(inner: &Inner, wait: Duration) {
+fn wait_unless_closing(runner: &Runner, wait: Duration) {
     let until = Instant::now() + wait;
-    while Instant::now() < until && !inner.workers.is_closed() {
+    while Instant::now() < until && !runner.pool.is_closed() {
         std::thread::sleep(Duration::from_millis(20));
     }
 }
@@ -305,12 +124,12 @@ fn wait_unless_closing(inner: &Inner, wait: Duration) {
 /// Run a repo write, again and again while the database does not answer, so that a job's
 /// outcome is recorded once it does; at shutdown the last error stands (the job is then
 /// still "running" in the database and runs again at the next start).
-fn persist<T>(inner: &Inner, write: impl Fn() -> RepoResult<T>) -> RepoResult<T> {
+fn persist<T>(runner: &Runner, write: impl Fn() -> RepoResult<T>) -> RepoResult<T> {
     loop {
         match write() {
-            Err(e) if e.is_unavailable() && !inner.workers.is_closed() => {
+            Err(e) if e.is_unavailable() && !runner.pool.is_closed() => {
                 tracing::warn!(error = %e, "the job database does not answer; recording again");
-                wait_unless_closing(inner, STORE_RETRY);
+                wait_unless_closing(runner, STORE_RETRY);
             }
             other => return other,
         }
@@ -323,7 +142,7 @@ enum Stop {
     Stopped,
     /// The store did not answer: the job goes back to the queue.
     StoreUnavailable(String),
-    Error(ApiError),
+    Error(Failure),
 }
 
 /// A store error: unavailable (the job waits) or the job's failure.
@@ -331,25 +150,25 @@ fn store_error(e: store::Error, doing: &str) -> Stop {
     if e.is_unavailable() {
         Stop::StoreUnavailable(format!("{doing}: {e}"))
     } else {
-        ApiError::internal(format!("{doing}: {e}")).into()
+        Failure::Internal(format!("{doing}: {e}")).into()
     }
 }
 
-impl From<ApiError> for Stop {
-    fn from(e: ApiError) -> Self {
+impl From<Failure> for Stop {
+    fn from(e: Failure) -> Self {
         Stop::Error(e)
     }
 }
 
-fn process(inner: &Inner, lease: Lease, memory: &mut Reservation) {
+fn process(runner: &Runner, lease: Lease, memory: &mut Reservation) {
     let id = lease.id;
     // Registered before anything else, so that a DELETE or a heartbeat finds it.
-    let ctl = inner.workers.register(lease);
-    if inner.workers.is_closed() {
+    let ctl = runner.pool.register(lease);
+    if runner.pool.is_closed() {
         // Claimed as the service began to stop: back to the queue at once.
         ctl.interrupt.store(true, Ordering::SeqCst);
     }
-    let running = inner.workers.begin_running();
+    let running = runner.pool.begin_running();
     let started = Instant::now();
     let span = tracing::info_span!("job", job = %id);
     let _enter = span.enter();
@@ -358,27 +177,27 @@ fn process(inner: &Inner, lease: Lease, memory: &mut Reservation) {
     // A fresh id per attempt keys its outputs, so attempts never write over each other.
     let attempt = Uuid::new_v4().simple().to_string();
     let mut clock = StageClock {
-        inner,
+        runner,
         lease,
         ctl: &ctl,
-        deadline: started + inner.config.job_timeout,
+        deadline: started + runner.config.job_timeout,
         current: None,
         timed_out: AtomicBool::new(false),
     };
     let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| {
-        execute(inner, id, &attempt, &mut clock, memory)
+        execute(runner, id, &attempt, &mut clock, memory)
     }))
     .unwrap_or_else(|panic| {
         let what = panic_message(&*panic);
         tracing::error!(panic = %what, "the reconstruction panicked");
-        Err(Stop::Error(ApiError::job_failed(
-            "internal error: the reconstruction crashed; see the server logs",
+        Err(Stop::Error(Failure::Failed(
+            "internal error: the reconstruction crashed; see the server logs".into(),
         )))
     });
     clock.close();
     let timed_out = clock.timed_out.load(Ordering::SeqCst);
     settle(
-        inner,
+        runner,
         lease,
         &attempt,
         &ctl,
@@ -387,12 +206,12 @@ fn process(inner: &Inner, lease: Lease, memory: &mut Reservation) {
         started.elapsed(),
     );
     drop(running);
-    inner.workers.unregister(id);
+    runner.pool.unregister(id);
 }
 
 /// Record how the job ended and tidy its files.
 fn settle(
-    inner: &Inner,
+    runner: &Runner,
     lease: Lease,
     attempt: &str,
     ctl: &RunControl,
@@ -401,7 +220,7 @@ fn settle(
     elapsed: Duration,
 ) {
     let id = lease.id;
-    inner.prefetch.discard(id); // if the job stopped before taking it
+    runner.prefetch.discard(id); // if the job stopped before taking it
     let instance = format!("/v1/jobs/{id}");
     let now = now_ms();
     let recorded = match outcome {
@@ -411,21 +230,20 @@ fn settle(
         }
         Ok((result, artifacts)) => {
             let done = Finish::Succeeded { result, artifacts };
-            persist(inner, || inner.repo.finish(lease, &done, now))
+            persist(runner, || runner.repo.finish(lease, &done, now))
                 .map(|ok| ok.then_some(JobStatus::Succeeded))
         }
         Err(Stop::Stopped) if ctl.interrupt.load(Ordering::SeqCst) => {
             tracing::info!("job interrupted by shutdown; it runs again");
-            persist(inner, || inner.repo.requeue(lease)).map(|_| None)
+            persist(runner, || runner.repo.requeue(lease)).map(|_| None)
         }
         Err(Stop::Stopped) if timed_out && !ctl.cancel.load(Ordering::SeqCst) => {
-            let e = ApiError::job_timeout(format!(
+            let e = Failure::TimedOut(format!(
                 "the reconstruction did not finish within the job time limit of {}",
-                format_duration(inner.config.job_timeout)
-            ))
-            .with_instance(&instance);
-            let failed = Finish::Failed(e.problem());
-            persist(inner, || inner.repo.finish(lease, &failed, now))
+                format_duration(runner.config.job_timeout)
+            ));
+            let failed = Finish::Failed(runner.problem(e, &instance));
+            persist(runner, || runner.repo.finish(lease, &failed, now))
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
         Err(Stop::Stopped) => Ok(Some(JobStatus::Cancelled)), // the DELETE recorded it
@@ -439,21 +257,22 @@ fn settle(
             {
                 std::thread::sleep(Duration::from_millis(20));
             }
-            persist(inner, || inner.repo.requeue(lease)).map(|requeued| {
+            persist(runner, || runner.repo.requeue(lease)).map(|requeued| {
                 if requeued {
-                    inner.workers.ring();
+                    runner.pool.ring();
                 }
                 None
             })
         }
         Err(Stop::Error(e)) => {
+            let problem = runner.problem(e, &instance);
             tracing::info!(
-                status = e.status().as_u16(),
-                detail = e.detail(),
+                status = problem.status,
+                detail = problem.detail.as_str(),
                 "job failed"
             );
-            let failed = Finish::Failed(e.with_instance(&instance).problem());
-            persist(inner, || inner.repo.finish(lease, &failed, now))
+            let failed = Finish::Failed(problem);
+            persist(runner, || runner.repo.finish(lease, &failed, now))
                 .map(|ok| ok.then_some(JobStatus::Failed))
         }
     };
@@ -466,23 +285,23 @@ fn settle(
                 seconds = elapsed.as_secs_f64(),
                 "job finished"
             );
-            inner.metrics.observe_finished(status, elapsed);
-            super::webhooks::job_ended(inner, id);
+            runner.metrics.observe_finished(status, elapsed);
+            webhooks::job_ended(runner, id);
         }
         Ok(None) => {}
         Err(e) => tracing::error!(error = %e, "cannot record the job's outcome"),
     }
     // Whatever the repo now says decides which files stay.
-    let tidy = match inner.repo.get(id) {
-        Ok(None) => inner.store.remove_job(id),
+    let tidy = match runner.repo.get(id) {
+        Ok(None) => runner.store.remove_job(id),
         Ok(Some(rec)) if rec.status == JobStatus::Succeeded && ours => {
-            inner.store.remove_inputs(id)
+            runner.store.remove_inputs(id)
         }
-        Ok(Some(rec)) if rec.status.is_terminal() => inner
+        Ok(Some(rec)) if rec.status.is_terminal() => runner
             .store
             .remove_inputs(id)
-            .and_then(|_| inner.store.discard_outputs(id, attempt)),
-        Ok(Some(_)) => inner.store.discard_outputs(id, attempt),
+            .and_then(|_| runner.store.discard_outputs(id, attempt)),
+        Ok(Some(_)) => runner.store.discard_outputs(id, attempt),
         Err(e) => {
             tracing::error!(error = %e, "cannot read the job back");
             Ok(())
@@ -495,7 +314,7 @@ fn settle(
 
 /// Times stages, records progress, and decides whether to go on.
 struct StageClock<'a> {
-    inner: &'a Inner,
+    runner: &'a Runner,
     lease: Lease,
     ctl: &'a RunControl,
     deadline: Instant,
@@ -517,7 +336,7 @@ impl StageClock<'_> {
 
     fn close(&mut self) {
         if let Some((stage, at)) = self.current.take() {
-            self.inner
+            self.runner
                 .metrics
                 .observe_stage(stage.as_str(), at.elapsed());
         }
@@ -538,7 +357,7 @@ impl Progress for StageClock<'_> {
         let progress = index as f64 / STAGES.len() as f64;
         // A refusal (the lease is gone) is left to the next heartbeat to tell apart.
         if let Err(e) = self
-            .inner
+            .runner
             .repo
             .progress(self.lease, stage.as_str(), progress, now_ms())
         {
@@ -546,7 +365,7 @@ impl Progress for StageClock<'_> {
         }
         tracing::debug!(stage = stage.as_str(), "stage");
         self.current = Some((stage, Instant::now()));
-        let delay = self.inner.config.stage_delay;
+        let delay = self.runner.config.stage_delay;
         if !delay.is_zero() {
             let until = Instant::now() + delay;
             while Instant::now() < until && !self.should_stop() {
@@ -564,44 +383,44 @@ impl Progress for StageClock<'_> {
 
 /// Load the job's inputs and reconstruct; on success the outputs are committed.
 fn execute(
-    inner: &Inner,
+    runner: &Runner,
     id: Uuid,
     attempt: &str,
     clock: &mut StageClock<'_>,
     memory: &mut Reservation,
 ) -> Result<(serde_json::Value, Vec<ArtifactInfo>), Stop> {
-    let record = inner
+    let record = runner
         .repo
         .get(id)
-        .map_err(ApiError::from)?
+        .map_err(Failure::from)?
         .ok_or(Stop::Stopped)?;
     let options: Options = serde_json::from_value(record.options)
-        .map_err(|e| ApiError::invalid(format!("options: {e}")))?;
+        .map_err(|e| Failure::Invalid(format!("options: {e}")))?;
     // The images the upload already decoded on this instance need not be fetched again.
     // Waits for scans still running (on rayon: this is a worker thread, not a pool one).
-    let scanned = inner
+    let scanned = runner
         .prefetch
         .take(id)
         .map(Prefetch::finish)
         .unwrap_or_default();
-    let input = inner
+    let input = runner
         .store
         .fetch_inputs(id, &|name| scanned.contains_key(name))
         .map_err(|e| store_error(e, "fetching the job's inputs"))?;
     let manifest: Manifest = std::fs::read(input.join(MANIFEST_FILE))
-        .map_err(ApiError::from)
+        .map_err(Failure::from)
         .and_then(|b| {
             serde_json::from_slice(&b)
-                .map_err(|e| ApiError::internal(format!("manifest of {id}: {e}")))
+                .map_err(|e| Failure::Internal(format!("manifest of {id}: {e}")))
         })?;
 
     if !clock.enter(Stage::Decode) {
         return Err(Stop::Stopped);
     }
-    let out = inner.store.stage_outputs(id).map_err(ApiError::from)?;
+    let out = runner.store.stage_outputs(id).map_err(Failure::from)?;
     let summary = match &manifest.normals {
         Some(map) => {
-            let limits = inner.config.limits();
+            let limits = runner.config.limits();
             let map = read_normal_map(&input, map, manifest.mask.as_ref(), &options, &limits)?;
             memory.shrink_to(normals_in::peak_bytes((map.width * map.height) as u64));
             let settings = normals_in::Settings::of(&options);
@@ -609,10 +428,10 @@ fn execute(
             summarize(&finished(report, clock)?)
         }
         None => {
-            let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(ApiError::from)?;
-            let table = lights::parse_table_bytes(&table).map_err(ApiError::from)?;
+            let table = std::fs::read(input.join(LIGHTS_FILE)).map_err(Failure::from)?;
+            let table = lights::parse_table_bytes(&table).map_err(Failure::from)?;
             let near = table.is_near().then(|| table.rig.clone());
-            let set = open_inputs(inner, scanned, table.lights, &input, &manifest, clock)?;
+            let set = open_inputs(runner, scanned, table.lights, &input, &manifest, clock)?;
             let set = set.noted(manifest.notes.clone());
             // The images' size and the job's kind are known now: keep the job's own bound.
             let pixels = (set.info().width * set.info().height) as u64;
@@ -622,25 +441,25 @@ fn execute(
             });
             if let Some(rig) = near {
                 let report = run_near(set, rig, &options, &out, clock);
-                return commit(inner, id, attempt, &out, summarize_near(&report?));
+                return commit(runner, id, attempt, &out, summarize_near(&report?));
             }
             let report = pipeline::run(set, &options, &out, clock);
             summarize(&finished(report, clock)?)
         }
     };
-    commit(inner, id, attempt, &out, summary)
+    commit(runner, id, attempt, &out, summary)
 }
 
 /// The staged outputs in `out` made the job's artifacts; the job's result.
 fn commit(
-    inner: &Inner,
+    runner: &Runner,
     id: Uuid,
     attempt: &str,
     out: &Path,
     summary: serde_json::Value,
 ) -> Result<(serde_json::Value, Vec<ArtifactInfo>), Stop> {
-    let mut artifacts = list_artifacts(out).map_err(ApiError::from)?;
-    inner
+    let mut artifacts = list_artifacts(out).map_err(Failure::from)?;
+    runner
         .store
         .commit_outputs(id, attempt, &mut artifacts)
         .map_err(|e| store_error(e, "committing the outputs"))?;
@@ -658,7 +477,8 @@ fn run_near(
     clock: &mut StageClock<'_>,
 ) -> Result<NearReport, Stop> {
     let (width, height) = (set.info().width, set.info().height);
-    let (camera, distance) = upload::near_rig(options, &rig, &set.info().lights, (width, height))?;
+    let (camera, distance) =
+        near_rig(options, &rig, &set.info().lights, (width, height)).map_err(Failure::from)?;
     let report = near::run(&mut set, camera, distance, rig.unit, options, out, clock);
     finished(report, clock)
 }
@@ -669,7 +489,7 @@ fn finished<R>(report: Result<R, RunError>, clock: &mut StageClock<'_>) -> Resul
     match report {
         Ok(r) => Ok(r),
         Err(RunError::Cancelled) => Err(Stop::Stopped),
-        Err(e) => Err(ApiError::from(e).into()),
+        Err(e) => Err(Failure::from(e).into()),
     }
 }
 
@@ -682,7 +502,7 @@ fn read_normal_map(
     mask: Option<&ManifestEntry>,
     options: &Options,
     limits: &Limits,
-) -> Result<NormalMap, ApiError> {
+) -> Result<NormalMap, Failure> {
     let bytes = std::fs::read(input.join(&map.file))?;
     let mask_bytes = match mask {
         Some(m) => Some(std::fs::read(input.join(&m.file))?),
@@ -708,7 +528,7 @@ fn read_normal_map(
 /// copies. Once `clock` says stop, the images not yet started are not scanned and the set,
 /// which then holds a placeholder error for them, is dropped.
 fn open_inputs(
-    inner: &Inner,
+    runner: &Runner,
     scanned: HashMap<String, Prescanned>,
     lights: Vec<lights::Light>,
     input: &Path,
@@ -734,7 +554,7 @@ fn open_inputs(
         lights,
         &files,
         mask.as_ref(),
-        &inner.config.limits(),
+        &runner.config.limits(),
         input,
         |i| {
             if clock.halted() {
@@ -752,12 +572,12 @@ fn open_inputs(
         return Err(Stop::Stopped);
     }
     let taken = taken.into_inner() as u64;
-    inner
+    runner
         .metrics
         .prefetched_images
         .fetch_add(taken, Ordering::Relaxed);
     tracing::debug!(images = taken, "images scanned during the upload");
-    Ok(set.map_err(ApiError::from)?)
+    Ok(set.map_err(Failure::from)?)
 }
 
 /// Every artifact that exists in `dir`, with its size and a content-hash ETag. The files
@@ -833,4 +653,39 @@ fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
         }
     }
     serde_json::Value::Object(out)
+}
+
+/// The camera and working distance of a near-light job: the job's (`camera` part or
+/// option, `distance` option) or else its light table's; a 422 naming what neither gives,
+/// a camera that cannot have taken the `width × height` images, or an LED of `lights`
+/// facing away from the object.
+pub(crate) fn near_rig(
+    options: &Options,
+    rig: &lights::Rig,
+    lights: &[lights::Light],
+    (width, height): (usize, usize),
+) -> Result<(Pinhole, f64), InputError> {
+    let camera = options.camera.or(rig.camera);
+    let distance = options.distance.or(rig.distance);
+    let mut missing = Vec::new();
+    if camera.is_none() {
+        missing.push(
+            "the camera (\"camera\": {\"fx\", \"fy\", \"cx\", \"cy\"} in the light table, or the job's camera part or `camera` option)",
+        );
+    }
+    if distance.is_none() {
+        missing.push(
+            "the working distance to the object along the optical axis (\"distance\" in the light table, or the job's `distance` option)",
+        );
+    }
+    let (Some(camera), Some(distance)) = (camera, distance) else {
+        return Err(InputError::Lights(format!(
+            "lights given by position (near lights) need {}",
+            missing.join(" and ")
+        )));
+    };
+    camera.check(width, height).map_err(InputError::from)?;
+    crate::core::options::check_distance(Some(distance), Some(&camera))?;
+    crate::core::near::check_cones(lights, &camera, distance, (width, height))?;
+    Ok((camera, distance))
 }

@@ -13,12 +13,16 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use futures_util::Stream;
 use uuid::Uuid;
 
-use super::AppState;
-use super::error::ApiError;
-use super::problem::Problem;
-use super::repo::{JobRecord, JobStatus};
-use super::routes::{JobId, JobView, owned_job};
-use super::tenants::Caller;
+use crate::service::error::ApiError;
+use crate::service::problem::Problem;
+use crate::service::repo::{JobRecord, JobStatus};
+use crate::service::views::JobView;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::extract::{JobId, owned_job};
+use crate::service::state::AppState;
+use crate::service::tenancy::Caller;
 
 /// One server-sent event as a client parses it (documents the stream's shape; the stream
 /// itself is written by axum's `Event`).
@@ -33,6 +37,11 @@ pub struct StreamEvent {
 
 /// Comment lines sent while nothing changes, so that proxies keep the connection open.
 const KEEP_ALIVE: Duration = Duration::from_secs(15);
+
+/// `GET /v1/jobs/{id}/events`.
+pub(crate) fn routes() -> OpenApiRouter<AppState> {
+    OpenApiRouter::default().routes(routes!(job_events))
+}
 
 /// Follow a job: one event per change of status, stage or progress.
 ///

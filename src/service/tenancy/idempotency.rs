@@ -6,9 +6,9 @@
 //!
 //! A route uses it in four steps: [`key_from`] before reading the body, a [`PartHasher`]
 //! fed while the body is read,
-//! [`Idempotency::idempotent`](super::repo::Idempotency::idempotent) to look for an
+//! [`Idempotency::idempotent`](crate::service::repo::Idempotency::idempotent) to look for an
 //! earlier answer ([`replay`] it), and
-//! [`Idempotency::remember`](super::repo::Idempotency::remember) after creating the
+//! [`Idempotency::remember`](crate::service::repo::Idempotency::remember) after creating the
 //! resource (an earlier answer it returns means a concurrent request with the same key
 //! won: undo and replay that one).
 
@@ -18,14 +18,14 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use sha2::{Digest, Sha256};
 
-use super::error::ApiError;
-use super::repo::Remembered;
+use crate::service::error::ApiError;
+use crate::service::repo::Remembered;
 
 /// The request header.
 pub const HEADER: &str = "idempotency-key";
 
 /// How long a key's answer is kept and replayed.
-pub const WINDOW: Duration = Duration::from_secs(24 * 3600);
+pub const WINDOW: Duration = crate::service::config::IDEMPOTENCY_WINDOW;
 
 /// The `Idempotency-Key` of a request, if it sent one: 1 to 255 visible ASCII characters
 /// (400 otherwise).

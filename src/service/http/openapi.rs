@@ -5,6 +5,7 @@
 use utoipa::openapi::schema::{ArrayItems, Object, Schema, Type};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::openapi::{ObjectBuilder, RefOr};
+
 use utoipa::{Modify, OpenApi};
 
 use crate::core::camera::Pinhole;
@@ -15,9 +16,11 @@ use super::calibrations::{
     CalibrationList, CalibrationView, CircleView, HighlightView, LightView, Measured,
     MoreHighlightView, PositionView, SkippedView,
 };
-use super::problem::Problem;
-use super::repo::JobStatus;
-use super::routes::{Health, ImageFile, JobList, JobView, ResultSummary};
+use super::jobs::{ImageFile, JobList};
+use super::ops::Health;
+use crate::service::problem::Problem;
+use crate::service::repo::JobStatus;
+use crate::service::views::{JobView, ResultSummary};
 
 #[derive(OpenApi)]
 #[openapi(
