@@ -1,8 +1,10 @@
 //! The scenes the project renders for `res/` and its tests: analytic surfaces with exact
 //! normals, depth and albedo (gray or RGB), lit by distant point or area lights of given
-//! colours, with cast shadows, one bounce of interreflection, specular lobes (Blinn–Phong
-//! or GGX Cook–Torrance) and a camera with exposure, black level, shot and read noise,
-//! clipping and quantisation; and perspective scenes with depth steps ([`depth_scenes`]).
+//! colours, with cast shadows, one bounce of interreflection, Lambertian or Oren–Nayar
+//! diffuse, specular lobes (Blinn–Phong, GGX Cook–Torrance, Ward; tinted for metals) and
+//! a camera with exposure, black level, shot and read noise, clipping and quantisation;
+//! the glossy catalogue ([`glossy_catalogue`]); and perspective scenes with depth steps
+//! ([`depth_scenes`]).
 
 mod brdf;
 mod chrome;
