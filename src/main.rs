@@ -693,8 +693,9 @@ fn reconstruct(args: ReconstructArgs) -> anyhow::Result<()> {
 }
 
 /// A folder whose light table gives positions: the near-light solve, the set read in
-/// bands as `reconstruct` reads it. The camera is the flags', the options file's or the
-/// table's; the working distance `--distance`, the options file's or the table's.
+/// bands as `reconstruct` reads it. The camera is the flags', the options file's, the
+/// table's or the folder's (K.txt, camera.json); the working distance `--distance`, the
+/// options file's or the table's.
 fn reconstruct_near(
     args: &ReconstructArgs,
     mut opts: Options,
@@ -710,11 +711,14 @@ fn reconstruct_near(
         opts.mask = MaskMode::Given;
     }
     let (width, height) = (set.info().width, set.info().height);
-    let camera = match (flags, opts.camera.or(rig.camera)) {
-        (Some(lens), _) => lens.resolve(width, height),
-        (None, Some(c)) => c,
-        (None, None) => anyhow::bail!(
-            "the light table gives positions but no camera: add \"camera\" to it or give --camera"
+    let folder_camera = photostereo::core::camera::Pinhole::file_in(&args.dir);
+    let camera = match (flags, opts.camera.or(rig.camera), folder_camera) {
+        (Some(lens), ..) => lens.resolve(width, height),
+        (None, Some(c), _) => c,
+        (None, None, Some(file)) => photostereo::core::camera::Pinhole::read(&file)?,
+        (None, None, None) => anyhow::bail!(
+            "the light table gives positions but no camera: add \"camera\" to it, put a \
+             K.txt or camera.json in the folder, or give --camera"
         ),
     };
     camera.check(width, height)?;

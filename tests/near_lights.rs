@@ -235,10 +235,34 @@ fn the_cli_reconstructs_a_near_light_folder() {
     ] {
         assert!(out.join(name).is_file(), "{name} written");
     }
-    // Without a working distance the table cannot be solved: the error names it.
+    // The camera may come from the folder's K.txt (3 × 3, as the field ships it) instead
+    // of the table: the same depth.
     let table = set.join("light_directions.json");
     let mut json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(&table).unwrap()).unwrap();
+    json.as_object_mut().unwrap().remove("camera");
+    std::fs::write(&table, serde_json::to_vec(&json).unwrap()).unwrap();
+    let k = rig.camera;
+    std::fs::write(
+        set.join("K.txt"),
+        format!("{} 0 {}\n0 {} {}\n0 0 1\n", k.fx, k.cx, k.fy, k.cy),
+    )
+    .unwrap();
+    let from_folder = tmp.path().join("out-k");
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
+        .args(["reconstruct", set.to_str().unwrap(), "--out"])
+        .arg(&from_folder)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let again: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(from_folder.join("result.json")).unwrap()).unwrap();
+    assert_eq!(again["median_depth"], report["median_depth"], "{again}");
+    // Without a working distance the table cannot be solved: the error names it.
     json.as_object_mut().unwrap().remove("distance");
     std::fs::write(&table, serde_json::to_vec(&json).unwrap()).unwrap();
     let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
