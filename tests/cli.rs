@@ -671,6 +671,11 @@ fn the_glossy_solver_writes_its_material_maps() {
         .filter(|&r| r > 0.0)
         .collect();
     assert!(kept.len() > 1000, "the lobe kept at {} pixels", kept.len());
+    assert_eq!(
+        report["glossy_pixels"],
+        kept.len(),
+        "result.json counts them"
+    );
     let mid = kept.len() / 2;
     let median = *kept.select_nth_unstable_by(mid, f64::total_cmp).1;
     assert!(

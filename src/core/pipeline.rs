@@ -328,6 +328,7 @@ impl Prepared {
             object_pixels: object,
             artifacts: Vec::new(),
             mask_file: self.mask_file,
+            glossy_pixels: (self.gloss.as_ref()).map(|g| g.used.iter().filter(|u| **u).count()),
             estimated_intensities: self.estimated.then(|| {
                 (self.lights.iter())
                     .map(|l| Estimated {

@@ -124,6 +124,10 @@ pub struct Report {
     /// `intensities: estimate`; `lights.json` is then the table with them.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub estimated_intensities: Option<Vec<Estimated>>,
+    /// With the `glossy` solver: the object pixels whose lobe model was kept (the rest
+    /// are Lambertian); `specular.png` and `roughness.png` map them.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub glossy_pixels: Option<usize>,
     /// What intake ignored or chose on the caller's behalf (unnamed images, an unused
     /// `mask.png`, …).
     pub notes: Vec<String>,
