@@ -189,6 +189,17 @@ fn a_far_rig_gives_the_distant_result() {
     );
 }
 
+/// `photostereo reconstruct <set> --out <out>`, its output.
+fn reconstruct_cli(set: &std::path::Path, out: &std::path::Path) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
+        .arg("reconstruct")
+        .arg(set)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
 /// `photostereo reconstruct` on a folder whose table gives positions: the near solve, its
 /// metric depth in result.json and depth.exr; a table without the distance is refused
 /// naming it.
@@ -198,15 +209,7 @@ fn the_cli_reconstructs_a_near_light_folder() {
     let tmp = tempfile::tempdir().unwrap();
     let (set, out) = (tmp.path().join("ring"), tmp.path().join("out"));
     rig.write(&set).unwrap();
-    let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
-        .args([
-            "reconstruct",
-            set.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+    let run = reconstruct_cli(&set, &out);
     assert!(
         run.status.success(),
         "{}",
@@ -249,11 +252,7 @@ fn the_cli_reconstructs_a_near_light_folder() {
     )
     .unwrap();
     let from_folder = tmp.path().join("out-k");
-    let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
-        .args(["reconstruct", set.to_str().unwrap(), "--out"])
-        .arg(&from_folder)
-        .output()
-        .unwrap();
+    let run = reconstruct_cli(&set, &from_folder);
     assert!(
         run.status.success(),
         "{}",
@@ -265,15 +264,7 @@ fn the_cli_reconstructs_a_near_light_folder() {
     // Without a working distance the table cannot be solved: the error names it.
     json.as_object_mut().unwrap().remove("distance");
     std::fs::write(&table, serde_json::to_vec(&json).unwrap()).unwrap();
-    let run = std::process::Command::new(env!("CARGO_BIN_EXE_photostereo"))
-        .args([
-            "reconstruct",
-            set.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ])
-        .output()
-        .unwrap();
+    let run = reconstruct_cli(&set, &out);
     let err = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success() && err.contains("distance"), "{err}");
 }

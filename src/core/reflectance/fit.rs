@@ -178,6 +178,9 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
     let c2 = scale * scale;
     let mut weights = vec![0.0; obs.len()];
     let mut residuals = vec![0.0; obs.len()];
+    // Scratch reused by every step: a trial's residuals and the Jacobian.
+    let mut trial = vec![0.0; obs.len()];
+    let mut jac = vec![[0.0; 5]; obs.len()];
     for _round in 0..3 {
         for (w, o) in weights.iter_mut().zip(obs) {
             let r = current.predict(o.light, o.intensity) - o.value;
@@ -189,7 +192,7 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
         let mut cost = weighted_sse(obs, &weights, &model_at(&base, &p), &mut residuals);
         let mut lambda = 1e-3;
         for _step in 0..8 {
-            let (jtj, jtr) = normal_equations(obs, &weights, &base, &p, &residuals);
+            let (jtj, jtr) = normal_equations(obs, &weights, &base, &p, &residuals, &mut jac);
             let mut improved = false;
             for _try in 0..4 {
                 let mut a = jtj;
@@ -210,10 +213,10 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
                     (MIN_ROUGHNESS * MIN_ROUGHNESS).ln(),
                     (MAX_ROUGHNESS * MAX_ROUGHNESS).ln(),
                 );
-                let mut trial = vec![0.0; obs.len()];
                 let c = weighted_sse(obs, &weights, &model_at(&base, &q), &mut trial);
                 if c < cost {
-                    (p, cost, residuals) = (q, c, trial);
+                    (p, cost) = (q, c);
+                    std::mem::swap(&mut residuals, &mut trial);
                     lambda = (lambda / 3.0).max(1e-9);
                     improved = true;
                     break;
@@ -245,8 +248,8 @@ fn normal_equations(
     base: &Base,
     p: &Params,
     residuals: &[f64],
+    jac: &mut [[f64; 5]],
 ) -> ([[f64; 5]; 5], [f64; 5]) {
-    let mut jac = vec![[0.0; 5]; obs.len()];
     for k in 0..5 {
         let h = 1e-6 * p[k].abs().max(1e-2);
         let mut q = *p;
