@@ -124,10 +124,14 @@ fn each_kind_of_job_peaks_within_what_the_service_reserves() {
         );
     };
     let options = Options::default();
-    check("distant", pipeline::peak_bytes(pixels), &|| {
-        let out = scratch.join("out-distant");
-        pipeline::run(open(&distant_set), &options, &out, &mut RunToEnd).unwrap();
-    });
+    check(
+        "distant",
+        pipeline::peak_bytes(pixels, options.solver),
+        &|| {
+            let out = scratch.join("out-distant");
+            pipeline::run(open(&distant_set), &options, &out, &mut RunToEnd).unwrap();
+        },
+    );
     check("near", near::peak_bytes(pixels), &|| {
         let out = scratch.join("out-near");
         let mut set = open(&near_set);

@@ -643,7 +643,8 @@ fn intensities_estimate_writes_the_table_it_estimated() {
     assert!(e.contains("--intensities") && e.contains("estimate"), "{e}");
 }
 
-/// `--solver glossy` writes the material maps by default, and the roughness it fits on
+/// `--solver glossy` writes the material maps by default, result.json says where the
+/// lobe was kept and how much of the residual it explains, and the roughness it fits on
 /// the rendered glossy sphere is the renderer's (the median over the pixels where the
 /// lobe was kept, within 15 %).
 #[test]
@@ -675,6 +676,13 @@ fn the_glossy_solver_writes_its_material_maps() {
         report["glossy_pixels"],
         kept.len(),
         "result.json counts them"
+    );
+    // The fit's residual there: the lobe explains the highlights the Lambertian fit left.
+    let rms = |key: &str| report[key].as_f64().unwrap_or_else(|| panic!("no {key}"));
+    let (lobe, lambert) = (rms("glossy_residual_rms"), rms("glossy_lambertian_rms"));
+    assert!(
+        lobe < 0.25 * lambert,
+        "residual {lobe} vs Lambertian {lambert}"
     );
     let mid = kept.len() / 2;
     let median = *kept.select_nth_unstable_by(mid, f64::total_cmp).1;

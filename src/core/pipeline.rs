@@ -18,7 +18,7 @@ use super::intake::ImageSet;
 use super::integrate::perspective;
 use super::intensities::Estimated;
 use super::lights::{self, Light};
-use super::options::{Intensities, Options};
+use super::options::{Intensities, Options, Solver};
 use super::outputs::{self, Maps};
 use super::progress::{Halt, Progress, Stage};
 use super::reconstruction::{Gloss, LightSummary, Reconstruction, Report, Timing};
@@ -28,10 +28,16 @@ use super::{heap, integrate, mask, robust};
 
 /// The most [`run`] holds for a set of `pixels` per image, whatever the number of
 /// images: its maps at the integration, one band of every image ([`BAND_BYTES`]) and
-/// the decoders' and threads' state (a 2048² job grew by 63–80 bytes per pixel in all). The service
-/// reserves it before a job starts; `tests/bands_memory.rs` measures a job against it.
-pub fn peak_bytes(pixels: u64) -> u64 {
-    80 * pixels + BAND_BYTES as u64 + (16 << 20)
+/// the decoders' and threads' state (a 2048² job grew by 63–80 bytes per pixel in all),
+/// and with the `glossy` solver its lobe maps. The service reserves it before a job
+/// starts; `tests/bands_memory.rs` measures a job against it.
+pub fn peak_bytes(pixels: u64, solver: Solver) -> u64 {
+    let gloss = if solver == Solver::Glossy {
+        Gloss::BYTES_PER_PIXEL
+    } else {
+        0
+    };
+    (80 + gloss) * pixels + BAND_BYTES as u64 + (16 << 20)
 }
 
 /// Reconstruct albedo, normals, mask and heights from a decoded image set.
@@ -160,10 +166,12 @@ fn prepare(
         Zip::from(&mut g.specular)
             .and(&mut g.roughness)
             .and(&mut g.used)
+            .and(&mut g.residual)
+            .and(&mut g.lambertian_residual)
             .and(&mask)
-            .par_for_each(|s, r, u, &m| {
+            .par_for_each(|s, r, u, e, l, &m| {
                 if !m {
-                    (*s, *r, *u) = (0.0, 0.0, false);
+                    (*s, *r, *u, *e, *l) = (0.0, 0.0, false, 0.0, 0.0);
                 }
             });
     }
@@ -329,6 +337,9 @@ impl Prepared {
             artifacts: Vec::new(),
             mask_file: self.mask_file,
             glossy_pixels: (self.gloss.as_ref()).map(|g| g.used.iter().filter(|u| **u).count()),
+            glossy_residual_rms: self.gloss.as_ref().and_then(|g| g.rms(&g.residual)),
+            glossy_lambertian_rms: (self.gloss.as_ref())
+                .and_then(|g| g.rms(&g.lambertian_residual)),
             estimated_intensities: self.estimated.then(|| {
                 (self.lights.iter())
                     .map(|l| Estimated {

@@ -41,21 +41,41 @@ pub struct Reconstruction {
 }
 
 /// The lobe model's maps over the whole image: specular albedo, roughness, and where the
-/// lobe was kept (elsewhere the pixel is Lambertian: both maps 0).
+/// lobe was kept (elsewhere the pixel is Lambertian: both maps 0), with the fit's RMS
+/// residual there under the lobe model and under the Lambertian fit it replaced (over
+/// the same observations: lit and not clipped).
 #[derive(Debug, Clone)]
 pub struct Gloss {
     pub specular: Array2<f32>,
     pub roughness: Array2<f32>,
     pub used: Array2<bool>,
+    pub residual: Array2<f32>,
+    pub lambertian_residual: Array2<f32>,
 }
 
 impl Gloss {
+    /// Bytes per pixel of the maps (a `glossy` job holds them beside the solve's).
+    pub const BYTES_PER_PIXEL: u64 = 17;
+
     pub fn zeros(rows: usize, cols: usize) -> Self {
         Self {
             specular: Array2::zeros((rows, cols)),
             roughness: Array2::zeros((rows, cols)),
             used: Array2::from_elem((rows, cols), false),
+            residual: Array2::zeros((rows, cols)),
+            lambertian_residual: Array2::zeros((rows, cols)),
         }
+    }
+
+    /// The RMS of the per-pixel RMS `residual` (one of this gloss's residual maps) over
+    /// the pixels whose lobe was kept; None where it was kept nowhere.
+    pub fn rms(&self, residual: &Array2<f32>) -> Option<f64> {
+        let (mut sum, mut n) = (0.0, 0usize);
+        for (&e, _) in residual.iter().zip(&self.used).filter(|(_, u)| **u) {
+            sum += (e as f64).powi(2);
+            n += 1;
+        }
+        (n > 0).then(|| (sum / n as f64).sqrt())
     }
 }
 
@@ -128,6 +148,13 @@ pub struct Report {
     /// are Lambertian); `specular.png` and `roughness.png` map them.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub glossy_pixels: Option<usize>,
+    /// With the `glossy` solver: the RMS residual over those pixels' lit, unclipped
+    /// observations under the lobe model, and under the Lambertian fit it replaced there
+    /// (what the lobe explains is the difference).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub glossy_residual_rms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub glossy_lambertian_rms: Option<f64>,
     /// What intake ignored or chose on the caller's behalf (unnamed images, an unused
     /// `mask.png`, …).
     pub notes: Vec<String>,

@@ -16,6 +16,7 @@ use std::time::Duration;
 use tokio::sync::Notify;
 
 use super::config::Config;
+use crate::core::options::Solver;
 use crate::core::outputs::shaded_png_capacity;
 use crate::core::{near, normals_in, pipeline};
 
@@ -25,7 +26,7 @@ use crate::core::{near, normals_in, pipeline};
 /// before), and cuts it to the job's own bound once the job's inputs are opened.
 pub fn job_worst_bytes(config: &Config) -> u64 {
     let pixels = config.max_pixels;
-    (pipeline::peak_bytes(pixels))
+    (pipeline::peak_bytes(pixels, Solver::Glossy))
         .max(near::peak_bytes(pixels))
         .max(normals_in::peak_bytes(pixels))
 }

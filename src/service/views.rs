@@ -122,6 +122,14 @@ pub struct ResultSummary {
     /// `intensities: estimate` option, or for LEDs whose table gives none); the
     /// `lights.json` artifact is the light table with them.
     pub estimated_intensities: Option<Vec<Estimated>>,
+    /// `glossy` solver: the object pixels whose lobe model was kept (`specular.png` and
+    /// `roughness.png` map them; elsewhere the pixel is Lambertian).
+    pub glossy_pixels: Option<u64>,
+    /// `glossy` solver: RMS residual over those pixels' lit, unclipped observations under
+    /// the lobe model.
+    pub glossy_residual_rms: Option<f64>,
+    /// `glossy` solver: the same under the Lambertian fit the lobe replaced there.
+    pub glossy_lambertian_rms: Option<f64>,
 }
 
 pub(crate) fn job_url(id: Uuid) -> String {

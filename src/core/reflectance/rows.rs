@@ -6,7 +6,7 @@
 use ndarray::{ArrayViewMut2, Axis, s};
 use rayon::prelude::*;
 
-use super::fit::{Observation, fit};
+use super::fit::{Fitted, Observation, fit};
 use super::lobe::dot;
 use crate::core::bands::SurfaceRows;
 use crate::core::lights::Light;
@@ -18,6 +18,8 @@ pub struct GlossRows<'a> {
     pub specular: ArrayViewMut2<'a, f32>,
     pub roughness: ArrayViewMut2<'a, f32>,
     pub used: ArrayViewMut2<'a, bool>,
+    pub residual: ArrayViewMut2<'a, f32>,
+    pub lambertian_residual: ArrayViewMut2<'a, f32>,
 }
 
 impl<'a> GlossRows<'a> {
@@ -27,6 +29,8 @@ impl<'a> GlossRows<'a> {
             specular: gloss.specular.slice_mut(s![a..b, ..]),
             roughness: gloss.roughness.slice_mut(s![a..b, ..]),
             used: gloss.used.slice_mut(s![a..b, ..]),
+            residual: gloss.residual.slice_mut(s![a..b, ..]),
+            lambertian_residual: gloss.lambertian_residual.slice_mut(s![a..b, ..]),
         }
     }
 }
@@ -58,6 +62,8 @@ pub fn refine_rows(
         mut specular,
         mut roughness,
         mut used,
+        mut residual,
+        mut lambertian_residual,
     } = gloss;
     // A shadow (attached or cast) is darker than this, a highlight brighter than the
     // Lambertian fit by more than `bright`.
@@ -70,9 +76,17 @@ pub fn refine_rows(
         .zip(specular.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(roughness.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(used.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(lambertian_residual.axis_iter_mut(Axis(0)).into_par_iter())
         .enumerate()
         .for_each(
-            |(r, ((((mut a_row, mut n_row), mut s_row), mut r_row), mut u_row))| {
+            |(
+                r,
+                (
+                    (((((mut a_row, mut n_row), mut s_row), mut r_row), mut u_row), mut e_row),
+                    mut l_row,
+                ),
+            )| {
                 if halt() {
                     return;
                 }
@@ -107,6 +121,14 @@ pub fn refine_rows(
                         continue;
                     }
                     if let Some(f) = fit(&obs, normal, albedo, noise) {
+                        let lambert = Fitted {
+                            normal,
+                            diffuse: albedo,
+                            specular: 0.0,
+                            roughness: 1.0,
+                        };
+                        e_row[c] = rms(&obs, &f) as f32;
+                        l_row[c] = rms(&obs, &lambert) as f32;
                         a_row[c] = f.diffuse as f32;
                         for k in 0..3 {
                             n_row[[c, k]] = f.normal[k] as f32;
@@ -118,4 +140,12 @@ pub fn refine_rows(
                 }
             },
         );
+}
+
+/// The RMS of `model`'s residuals over `obs`.
+fn rms(obs: &[Observation], model: &Fitted) -> f64 {
+    let sum: f64 = (obs.iter())
+        .map(|o| (model.predict(o.light, o.intensity) - o.value).powi(2))
+        .sum();
+    (sum / obs.len().max(1) as f64).sqrt()
 }

@@ -437,7 +437,7 @@ fn execute(
             let pixels = (set.info().width * set.info().height) as u64;
             memory.shrink_to(match near {
                 Some(_) => near::peak_bytes(pixels),
-                None => pipeline::peak_bytes(pixels),
+                None => pipeline::peak_bytes(pixels, options.solver),
             });
             if let Some(rig) = near {
                 let report = run_near(set, rig, &options, &out, clock);
@@ -623,7 +623,7 @@ fn summarize_near(report: &NearReport) -> serde_json::Value {
 
 /// The report's headline numbers (as in `result.json`).
 fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
-    const KEYS: [&str; 20] = [
+    const KEYS: [&str; 23] = [
         "width",
         "height",
         "light_count",
@@ -644,6 +644,9 @@ fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
         "noise_sigma",
         "counts",
         "estimated_intensities",
+        "glossy_pixels",
+        "glossy_residual_rms",
+        "glossy_lambertian_rms",
     ];
     let full = serde_json::to_value(report).unwrap_or_default();
     let mut out = serde_json::Map::new();
