@@ -33,15 +33,18 @@ const { values: arg } = parseArgs({
     set: { type: "string" },
     shots: { type: "string" },
     chrome: { type: "string", default: "res/chrome" },
+    glossy: { type: "string", default: "res/glossy" },
   },
 });
 if (!arg.open || !arg.keyed || !arg.key || !arg.set) {
   console.error("usage: node .ci/browser.mjs --browser chromium|firefox --open <URL> --keyed <URL> --key <key> --set <folder> [--shots <dir>]");
   process.exit(2);
 }
-const files = readdirSync(arg.set)
-  .filter((f) => /\.(png|bmp|jpe?g|tiff?|csv)$/i.test(f))
-  .map((f) => join(arg.set, f));
+const setFiles = (dir) =>
+  readdirSync(dir)
+    .filter((f) => /\.(png|bmp|jpe?g|tiff?|csv)$/i.test(f))
+    .map((f) => join(dir, f));
+const files = setFiles(arg.set);
 
 const browser = await launch(arg.browser);
 const page = browser.page;
@@ -86,8 +89,8 @@ const drawn = async (id, share) => {
 
 // Drop the set's files on the form (ticking `outputs`, if any), submit, wait for the new
 // job to end; returns its status and id. The result opens by itself when it succeeds.
-async function submitSet(outputs = []) {
-  await page.files("[data-testid=file-input]", files);
+async function submitSet(outputs = [], set = files) {
+  await page.files("[data-testid=file-input]", set);
   await page.waitFor(() => document.querySelector("#file-list li") && document.getElementById("lights").value.trim());
   for (const name of outputs) await page.click(`#options input[type=checkbox][value="${name}"]`);
   return submitAndWait();
@@ -180,6 +183,21 @@ try {
   const links = await page.evaluate(() => document.querySelectorAll("#downloads a").length);
   check(links >= 5, `download links for the artifacts (${links})`);
 
+  // Dragging on the relit picture moves the light: pointing at its left edge lights from
+  // the left, low.
+  const canvasBox = await page.box("[data-testid=relight-canvas]");
+  await page.mouse.move(canvasBox.x + canvasBox.width * 0.6, canvasBox.y + canvasBox.height * 0.5);
+  await page.mouse.down();
+  await page.mouse.move(canvasBox.x + canvasBox.width * 0.02, canvasBox.y + canvasBox.height * 0.5, 5);
+  await page.mouse.up();
+  const dragged = await stats("relight-canvas");
+  const draggedTo = await page.evaluate(() => [+document.getElementById("azimuth").value, +document.getElementById("elevation").value]);
+  check(
+    Math.abs(Math.abs(draggedTo[0]) - 180) < 10 && draggedTo[1] < 20 && dragged.half[0] > 1.2 * dragged.half[1],
+    `dragging on the relit picture to its left edge lights it from the left (azimuth ${draggedTo[0]}°, elevation ${draggedTo[1]}°, halves ${dragged.half})`,
+  );
+  await rakeFromRight();
+
   if (arg.shots) {
     await page.screenshot("#result", join(arg.shots, "result.png"));
     await page.click('.presets button[data-azimuth="180"]');
@@ -189,6 +207,38 @@ try {
     await page.screenshot(null, join(arg.shots, "page.png"));
     await page.fill("#intensity", "1");
   }
+
+  // A glossy set with the glossy solver: its fitted highlights show in the relighting, and
+  // the switch turns them off (Lambertian shading).
+  await page.evaluate(() => {
+    const solver = [...document.querySelectorAll("#options select")].find((s) => [...s.options].some((o) => o.value === "glossy"));
+    solver.value = "glossy";
+    solver.dispatchEvent(new Event("change", { bubbles: true }));
+  });
+  const glossy = await submitSet([], setFiles(arg.glossy));
+  check(glossy.status === "succeeded", `a glossy-solver job succeeds (${glossy.status})`);
+  await resultShown(glossy.id, "mesh");
+  await page.waitFor(() => !document.getElementById("material-switch").hidden);
+  // Light from the camera's side, where the sphere's highlight faces the viewer.
+  await page.evaluate(() => {
+    document.getElementById("elevation").value = 80;
+    document.getElementById("elevation").dispatchEvent(new Event("input"));
+  });
+  const withLobe = await drawn("relight-canvas", 1 / 500);
+  await page.click("#material");
+  const lambertian = await stats("relight-canvas");
+  // The sphere is dark (albedo about 0.013): Lambertian shading lights almost nothing,
+  // its fitted highlight (roughness about 0.16) a patch a few pixels across.
+  check(
+    withLobe.lit >= lambertian.lit + 8 && withLobe.half[0] + withLobe.half[1] > lambertian.half[0] + lambertian.half[1],
+    `the fitted highlights light the relit glossy sphere, and the switch turns them off (${withLobe.lit} against ${lambertian.lit} lit pixels)`,
+  );
+  await page.click("#material");
+  await page.evaluate(() => {
+    const solver = [...document.querySelectorAll("#options select")].find((s) => [...s.options].some((o) => o.value === "glossy"));
+    solver.value = "robust";
+    solver.dispatchEvent(new Event("change", { bubbles: true }));
+  });
 
   // A job without mesh.glb: the 3-D view draws the height map as a grid.
   job = await submitSet(["albedo.png", "normal.png", "height.png", "mask.png", "result.json"]);

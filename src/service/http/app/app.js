@@ -314,7 +314,7 @@ async function showResult(job) {
   const a = job.artifacts || {};
   const images = {};
   await Promise.all(
-    ["albedo.png", "normal.png", "height.png", "confidence.png", "mask.png"]
+    ["albedo.png", "normal.png", "height.png", "confidence.png", "mask.png", "specular.png", "roughness.png"]
       .filter((n) => a[n])
       .map(async (n) => {
         images[n] = await loadImage(a[n]);
@@ -326,6 +326,9 @@ async function showResult(job) {
   const surface = { ...images, "albedo.png": images["albedo.png"] || images["mask.png"] };
   relight ??= new Relight($("relight-canvas"));
   relight.setImages(surface);
+  // The switch between the fitted highlights and Lambertian shading, where there are any.
+  $("material-switch").hidden = !relight.hasGloss;
+  light.apply();
   meshView ??= new MeshView($("mesh-canvas"));
   if (a["mesh.glb"]) {
     const glb = await (await api.raw("GET", a["mesh.glb"])).arrayBuffer();
@@ -374,6 +377,10 @@ function showSummary(job) {
       : []),
     ["mean confidence", fmt(r.confidence_mean)],
     ["reprojection RMS", fmt(r.reprojection_rms)],
+    // The glossy solver's: where its lobe was kept, and the residual it leaves there.
+    ...(r.glossy_pixels != null
+      ? [["glossy pixels", `${r.glossy_pixels}${r.glossy_residual_rms != null ? ` (residual RMS ${fmt(r.glossy_residual_rms)}, Lambertian ${fmt(r.glossy_lambertian_rms)})` : ""}`]]
+      : []),
     ["unreliable pixels", r.unreliable_pixels ?? "–"],
     ["queued", ms(job.created_at, job.started_at)],
     ["ran", ms(job.started_at, job.finished_at)],
@@ -457,6 +464,7 @@ const light = {
       dir: lightFromAngles(this.azimuth, this.elevation),
       intensity: +$("intensity").value,
       specular: +$("specular").value,
+      material: $("material").checked,
     };
     drawWidget(params.dir);
     if (relight) relight.draw(params);
@@ -495,13 +503,16 @@ function drawWidget([x, y]) {
   g.restore();
 }
 
-function wireLight() {
-  const c = $("light-widget");
+// Dragging on `canvas` moves the light: the pointer's place in the canvas, as a point of
+// the unit disc (radius the canvas's half width less `inset` of its pixels), is the light
+// seen from the camera, as on the hemisphere widget and in relighting viewers.
+function dragsLight(canvas, inset) {
   const fromPointer = (e) => {
-    const box = c.getBoundingClientRect();
-    const r = box.width / 2 - 6 * (box.width / c.width);
-    let x = (e.clientX - box.left - box.width / 2) / r;
-    let y = -(e.clientY - box.top - box.height / 2) / r;
+    const box = canvas.getBoundingClientRect();
+    const rx = box.width / 2 - inset * (box.width / canvas.width);
+    const ry = box.height / 2 - inset * (box.height / canvas.height);
+    let x = (e.clientX - box.left - box.width / 2) / rx;
+    let y = -(e.clientY - box.top - box.height / 2) / ry;
     const len = Math.hypot(x, y);
     if (len > 1) {
       x /= len;
@@ -511,13 +522,19 @@ function wireLight() {
     const az = (Math.atan2(y, x) * 180) / Math.PI;
     light.set(az, el);
   };
-  c.addEventListener("pointerdown", (e) => {
-    c.setPointerCapture(e.pointerId);
+  canvas.addEventListener("pointerdown", (e) => {
+    canvas.setPointerCapture(e.pointerId);
     fromPointer(e);
   });
-  c.addEventListener("pointermove", (e) => {
-    if (c.hasPointerCapture(e.pointerId)) fromPointer(e);
+  canvas.addEventListener("pointermove", (e) => {
+    if (canvas.hasPointerCapture(e.pointerId)) fromPointer(e);
   });
+}
+
+function wireLight() {
+  const c = $("light-widget");
+  dragsLight(c, 6);
+  dragsLight($("relight-canvas"), 0);
   c.addEventListener("keydown", (e) => {
     const step = e.shiftKey ? 10 : 2;
     const moves = { ArrowLeft: [step, 0], ArrowRight: [-step, 0], ArrowUp: [0, step], ArrowDown: [0, -step] };
@@ -528,7 +545,7 @@ function wireLight() {
   });
   $("azimuth").addEventListener("input", (e) => light.set(+e.target.value, light.elevation));
   $("elevation").addEventListener("input", (e) => light.set(light.azimuth, +e.target.value));
-  for (const id of ["intensity", "specular"]) $(id).addEventListener("input", () => light.apply());
+  for (const id of ["intensity", "specular", "material"]) $(id).addEventListener("input", () => light.apply());
   for (const b of document.querySelectorAll(".presets button")) {
     b.addEventListener("click", () => light.set(+b.dataset.azimuth, +$("rake").value));
   }
