@@ -115,6 +115,11 @@ struct ReconstructArgs {
     /// intensity from the object itself, written back as lights.json.
     #[arg(long, value_parser = kebab::<Intensities>)]
     intensities: Option<Intensities>,
+    /// Also score the solver without ground truth (result.json's `holdout`): each quarter
+    /// of the lights left out in turn, the rest solved, the left-out images predicted.
+    /// Four more solves; needs at least 8 images.
+    #[arg(long)]
+    holdout_lights: bool,
     /// Write these artifacts (comma-separated names, e.g. albedo.png,mesh.glb, or `all`)
     /// instead of the default set (albedo, mask, normal, height, confidence and shaded
     /// PNGs, mesh.glb, result.json). Near lights write all of theirs by default: albedo,
@@ -546,6 +551,7 @@ impl ReconstructArgs {
         if self.outputs.is_some() {
             o.outputs = self.outputs.clone();
         }
+        o.holdout_lights |= self.holdout_lights;
         if self.mesh_step.is_some() {
             o.mesh.step = self.mesh_step;
         }
@@ -567,6 +573,7 @@ impl ReconstructArgs {
             ("--solver", self.solver.is_some()),
             ("--light", self.light.is_some()),
             ("--max-condition", self.max_condition.is_some()),
+            ("--holdout-lights", self.holdout_lights),
         ];
         if let Some((flag, _)) = distant.iter().find(|(_, given)| *given) {
             anyhow::bail!(
@@ -843,13 +850,14 @@ fn evaluate(dir: PathBuf, integration: Integration) -> anyhow::Result<()> {
 
 /// `evaluate --holdout-lights`: each solver's prediction of left-out images of one capture.
 fn evaluate_holdout(dir: PathBuf) -> anyhow::Result<()> {
+    use photostereo::core::bands::InMemory;
     use photostereo::core::holdout;
     let set = intake::load_dir(&dir, DirMask::Folder, &Limits::default())?;
     anyhow::ensure!(
-        set.lights.len() >= 2 * holdout::FOLDS,
+        set.lights.len() >= holdout::MIN_IMAGES,
         "--holdout-lights needs at least {} images (each quarter of the lights is left \
          out in turn); {} has {}",
-        2 * holdout::FOLDS,
+        holdout::MIN_IMAGES,
         dir.display(),
         set.lights.len()
     );
@@ -860,7 +868,7 @@ fn evaluate_holdout(dir: PathBuf) -> anyhow::Result<()> {
             solver,
             ..Options::default()
         };
-        let score = holdout::holdout(&set, &opts)?;
+        let score = holdout::holdout(&mut InMemory::new(&set), &opts, &|| false)?;
         println!(
             "| {} | {:.4} | {:.4} | {:.4} | {} |",
             serde_json::to_value(solver)?.as_str().unwrap_or_default(),

@@ -716,6 +716,37 @@ fn holdout_lights_rank_the_glossy_solver_first_on_a_glossy_set() {
     );
 }
 
+/// `reconstruct --holdout-lights` puts the same score in result.json (the glossy row of
+/// `evaluate --holdout-lights`), timed; a set too small to split is refused by name.
+#[test]
+fn holdout_lights_on_request_go_into_result_json() {
+    let (_out, report) = reconstruct(&res("glossy"), &["--solver", "glossy", "--holdout-lights"]);
+    let holdout = &report["holdout"];
+    let median = holdout["median_relative"].as_f64().unwrap();
+    let output = bin()
+        .args(["evaluate", "--holdout-lights"])
+        .arg(res("glossy"))
+        .output()
+        .unwrap();
+    let table = String::from_utf8(output.stdout).unwrap();
+    let row = (table.lines().find(|l| l.starts_with("| glossy |"))).unwrap();
+    let evaluated: f64 = row.split('|').nth(2).unwrap().trim().parse().unwrap();
+    assert!(
+        (median - evaluated).abs() < 1e-4,
+        "{median} vs {evaluated}\n{table}"
+    );
+    assert_eq!(
+        holdout["observations"].as_u64(),
+        row.split('|').nth(5).unwrap().trim().parse().ok()
+    );
+    assert!(
+        (report["timings_ms"].as_array().unwrap().iter()).any(|t| t["stage"] == "holdout"),
+        "{report}"
+    );
+    let e = failure(&["--holdout-lights"], &res("bump"));
+    assert!(e.contains("holdout_lights needs at least 8 images"), "{e}");
+}
+
 /// `evaluate --holdout-lights` needs enough images to leave some out.
 #[test]
 fn holdout_lights_refuse_a_set_too_small_to_split() {

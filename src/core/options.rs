@@ -152,6 +152,11 @@ pub struct Options {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub distance: Option<f64>,
     pub intensities: Intensities,
+    /// Also score the solver without ground truth: each quarter of the lights left out
+    /// in turn, the rest solved, and the left-out images predicted (`holdout` in
+    /// result.json: median relative error, each left-out light's intensity fitted). Four
+    /// more solves; needs at least 8 images, lights given as directions.
+    pub holdout_lights: bool,
 }
 
 impl Default for Options {
@@ -167,6 +172,7 @@ impl Default for Options {
             camera: None,
             distance: None,
             intensities: Intensities::default(),
+            holdout_lights: false,
         }
     }
 }

@@ -24,7 +24,7 @@ use super::progress::{Halt, Progress, Stage};
 use super::reconstruction::{Gloss, LightSummary, Reconstruction, Report, Timing};
 use super::solve::{self, Surface};
 use super::stream::BAND_BYTES;
-use super::{heap, integrate, mask, robust};
+use super::{heap, holdout, integrate, mask, robust};
 
 /// The most [`run`] holds for a set of `pixels` per image, whatever the number of
 /// images: its maps at the integration, one band of every image ([`BAND_BYTES`]) and
@@ -340,6 +340,7 @@ impl Prepared {
             glossy_residual_rms: self.gloss.as_ref().and_then(|g| g.rms(&g.residual)),
             glossy_lambertian_rms: (self.gloss.as_ref())
                 .and_then(|g| g.rms(&g.lambertian_residual)),
+            holdout: None,
             estimated_intensities: self.estimated.then(|| {
                 (self.lights.iter())
                     .map(|l| Estimated {
@@ -496,6 +497,19 @@ pub fn run(
         .partition(|n| outputs::after_integration(n));
 
     let mut timings = Timings::default();
+    // Before the job's own solve, so that one fold's maps at a time are held beside the
+    // stack, never beside the job's.
+    let holdout = if opts.holdout_lights {
+        step(progress, Stage::Solve)?;
+        let polled: &dyn Progress = progress;
+        let score = timings.time(Stage::Holdout, || {
+            holdout::holdout(&mut stack, opts, &|| polled.halted())
+        })?;
+        not_halted(polled)?;
+        Some(score)
+    } else {
+        None
+    };
     let surface = prepare(&mut stack, opts, progress, &mut timings)?;
     drop_aside(stack);
     let commits = Committer::new();
@@ -556,6 +570,7 @@ pub fn run(
     written.sort_by_key(|n| outputs::ARTIFACTS.iter().position(|(a, _)| a == n));
     written.push("result.json".into());
     rec.report.artifacts = written;
+    rec.report.holdout = holdout;
     let json = serde_json::to_vec_pretty(&rec.report).expect("the report serialises");
     // Every artifact is durable and in place before the report that lists them.
     commits.finish()?;

@@ -8,6 +8,9 @@ use serde::Serialize;
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
     Decode,
+    /// The held-out-light score, when asked for (timed, not reported as progress: it
+    /// runs inside the solve stage).
+    Holdout,
     Solve,
     Mask,
     Integrate,
@@ -19,6 +22,7 @@ impl Stage {
     pub fn as_str(self) -> &'static str {
         match self {
             Stage::Decode => "decode",
+            Stage::Holdout => "holdout",
             Stage::Solve => "solve",
             Stage::Mask => "mask",
             Stage::Integrate => "integrate",

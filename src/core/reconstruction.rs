@@ -155,9 +155,26 @@ pub struct Report {
     pub glossy_residual_rms: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub glossy_lambertian_rms: Option<f64>,
+    /// With the `holdout_lights` option: how well the solver predicts images it was not
+    /// given (see `core::holdout`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub holdout: Option<HoldoutScore>,
     /// What intake ignored or chose on the caller's behalf (unnamed images, an unused
     /// `mask.png`, …).
     pub notes: Vec<String>,
+}
+
+/// How well one solver's reconstructions predicted the left-out images.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct HoldoutScore {
+    /// Median over the left-out observations of |s·predicted − observed| / observed, `s`
+    /// the left-out image's fitted intensity scale.
+    pub median_relative: f64,
+    pub mean_relative: f64,
+    /// The median with the table's intensities as they are (`s` = 1).
+    pub median_relative_table: f64,
+    /// Left-out observations scored (object pixels, neither clipped nor dark).
+    pub observations: u64,
 }
 
 #[derive(Debug, Clone, Serialize)]
