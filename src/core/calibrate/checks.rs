@@ -2,9 +2,10 @@
 //! size, a usable circle, lights that do not all point one way; and a light's name made
 //! from its image's.
 
+use super::circle::Circle;
 use super::error::CalibrationError;
 use super::mirror;
-use super::model::{CalibratedLight, Circle};
+use super::model::CalibratedLight;
 use super::source::Source;
 use crate::core::InputError;
 

@@ -6,7 +6,7 @@
 //! images confirm, `highlight` finds each image's highlight on each ball and its direction
 //! through `mirror` (orthographic or pinhole camera), `positions` places near lights where
 //! several balls' rays meet, `matte` fits relative intensities from a matte sphere.
-//! `model` holds the types it takes and gives, `error` its errors, `checks` what it asks
+//! `circle` and `model` hold the types it takes and gives, `error` its errors, `checks` what it asks
 //! of its input and result; `output` writes the tables and, through `draw`, the pictures
 //! a person checks it by. Pure functions over decoded planes; `folder` ([`load_dir`],
 //! [`read_mask`]) is the only file I/O.
@@ -21,6 +21,7 @@
 
 mod balls;
 mod checks;
+mod circle;
 mod draw;
 mod environment;
 mod error;
@@ -37,12 +38,13 @@ mod source;
 mod sphere;
 
 pub use checks::MIN_SPREAD_DEG;
+pub use circle::Circle;
 pub use error::CalibrationError;
 pub use folder::{NAMES_FILE, SphereFolder, is_ambient, load_dir, load_images, read_mask};
 pub use highlight::{Highlight, MAX_BEHIND_DEG};
 pub use mirror::{Camera, FOCAL_PX};
 pub use model::{
-    Budget, CalibratedLight, Calibration, Circle, CircleSource, Settings, Skipped, SphereImage,
+    Budget, CalibratedLight, Calibration, CircleSource, Settings, Skipped, SphereImage,
 };
 pub use positions::LightPosition;
 pub use reading::{COARSE_BYTES, CROP_BYTES, FIT_PIXELS, READERS, peak_bytes};

@@ -1,25 +1,17 @@
-//! What a calibration takes and gives: the circle, where it comes from, the settings and
+//! What a calibration takes and gives: where the circle comes from, the settings and
 //! memory budget, the decoded sphere image, and the calibration itself (its lights, what
 //! was left out, the maximum image for the overlay).
 
 use std::path::PathBuf;
 
 use ndarray::Array2;
-use serde::Serialize;
 
+use super::circle::Circle;
 use super::highlight::Highlight;
 use super::mirror::Camera;
 use super::positions::LightPosition;
 use super::reading::{COARSE_BYTES, CROP_BYTES};
 use super::sphere::OutlineFit;
-
-/// The sphere's outline in the image, pixels.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Circle {
-    pub cx: f64,
-    pub cy: f64,
-    pub r: f64,
-}
 
 /// Where the sphere's circle comes from.
 #[derive(Debug, Clone)]

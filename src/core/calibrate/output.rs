@@ -1,8 +1,9 @@
 //! What a calibration writes: the light table (the seed's CSV or a `.lp` file), the
 //! lights' positions, the per-light quality table, the overlay and the light diagram.
 
+use super::circle::Circle;
 use super::draw;
-use super::model::{Calibration, Circle};
+use super::model::Calibration;
 use crate::core::outputs::png_bytes;
 
 impl Calibration {

@@ -7,11 +7,12 @@ use ndarray::Array2;
 
 use super::balls::{self, Ball, Highlights, locate};
 use super::checks::{check_circle, check_images, check_spread, light_name};
+use super::circle::Circle;
 use super::error::CalibrationError;
 use super::highlight::{self, Highlight};
 use super::matte;
 use super::mirror::Camera;
-use super::model::{CalibratedLight, Calibration, Circle, CircleSource, Settings, Skipped};
+use super::model::{CalibratedLight, Calibration, CircleSource, Settings, Skipped};
 use super::positions::{self, LightPosition};
 use super::reading::{self, Pass, Plan, Window, Windows};
 use super::source::Source;

@@ -5,7 +5,7 @@
 use ndarray::Array2;
 
 use super::filter::bilinear;
-use crate::core::calibrate::model::Circle;
+use crate::core::calibrate::circle::Circle;
 
 /// Rays of the refinement (per full turn).
 const RAYS: usize = 720;

@@ -6,7 +6,7 @@
 use ndarray::Array2;
 
 use super::edges::Edge;
-use crate::core::calibrate::model::Circle;
+use crate::core::calibrate::circle::Circle;
 
 /// Smallest radius searched, pixels.
 pub(super) const MIN_RADIUS: f64 = 8.0;
