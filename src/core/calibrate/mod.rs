@@ -43,11 +43,9 @@ pub use error::CalibrationError;
 pub use folder::{NAMES_FILE, SphereFolder, is_ambient, load_dir, load_images, read_mask};
 pub use highlight::{Highlight, MAX_BEHIND_DEG};
 pub use mirror::{Camera, FOCAL_PX};
-pub use model::{
-    Budget, CalibratedLight, Calibration, CircleSource, Settings, Skipped, SphereImage,
-};
+pub use model::{Budget, CalibratedLight, Calibration, CircleSource, Settings, Skipped};
 pub use positions::LightPosition;
 pub use reading::{COARSE_BYTES, CROP_BYTES, FIT_PIXELS, READERS, peak_bytes};
 pub use run::calibrate;
-pub use source::{ImageFiles, Source};
+pub use source::{ImageFiles, Source, SphereImage};
 pub use sphere::{OutlineFit, circle_of_mask, fit_outline};

@@ -1,5 +1,5 @@
 //! What a calibration takes and gives: where the circle comes from, the settings and
-//! memory budget, the decoded sphere image, and the calibration itself (its lights, what
+//! memory budget, and the calibration itself (its lights, what
 //! was left out, the maximum image for the overlay).
 
 use std::path::PathBuf;
@@ -27,14 +27,6 @@ pub enum CircleSource {
         name: String,
         mask: Array2<bool>,
     },
-}
-
-/// One decoded sphere image.
-#[derive(Debug, Clone)]
-pub struct SphereImage {
-    pub name: String,
-    /// Luminance, 0..=65535 standing for [0, 1].
-    pub plane: Array2<u16>,
 }
 
 #[derive(Debug, Clone)]

@@ -55,7 +55,7 @@ use ndarray::Array2;
 pub use fit::OutlineFit;
 pub(super) use fit::solve3;
 
-use super::Circle;
+use super::circle::Circle;
 use edges::{Edge, edge_points, sampled_threshold};
 use filter::{gaussian, gaussian_u16, gradients};
 use fit::{geometric_fit, kasa, refine};
