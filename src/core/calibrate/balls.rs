@@ -18,9 +18,15 @@ use std::path::Path;
 
 use ndarray::Array2;
 
+use super::checks::check_circle;
+use super::circle::Circle;
+use super::environment;
+use super::error::CalibrationError;
+use super::highlight::Highlight;
+use super::model::Budget;
 use super::reading::{self, Pass, Plan, Window, Windows};
+use super::source::Source;
 use super::sphere::{self, OutlineFit};
-use super::{Budget, CalibrationError, Circle, Highlight, Source, check_circle, environment};
 
 /// Where the balls are, fitted to the images: per ball (the best-fitting first) its
 /// outline, the pass's window of every image around it, and the environment over that

@@ -5,7 +5,7 @@
 use image::{Rgb, RgbImage};
 use ndarray::Array2;
 
-use super::Circle;
+use super::circle::Circle;
 
 const OUTLINE: Rgb<u8> = Rgb([40, 220, 90]);
 const LABEL: Rgb<u8> = Rgb([255, 230, 60]);

@@ -15,7 +15,7 @@
 use ndarray::{Array2, Zip};
 use rayon::prelude::*;
 
-use super::Circle;
+use super::circle::Circle;
 
 /// The sphere's pixels: its bounding box in the image, and which pixels of it are on the
 /// ball (half a pixel inside the outline, so the backdrop's edge never counts).

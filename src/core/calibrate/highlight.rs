@@ -32,7 +32,7 @@ use std::collections::HashSet;
 
 use ndarray::Array2;
 
-use super::Circle;
+use super::circle::Circle;
 use super::environment::Disc;
 use super::mirror::Camera;
 

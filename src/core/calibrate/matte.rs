@@ -6,7 +6,7 @@
 
 use ndarray::Array2;
 
-use super::Circle;
+use super::circle::Circle;
 use super::mirror::dot;
 
 /// Fraction of the radius used: the rim's pixels mix sphere and backdrop.

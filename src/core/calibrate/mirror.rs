@@ -3,7 +3,7 @@
 //!
 //! Frame: x = column right, y = row down, z towards the camera; pixel centres at integers.
 
-use super::Circle;
+use super::circle::Circle;
 
 /// Focal lengths a pinhole camera may be given (pixels). Past the upper end the view rays
 /// across any image of up to 10⁴ pixels differ by under 0.03°, below what a calibration

@@ -8,7 +8,7 @@
 //! centres in one plane facing the camera. Pinhole: the origin at the camera, each ball
 //! placed by its circle as in [`Camera::light_at`]. The balls are of one size.
 
-use super::Circle;
+use super::circle::Circle;
 use super::mirror::{Camera, dot, normalise};
 use super::sphere::solve3;
 

@@ -20,8 +20,10 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use ndarray::{Array2, ArrayView2, s};
 
+use super::circle::Circle;
+use super::environment;
+use super::error::CalibrationError;
 use super::source::Source;
-use super::{CalibrationError, Circle, environment};
 use crate::core::InputError;
 
 /// The downscaled copies of a whole set, bytes.

@@ -9,10 +9,18 @@ use std::path::PathBuf;
 use image::ImageReader;
 use ndarray::{Array2, ArrayView2, s};
 
-use super::{CalibrationError, SphereImage};
+use super::error::CalibrationError;
 use crate::core::InputError;
 use crate::core::intake::{self, Limits, NamedFile};
 use crate::core::stream;
+
+/// One decoded sphere image.
+#[derive(Debug, Clone)]
+pub struct SphereImage {
+    pub name: String,
+    /// Luminance, 0..=65535 standing for [0, 1].
+    pub plane: Array2<u16>,
+}
 
 /// Decoded samples a file source hands over at a time (one band of one image).
 const BAND_BYTES: usize = 4 << 20;

@@ -29,9 +29,9 @@ use uuid::Uuid;
 use crate::core::lights;
 use crate::service::error::ApiError;
 use crate::service::intake::calibration::receive;
-use crate::service::intake::tap::{BodyTap, LINGER};
+use crate::service::intake::tap::BodyTap;
 use crate::service::problem::Problem;
-use crate::service::repo::{CalibrationRecord, Remembered, RepoError, readable};
+use crate::service::repo::{CalibrationRecord, RepoError, readable};
 use crate::service::state::AppState;
 use crate::service::store::Served;
 use crate::service::tenancy::Caller;
@@ -44,7 +44,9 @@ use super::extract::{
     ApiQuery, CalibrationId, ListQuery, PageQuery, owned_calibration, request_id,
 };
 use super::responses::{self, IMMUTABLE, not_modified, not_modified_response};
-use super::submission::{Submission, open_submission};
+use super::submission::{
+    Submission, answer_of, linger_if_refused, open_submission, remember, tapped,
+};
 use compute::compute;
 
 /// `POST` and `GET /v1/calibrations`, `GET` and `DELETE /v1/calibrations/{id}`, and its
@@ -159,12 +161,9 @@ pub async fn create_calibration(
     caller: Caller,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let (parts, body) = request.into_parts();
-    let tap = BodyTap::new(body, state.config().max_body_bytes);
+    let (parts, tap) = tapped(&state, request);
     let answer = accept(&state, &caller, parts, &tap).await;
-    if answer.is_err() {
-        tokio::spawn(async move { tap.drain(LINGER).await });
-    }
+    linger_if_refused(&answer, tap);
     answer
 }
 
@@ -236,25 +235,18 @@ async fn accept(
     let stored = record.clone();
     state.repo(move |r| r.insert_calibration(&stored)).await?;
     staging.keep();
-    let answer = Remembered {
+    let answer = answer_of(
         body_hash,
-        status: StatusCode::CREATED.as_u16(),
-        body: serde_json::to_string(&view)
-            .map_err(|e| ApiError::internal(format!("calibration view: {e}")))?,
-        location: Some(view.url.clone()),
-        created_at: record.created_at,
-    };
-    if let Some(key) = idempotency_key {
-        let (tenant, remembered) = (caller.tenant.clone(), answer.clone());
-        let raced = state
-            .repo(move |r| r.remember(&tenant, SCOPE, &key, &remembered, since))
-            .await?;
-        // A concurrent request with the same key got there first: this calibration never was.
-        if let Some(first) = raced {
-            state.repo(move |r| r.delete_calibration(id)).await?;
-            remove_files(state, id).await;
-            return idempotency::replay(&first, &answer.body_hash);
-        }
+        StatusCode::CREATED,
+        (&view, &view.url, "calibration view"),
+        record.created_at,
+    )?;
+    let key = (SCOPE, idempotency_key, since);
+    // A concurrent request with the same key got there first: this calibration never was.
+    if let Some(first) = remember(state, caller, key, &answer).await? {
+        state.repo(move |r| r.delete_calibration(id)).await?;
+        remove_files(state, id).await;
+        return idempotency::replay(&first, &answer.body_hash);
     }
     tracing::info!(
         target: "audit",

@@ -51,13 +51,7 @@ impl<S: Send + Sync> FromRequestParts<S> for JobId {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
-        let Path(params) = Path::<BTreeMap<String, String>>::from_request_parts(parts, state)
-            .await
-            .map_err(|e| ApiError::bad_request(e.body_text()))?;
-        let raw = params.get("id").cloned().unwrap_or_default();
-        Uuid::parse_str(&raw)
-            .map(JobId)
-            .map_err(|_| ApiError::not_found(format!("there is no job {raw:?}")))
+        id_in_path(parts, state, "job").await.map(JobId)
     }
 }
 
@@ -68,14 +62,24 @@ impl<S: Send + Sync> FromRequestParts<S> for CalibrationId {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
-        let Path(params) = Path::<BTreeMap<String, String>>::from_request_parts(parts, state)
+        id_in_path(parts, state, "calibration")
             .await
-            .map_err(|e| ApiError::bad_request(e.body_text()))?;
-        let raw = params.get("id").cloned().unwrap_or_default();
-        Uuid::parse_str(&raw)
             .map(CalibrationId)
-            .map_err(|_| ApiError::not_found(format!("there is no calibration {raw:?}")))
     }
+}
+
+/// The `{id}` of a URL naming a `what` (a job, a calibration): a path that cannot be read
+/// is 400, an id that is not a UUID names none (404, "there is no `what` …").
+async fn id_in_path<S: Send + Sync>(
+    parts: &mut Parts,
+    state: &S,
+    what: &str,
+) -> Result<Uuid, ApiError> {
+    let Path(params) = Path::<BTreeMap<String, String>>::from_request_parts(parts, state)
+        .await
+        .map_err(|e| ApiError::bad_request(e.body_text()))?;
+    let raw = params.get("id").cloned().unwrap_or_default();
+    Uuid::parse_str(&raw).map_err(|_| ApiError::not_found(format!("there is no {what} {raw:?}")))
 }
 
 /// The job `id` if the caller may see it. Every route that names a job goes through here:

@@ -16,9 +16,9 @@ use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
 use crate::service::intake::checks::check_url;
 use crate::service::intake::job as intake;
-use crate::service::intake::tap::{BodyTap, LINGER};
+use crate::service::intake::tap::BodyTap;
 use crate::service::problem::Problem;
-use crate::service::repo::{Admission, Callback, CallbackState, JobRecord, JobStatus, Remembered};
+use crate::service::repo::{Admission, Callback, CallbackState, JobRecord, JobStatus};
 use crate::service::state::AppState;
 use crate::service::tenancy::Caller;
 use crate::service::tenancy::idempotency::{self, PartHasher};
@@ -31,7 +31,9 @@ use utoipa_axum::routes;
 use super::extract::{
     ApiQuery, JobId, ListQuery, PageQuery, owned_calibration, owned_job, request_id,
 };
-use super::submission::{Submission, open_submission};
+use super::submission::{
+    Submission, answer_of, linger_if_refused, open_submission, remember, tapped,
+};
 
 /// `POST` and `GET /v1/jobs`, `GET` and `DELETE /v1/jobs/{id}`.
 pub(crate) fn routes() -> OpenApiRouter<AppState> {
@@ -170,14 +172,9 @@ pub async fn create_job(
     caller: Caller,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let (parts, body) = request.into_parts();
-    let tap = BodyTap::new(body, state.config().max_body_bytes);
+    let (parts, tap) = tapped(&state, request);
     let answer = accept_job(&state, &caller, parts, &tap).await;
-    if answer.is_err() {
-        // Answer now, and read what the client is still sending in the background (a
-        // lingering close), so that it gets to read the refusal.
-        tokio::spawn(async move { tap.drain(LINGER).await });
-    }
+    linger_if_refused(&answer, tap);
     answer
 }
 
@@ -288,25 +285,18 @@ async fn accept_job(
         }
     }
     let view = JobView::from_record(record.clone());
-    let answer = Remembered {
+    let answer = answer_of(
         body_hash,
-        status: StatusCode::ACCEPTED.as_u16(),
-        body: serde_json::to_string(&view)
-            .map_err(|e| ApiError::internal(format!("job view: {e}")))?,
-        location: Some(view.url.clone()),
-        created_at: record.created_at,
-    };
-    if let Some(key) = idempotency_key {
-        let (tenant, remembered) = (caller.tenant.clone(), answer.clone());
-        let raced = state
-            .repo(move |r| r.remember(&tenant, JOBS_SCOPE, &key, &remembered, since))
-            .await?;
-        // A concurrent request with the same key got there first: this job never was.
-        if let Some(first) = raced {
-            state.remove_prefetch(id);
-            state.repo(move |r| r.delete(id)).await?;
-            return idempotency::replay(&first, &answer.body_hash);
-        }
+        StatusCode::ACCEPTED,
+        (&view, &view.url, "job view"),
+        record.created_at,
+    )?;
+    let key = (JOBS_SCOPE, idempotency_key, since);
+    // A concurrent request with the same key got there first: this job never was.
+    if let Some(first) = remember(state, caller, key, &answer).await? {
+        state.remove_prefetch(id);
+        state.repo(move |r| r.delete(id)).await?;
+        return idempotency::replay(&first, &answer.body_hash);
     }
     state.workers().ring();
     staging.keep();

@@ -2,13 +2,15 @@
 //! before its body is read.
 
 use axum::extract::{FromRequest, Multipart, Request};
-use axum::http::header;
 use axum::http::request::Parts;
+use axum::http::{StatusCode, header};
+use axum::response::Response;
+use serde::Serialize;
 use uuid::Uuid;
 
 use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
-use crate::service::intake::tap::BodyTap;
+use crate::service::intake::tap::{BodyTap, LINGER};
 use crate::service::repo::Remembered;
 use crate::service::slots::Slot;
 use crate::service::state::AppState;
@@ -120,5 +122,56 @@ async fn still_exists(state: &AppState, earlier: &Remembered) -> Result<bool, Ap
         Ok(state.repo(move |r| r.get_calibration(id)).await?.is_some())
     } else {
         Ok(state.repo(move |r| r.get(id)).await?.is_some())
+    }
+}
+
+/// A submission's answer as it is remembered and sent: `status` with `view` as its JSON
+/// body (`what` names the view in an error) and `url` as its `Location`.
+pub(crate) fn answer_of(
+    body_hash: String,
+    status: StatusCode,
+    (view, url, what): (&impl Serialize, &str, &str),
+    created_at: i64,
+) -> Result<Remembered, ApiError> {
+    Ok(Remembered {
+        body_hash,
+        status: status.as_u16(),
+        body: serde_json::to_string(view)
+            .map_err(|e| ApiError::internal(format!("{what}: {e}")))?,
+        location: Some(url.to_string()),
+        created_at,
+    })
+}
+
+/// Remember `answer` under the submission's `Idempotency-Key` in `scope`, when it has
+/// one. `Some(first)` when a concurrent request with the same key got there first: what
+/// this one made must then be undone, and `first` replayed.
+pub(crate) async fn remember(
+    state: &AppState,
+    caller: &Caller,
+    (scope, key, since): (&'static str, Option<String>, i64),
+    answer: &Remembered,
+) -> Result<Option<Remembered>, ApiError> {
+    let Some(key) = key else {
+        return Ok(None);
+    };
+    let (tenant, remembered) = (caller.tenant.clone(), answer.clone());
+    state
+        .repo(move |r| r.remember(&tenant, scope, &key, &remembered, since))
+        .await
+}
+
+/// A submission request's head, and its body behind a [`BodyTap`] that counts it against
+/// `max_body_bytes`.
+pub(crate) fn tapped(state: &AppState, request: Request) -> (Parts, BodyTap) {
+    let (parts, body) = request.into_parts();
+    (parts, BodyTap::new(body, state.config().max_body_bytes))
+}
+
+/// After a refusal, read what the client is still sending in the background (a lingering
+/// close), so that it gets to read the refusal; the answer itself goes out at once.
+pub(crate) fn linger_if_refused(answer: &Result<Response, ApiError>, tap: BodyTap) {
+    if answer.is_err() {
+        tokio::spawn(async move { tap.drain(LINGER).await });
     }
 }
