@@ -7,9 +7,8 @@
 //! The tests take turns ([`SERIAL`]): each opens thousands of sockets and measures
 //! latencies on two cores.
 
-mod binserver;
-#[path = "common/raw_http.rs"]
-mod raw_http;
+use crate::binserver;
+use crate::common::raw_http;
 
 use std::time::{Duration, Instant};
 

@@ -5,9 +5,9 @@
 //! stayed under [`MEMORY_BOUND_KB`]. Also: the API key guards every /v1 route, and a
 //! bounded load test (20 jobs and 1,000 status requests at once).
 
-mod binserver;
-mod common;
-mod seed;
+use crate::binserver;
+use crate::common;
+use crate::seed;
 
 use std::io::Write;
 use std::path::Path;

@@ -1,7 +1,7 @@
 //! The HTTP API end to end: a real server on 127.0.0.1:0 and a real HTTP client.
 
-mod common;
-mod seed;
+use crate::common;
+use crate::seed;
 
 use std::collections::{BTreeMap, HashSet};
 use std::time::Duration;
@@ -1302,7 +1302,7 @@ async fn served_openapi_document_is_the_checked_in_one() {
     let checked_in = std::fs::read_to_string(&file).unwrap_or_default();
     assert!(
         checked_in == served,
-        "openapi/openapi.json is out of date: run `UPDATE_OPENAPI=1 cargo test --release --test api served_openapi` and commit it"
+        "openapi/openapi.json is out of date: run `UPDATE_OPENAPI=1 cargo test --release --test http served_openapi` and commit it"
     );
     s.stop().await;
 }
