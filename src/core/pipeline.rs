@@ -29,7 +29,7 @@ use super::{heap, integrate, mask, robust};
 /// The most [`run`] holds for a set of `pixels` per image, whatever the number of
 /// images: its maps at the integration, one band of every image ([`BAND_BYTES`]) and
 /// the decoders' and threads' state (a 2048² job grew by 63–80 bytes per pixel in all). The service
-/// reserves it before a job starts; `tests/memory/bands_memory.rs` measures a job against it.
+/// reserves it before a job starts; `tests/serial/bands_memory.rs` measures a job against it.
 pub fn peak_bytes(pixels: u64) -> u64 {
     80 * pixels + BAND_BYTES as u64 + (16 << 20)
 }

@@ -1,6 +1,7 @@
 //! The real `photostereo` binary as a child process: the command line, crash recovery,
-//! hostile clients, connection limits, the memory budget and strict inputs, one module
-//! each. What they measure (memory, timings) is the child's.
+//! hostile clients, the memory budget and strict inputs, one module each. What they
+//! measure (memory, timings) is the child's. The connection tests, which must run alone,
+//! are in the `serial` program.
 
 #[path = "../binserver/mod.rs"]
 mod binserver;
@@ -11,7 +12,6 @@ mod seed;
 
 mod budget;
 mod cli;
-mod connections;
 mod crash;
 mod hostile;
 mod integrate_cli;

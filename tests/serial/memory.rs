@@ -1,5 +1,5 @@
 //! The job workers give freed memory back to the kernel as each job ends
-//! (`release_free_heap`). In the `memory` program, taking its turn with the program's
+//! (`release_free_heap`). In the `serial` program, taking its turn with the program's
 //! other tests (`crate::ONE_AT_A_TIME`), so no other test's allocations move the resident
 //! size it measures.
 

@@ -1,5 +1,5 @@
 //! A set of many images is read in bands and never held whole, and each kind of job
-//! peaks within what the service reserves for it. In the `memory` program, so that no
+//! peaks within what the service reserves for it. In the `serial` program, so that no
 //! other test's allocations move the peaks it measures; its tests take turns with the
 //! program's others (`crate::ONE_AT_A_TIME`) for the same reason.
 

@@ -2,7 +2,7 @@
 //! 0.8 MB sent, 3.2 GB once decoded as 16-bit planes) must be answered, with the server's
 //! peak resident memory (VmHWM) within its resident memory at start plus the documented
 //! peak of one calibration, `core::calibrate::peak_bytes(--max-pixels)`.
-//! It takes its turn with the `memory` program's other tests (`crate::ONE_AT_A_TIME`), which
+//! It takes its turn with the `serial` program's other tests (`crate::ONE_AT_A_TIME`), which
 //! measure this process: its own allocations stay out of their figures.
 
 use crate::binserver;
