@@ -5,7 +5,7 @@
 #   tests/walkthrough.sh [BASE_URL]      (default http://127.0.0.1:8080)
 #
 # Run it from the repository root (it reads res/bump/); the downloads land in the current
-# directory. Needs only curl and sed. tests/api.rs runs it against a real server.
+# directory. Needs only curl and sed. tests/http/api.rs runs it against a real server.
 set -euo pipefail
 BASE=${1:-http://127.0.0.1:8080}
 

@@ -205,7 +205,7 @@ pub fn surface(map: &NormalMap, settings: &Settings, halt: Halt) -> Array2<f32> 
 /// The most [`run`] holds for a normal map of `pixels`, with the map itself: the
 /// integration's arrays and the pictures', and the decoder's and threads' state (a 2048²
 /// map grew by 55–75 bytes per pixel in all). The service reserves it before a normals job
-/// starts; `tests/bands_memory.rs` measures a job against it.
+/// starts; `tests/serial/bands_memory.rs` measures a job against it.
 pub fn peak_bytes(pixels: u64) -> u64 {
     80 * pixels + (32 << 20)
 }

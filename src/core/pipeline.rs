@@ -30,7 +30,7 @@ use super::{heap, holdout, integrate, mask, robust};
 /// images: its maps at the integration, one band of every image ([`BAND_BYTES`]) and
 /// the decoders' and threads' state (a 2048² job grew by 63–80 bytes per pixel in all),
 /// and with the `glossy` solver its lobe maps. The service reserves it before a job
-/// starts; `tests/bands_memory.rs` measures a job against it.
+/// starts; `tests/serial/bands_memory.rs` measures a job against it.
 pub fn peak_bytes(pixels: u64, solver: Solver) -> u64 {
     let gloss = if solver == Solver::Glossy {
         Gloss::BYTES_PER_PIXEL

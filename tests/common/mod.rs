@@ -3,7 +3,9 @@
 
 #![allow(dead_code)]
 
+pub mod postgres;
 pub mod raw_http;
+pub mod weed;
 
 use std::io::Write;
 use std::path::{Path, PathBuf};

@@ -38,7 +38,7 @@ const ENERGY_TOL: f64 = 1e-5;
 /// never depends on the weights. It must be tiny: a region cut off by steps all round
 /// (an object in front of another) is pulled by what leaks through its cuts, and on
 /// DiLiGenT's objects a floor of 1e-4 costs 1.8× the depth error of 1e-9 (cat 0.134 vs
-/// 0.075 mm, harvest 3.5 vs 1.84 mm; `tests/depth_real.rs`).
+/// 0.075 mm, harvest 3.5 vs 1.84 mm; `tests/core/depth_real.rs`).
 const CUT_FLOOR: f32 = 1e-9;
 /// Relative residual each round's solve stops at, and its most CG iterations: near-cut
 /// edges make the system stiff, and a solve stopped at the Poisson solver's 2e-4 leaves

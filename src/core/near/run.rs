@@ -58,7 +58,7 @@ pub struct NearReport {
 /// images: its maps, the surface and the log-depth integration of each full-resolution
 /// pass, one band of every image and the decoders' and threads' state (a 2048² job grew
 /// by 80–100 bytes per pixel in all, 1.15–1.25 × a distant job). The service reserves it before a
-/// near job starts; `tests/bands_memory.rs` measures a job against it.
+/// near job starts; `tests/serial/bands_memory.rs` measures a job against it.
 pub fn peak_bytes(pixels: u64) -> u64 {
     104 * pixels + BAND_BYTES as u64 + (16 << 20)
 }

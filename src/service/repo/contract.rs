@@ -1,7 +1,7 @@
 //! The behaviour every [`JobRepo`] owes, as one suite: [`run`] takes a [`Backend`] (a way
 //! to make an empty database and open handles on it, and the clock its leases run out in)
 //! and runs every check on a database of its own. SQLite's unit tests run it on a file;
-//! `tests/postgres.rs` runs it on a real PostgreSQL server. A check that only one backend
+//! `tests/backends/postgres.rs` runs it on a real PostgreSQL server. A check that only one backend
 //! can make (SQLite's upgrade of an old file, PostgreSQL's unreachable server) stays with
 //! that backend.
 

@@ -1,7 +1,7 @@
 //! The behaviour every [`BlobStore`] owes, as one suite: [`run`] takes an empty store
 //! and a runtime to drive its downloads on (it is called from a thread outside that
 //! runtime, as the store's blocking callers are). The local store's unit tests run it on
-//! a directory; `tests/s3.rs` runs it on a real S3 server. What only one store does (the
+//! a directory; `tests/backends/s3.rs` runs it on a real S3 server. What only one store does (the
 //! directory's renames, the object store's multipart uploads and partial fetches) stays
 //! with that store.
 

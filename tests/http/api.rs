@@ -1,7 +1,7 @@
 //! The HTTP API end to end: a real server on 127.0.0.1:0 and a real HTTP client.
 
-mod common;
-mod seed;
+use crate::common;
+use crate::seed;
 
 use std::collections::{BTreeMap, HashSet};
 use std::time::Duration;
@@ -261,72 +261,98 @@ async fn seed_sets_as_zip_archives() {
     s.stop().await;
 }
 
+/// One refused request of a table: a label (printed before it is sent, so that a failure
+/// names its case), the request, and the problem it must get: the status and words of its
+/// detail.
+type Refusal<'a> = (&'a str, reqwest::RequestBuilder, u16, &'a [&'a str]);
+
+/// Send each case's request in turn and check its problem answer; returns the bodies.
+async fn expect_refusals(cases: Vec<Refusal<'_>>) -> Vec<Value> {
+    let mut bodies = Vec::new();
+    for (case, request, status, needles) in cases {
+        println!("case: {case}");
+        let r = request
+            .send()
+            .await
+            .unwrap_or_else(|e| panic!("{case}: {e}"));
+        bodies.push(expect_problem(r, status, needles).await);
+    }
+    bodies
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn malformed_requests_get_400() {
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
     let bump = repo_root().join("res/bump");
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
-
-    let r = s
-        .client
-        .post(s.url("/v1/jobs"))
-        .json(&serde_json::json!({"images": []}))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 400, &["multipart/form-data"]).await;
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
 
     let mut no_lights = Form::new();
     for img in images_of(&bump) {
         no_lights = no_lights.part("images", file_part(&img));
     }
-    expect_problem(post(no_lights).await.unwrap(), 400, &["lights"]).await;
-
-    let only_lights = Form::new().part("lights", file_part(&bump.join("light_directions.csv")));
-    expect_problem(post(only_lights).await.unwrap(), 400, &["images"]).await;
-
-    let unknown = folder_form(&bump).text("colour", "red");
-    expect_problem(post(unknown).await.unwrap(), 400, &["\"colour\""]).await;
-
-    let nameless = Form::new()
-        .part("lights", file_part(&bump.join("light_directions.csv")))
-        .part("images", Part::bytes(png(4, 4, 9)));
-    expect_problem(post(nameless).await.unwrap(), 400, &["file name"]).await;
-
-    let twice = folder_form(&bump).text("lights", "a.png, 0, 0, 1");
-    expect_problem(
-        post(twice).await.unwrap(),
-        400,
-        &["lights", "more than once"],
-    )
-    .await;
-
-    let both = folder_form(&bump).part(
-        "archive",
-        Part::bytes(zip_folder(&bump, None)).file_name("a.zip"),
-    );
-    expect_problem(post(both).await.unwrap(), 400, &["either an archive"]).await;
-
-    let r = s
-        .client
-        .post(s.url("/v1/jobs"))
-        .header("content-type", "multipart/form-data; boundary=XYZ")
-        .body("--XYZ\r\nContent-Disposition: form-data; name=\"lights\"\r\n\r\nabc")
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 400, &["multipart"]).await;
-
+    let mut cases: Vec<Refusal> = vec![
+        (
+            "JSON body",
+            s.client
+                .post(s.url("/v1/jobs"))
+                .json(&serde_json::json!({"images": []})),
+            400,
+            &["multipart/form-data"],
+        ),
+        ("no lights", post(no_lights), 400, &["lights"]),
+        (
+            "only lights",
+            post(Form::new().part("lights", file_part(&bump.join("light_directions.csv")))),
+            400,
+            &["images"],
+        ),
+        (
+            "unknown part",
+            post(folder_form(&bump).text("colour", "red")),
+            400,
+            &["\"colour\""],
+        ),
+        (
+            "nameless image",
+            post(
+                Form::new()
+                    .part("lights", file_part(&bump.join("light_directions.csv")))
+                    .part("images", Part::bytes(png(4, 4, 9))),
+            ),
+            400,
+            &["file name"],
+        ),
+        (
+            "lights twice",
+            post(folder_form(&bump).text("lights", "a.png, 0, 0, 1")),
+            400,
+            &["lights", "more than once"],
+        ),
+        (
+            "files and an archive",
+            post(folder_form(&bump).part(
+                "archive",
+                Part::bytes(zip_folder(&bump, None)).file_name("a.zip"),
+            )),
+            400,
+            &["either an archive"],
+        ),
+        (
+            "unfinished multipart",
+            s.client
+                .post(s.url("/v1/jobs"))
+                .header("content-type", "multipart/form-data; boundary=XYZ")
+                .body("--XYZ\r\nContent-Disposition: form-data; name=\"lights\"\r\n\r\nabc"),
+            400,
+            &["multipart"],
+        ),
+    ];
     for q in ["limit=0", "limit=101", "limit=ten", "cursor=nonsense"] {
-        let r = s
-            .client
-            .get(s.url(&format!("/v1/jobs?{q}")))
-            .send()
-            .await
-            .unwrap();
-        expect_problem(r, 400, &[]).await;
+        let request = s.client.get(s.url(&format!("/v1/jobs?{q}")));
+        cases.push((q, request, 400, &[]));
     }
+    expect_refusals(cases).await;
     // Nothing was accepted, and nothing was left on disk.
     assert_eq!(
         s.get_json("/v1/jobs").await["jobs"]
@@ -352,16 +378,9 @@ async fn limits_get_413() {
     c.max_pixels = 150 * 150;
     c.upload_timeout = Duration::from_millis(300);
     let s = TestServer::start(c).await;
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
 
-    // The sphere set is 4 × 212 kB: over the body limit (declared length).
-    expect_problem(
-        post(folder_form(&sphere)).await.unwrap(),
-        413,
-        &["300000 bytes"],
-    )
-    .await;
-    // The same, streamed without a length: caught while reading.
+    // The same sphere image twice, streamed without a length.
     let big = std::fs::read(sphere.join("real1.bmp")).unwrap();
     let chunks: Vec<Result<Vec<u8>, std::io::Error>> = big
         .repeat(2)
@@ -372,12 +391,57 @@ async fn limits_get_413() {
         chunks,
     )))
     .file_name("real1.bmp");
-    let form = Form::new()
+    let streamed = Form::new()
         .text("lights", "real1.bmp, 0, 0, 1")
         .part("images", stream);
-    expect_problem(post(form).await.unwrap(), 413, &["larger than the limit"]).await;
+    let mut too_many_parts = Form::new()
+        .text("lights", "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1")
+        .text("options", "{}")
+        .part("mask", Part::bytes(png(8, 8, 255)).file_name("mask.png"));
+    for name in ["a.png", "b.png", "c.png"] {
+        too_many_parts = too_many_parts.part("images", Part::bytes(png(8, 8, 100)).file_name(name));
+    }
+    let over_pixels = Form::new()
+        .text("lights", "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1")
+        .part("images", Part::bytes(png(200, 200, 10)).file_name("a.png"));
+    expect_refusals(vec![
+        // The sphere set is 4 × 212 kB: over the body limit (declared length).
+        (
+            "body over the limit, declared",
+            post(folder_form(&sphere)),
+            413,
+            &["300000 bytes"],
+        ),
+        // The same, streamed without a length: caught while reading.
+        (
+            "body over the limit, streamed",
+            post(streamed),
+            413,
+            &["larger than the limit"],
+        ),
+        // Four images where three are allowed.
+        (
+            "four images",
+            post(folder_form(&synth)),
+            413,
+            &["limit of 3 images"],
+        ),
+        (
+            "too many parts",
+            post(too_many_parts),
+            413,
+            &["more than 5 parts"],
+        ),
+        (
+            "an image over the pixel limit",
+            post(over_pixels),
+            413,
+            &["\"a.png\"", "200×200", "22500"],
+        ),
+    ])
+    .await;
 
-    // An upload slower than the upload time limit.
+    // An upload slower than the upload time limit, answered in time.
     let slow = futures_util::stream::unfold(0u32, |i| async move {
         if i == 8 {
             return None;
@@ -390,37 +454,8 @@ async fn limits_get_413() {
         Part::stream(reqwest::Body::wrap_stream(slow)).file_name("a.png"),
     );
     let started = std::time::Instant::now();
-    expect_problem(post(form).await.unwrap(), 408, &["within 300ms"]).await;
+    expect_problem(post(form).send().await.unwrap(), 408, &["within 300ms"]).await;
     assert!(started.elapsed() < Duration::from_secs(5));
-
-    // Four images where three are allowed.
-    expect_problem(
-        post(folder_form(&synth)).await.unwrap(),
-        413,
-        &["limit of 3 images"],
-    )
-    .await;
-
-    // Too many parts.
-    let mut form = Form::new()
-        .text("lights", "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1")
-        .text("options", "{}")
-        .part("mask", Part::bytes(png(8, 8, 255)).file_name("mask.png"));
-    for name in ["a.png", "b.png", "c.png"] {
-        form = form.part("images", Part::bytes(png(8, 8, 100)).file_name(name));
-    }
-    expect_problem(post(form).await.unwrap(), 413, &["more than 5 parts"]).await;
-
-    // An image over the pixel limit.
-    let form = Form::new()
-        .text("lights", "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1")
-        .part("images", Part::bytes(png(200, 200, 10)).file_name("a.png"));
-    expect_problem(
-        post(form).await.unwrap(),
-        413,
-        &["\"a.png\"", "200×200", "22500"],
-    )
-    .await;
     s.stop().await;
 }
 
@@ -428,32 +463,14 @@ async fn limits_get_413() {
 async fn unsupported_formats_get_415() {
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
     let table = "a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1";
-
-    let form = Form::new().text("lights", table).part(
-        "images",
-        Part::bytes(b"just some notes".to_vec()).file_name("a.png"),
-    );
-    expect_problem(
-        post(form).await.unwrap(),
-        415,
-        &["\"a.png\"", "not a supported image format"],
-    )
-    .await;
-
+    let image = |bytes: Vec<u8>| {
+        Form::new()
+            .text("lights", table)
+            .part("images", Part::bytes(bytes).file_name("a.png"))
+    };
     let gif = b"GIF89a\x01\x00\x01\x00\x80\x00\x00\x00\x00\x00\xff\xff\xff!\xf9\x04\x01\x00\x00\x00\x00,\x00\x00\x00\x00\x01\x00\x01\x00\x00\x02\x02D\x01\x00;".to_vec();
-    let form = Form::new()
-        .text("lights", table)
-        .part("images", Part::bytes(gif).file_name("a.png"));
-    expect_problem(post(form).await.unwrap(), 415, &["\"a.png\""]).await;
-
-    let form = Form::new().part(
-        "archive",
-        Part::bytes(b"%PDF-1.4".to_vec()).file_name("set.zip"),
-    );
-    expect_problem(post(form).await.unwrap(), 415, &["not a zip"]).await;
-
     let p = png(8, 8, 50);
     // A readme beside the images is skipped; an image the table names must be one.
     let zip = zip_entries(&[
@@ -463,7 +480,31 @@ async fn unsupported_formats_get_415() {
         ("readme.txt", b"hello"),
         ("light_directions.csv", table.as_bytes()),
     ]);
-    expect_problem(post(archive_form(zip)).await.unwrap(), 415, &["\"a.png\""]).await;
+    expect_refusals(vec![
+        (
+            "text as an image",
+            post(image(b"just some notes".to_vec())),
+            415,
+            &["\"a.png\"", "not a supported image format"],
+        ),
+        ("a GIF", post(image(gif)), 415, &["\"a.png\""]),
+        (
+            "a PDF as the archive",
+            post(Form::new().part(
+                "archive",
+                Part::bytes(b"%PDF-1.4".to_vec()).file_name("set.zip"),
+            )),
+            415,
+            &["not a zip"],
+        ),
+        (
+            "text as an image in a zip",
+            post(archive_form(zip)),
+            415,
+            &["\"a.png\""],
+        ),
+    ])
+    .await;
     s.stop().await;
 }
 
@@ -472,81 +513,16 @@ async fn invalid_inputs_get_422_with_the_cores_message() {
     let (synth, dog) = (seed!("synth-images"), seed!("dog-images"));
     let dir = tempfile::tempdir().unwrap();
     let s = TestServer::start(config(dir.path())).await;
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
     let with_table = |table: &str| {
         let mut f = Form::new().text("lights", table.to_string());
         for img in images_of(&synth) {
             f = f.part("images", file_part(&img));
         }
-        f
+        post(f)
     };
-
-    let bad_number = "im1.png, 0, 0, 1\nim2.png, x, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1";
-    expect_problem(
-        post(with_table(bad_number)).await.unwrap(),
-        422,
-        &["row 2", "\"x\""],
-    )
-    .await;
-
-    let zero = "im1.png, 0, 0, 0\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1";
-    expect_problem(
-        post(with_table(zero)).await.unwrap(),
-        422,
-        &["row 1", "zero"],
-    )
-    .await;
-
-    let missing =
-        "im1.png, 0, 0, 1\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1\nim5.png, -1, 0, 1";
-    expect_problem(
-        post(with_table(missing)).await.unwrap(),
-        422,
-        &["\"im5.png\"", "not provided"],
-    )
-    .await;
-
-    let unlisted = "im1.png, 0, 0, 1\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1";
-    expect_problem(
-        post(with_table(unlisted)).await.unwrap(),
-        422,
-        &["\"im4.png\"", "no row"],
-    )
-    .await;
-
-    let json_table = r#"[{"name": "im1.png", "direction": [0, 0]}]"#;
-    expect_problem(
-        post(with_table(json_table)).await.unwrap(),
-        422,
-        &["invalid JSON"],
-    )
-    .await;
-
-    let options = folder_form(&synth).text("options", r#"{"solver": "l2", "colour": true}"#);
-    expect_problem(post(options).await.unwrap(), 422, &["options", "colour"]).await;
-    let options = folder_form(&synth).text("options", r#"{"integration": 7}"#);
-    expect_problem(
-        post(options).await.unwrap(),
-        422,
-        &["options", "integration"],
-    )
-    .await;
-    let options = folder_form(&synth).text("options", "{not json");
-    expect_problem(post(options).await.unwrap(), 422, &["options"]).await;
-    let options =
-        folder_form(&synth).text("options", r#"{"outputs": ["albedo.png", "portrait.jpg"]}"#);
-    expect_problem(post(options).await.unwrap(), 422, &["portrait.jpg"]).await;
-    let options = folder_form(&synth).text("options", r#"{"mask": "given"}"#);
-    expect_problem(post(options).await.unwrap(), 422, &["mask"]).await;
-
-    let wrong_mask =
-        folder_form(&synth).part("mask", Part::bytes(png(50, 50, 255)).file_name("mask.png"));
-    expect_problem(
-        post(wrong_mask).await.unwrap(),
-        422,
-        &["mask", "50×50", "100×100"],
-    )
-    .await;
+    let with_options =
+        |options: &str| post(folder_form(&synth).text("options", options.to_string()));
 
     // A 400×400 dog image posing as im4.png among 100×100 images.
     let mut sizes = Form::new().part("lights", file_part(&synth.join("light_directions.csv")));
@@ -555,12 +531,6 @@ async fn invalid_inputs_get_422_with_the_cores_message() {
     }
     let dog1 = std::fs::read(dog.join("dog1.png")).unwrap();
     sizes = sizes.part("images", Part::bytes(dog1).file_name("im4.png"));
-    expect_problem(
-        post(sizes).await.unwrap(),
-        422,
-        &["\"im4.png\"", "400×400", "same size"],
-    )
-    .await;
 
     let p = png(8, 8, 50);
     let table = b"a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, 1";
@@ -570,30 +540,103 @@ async fn invalid_inputs_get_422_with_the_cores_message() {
         ("c.png", &p),
         ("light_directions.csv", table),
     ]);
-    expect_problem(
-        post(archive_form(evil)).await.unwrap(),
-        422,
-        &["unsafe path"],
-    )
-    .await;
     let nested = zip_entries(&[
         ("x/y/a.png", &p),
         ("x/y/b.png", &p),
         ("x/y/c.png", &p),
         ("x/y/light_directions.csv", table),
     ]);
-    expect_problem(
-        post(archive_form(nested)).await.unwrap(),
-        422,
-        &["one folder"],
-    )
-    .await;
     let no_table = zip_entries(&[("a.png", &p), ("b.png", &p), ("c.png", &p)]);
-    expect_problem(
-        post(archive_form(no_table)).await.unwrap(),
-        422,
-        &["light_directions.csv"],
-    )
+
+    expect_refusals(vec![
+        (
+            "bad number",
+            with_table("im1.png, 0, 0, 1\nim2.png, x, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1"),
+            422,
+            &["row 2", "\"x\""],
+        ),
+        (
+            "zero direction",
+            with_table("im1.png, 0, 0, 0\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1"),
+            422,
+            &["row 1", "zero"],
+        ),
+        (
+            "a row without its image",
+            with_table(
+                "im1.png, 0, 0, 1\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1\nim4.png, 1, 1, 1\nim5.png, -1, 0, 1",
+            ),
+            422,
+            &["\"im5.png\"", "not provided"],
+        ),
+        (
+            "an image without its row",
+            with_table("im1.png, 0, 0, 1\nim2.png, 1, 0, 1\nim3.png, 0, 1, 1"),
+            422,
+            &["\"im4.png\"", "no row"],
+        ),
+        (
+            "bad JSON table",
+            with_table(r#"[{"name": "im1.png", "direction": [0, 0]}]"#),
+            422,
+            &["invalid JSON"],
+        ),
+        (
+            "unknown option",
+            with_options(r#"{"solver": "l2", "colour": true}"#),
+            422,
+            &["options", "colour"],
+        ),
+        (
+            "option of the wrong type",
+            with_options(r#"{"integration": 7}"#),
+            422,
+            &["options", "integration"],
+        ),
+        ("options not JSON", with_options("{not json"), 422, &["options"]),
+        (
+            "unknown output",
+            with_options(r#"{"outputs": ["albedo.png", "portrait.jpg"]}"#),
+            422,
+            &["portrait.jpg"],
+        ),
+        (
+            "a given mask without one",
+            with_options(r#"{"mask": "given"}"#),
+            422,
+            &["mask"],
+        ),
+        (
+            "mask of another size",
+            post(folder_form(&synth).part("mask", Part::bytes(png(50, 50, 255)).file_name("mask.png"))),
+            422,
+            &["mask", "50×50", "100×100"],
+        ),
+        (
+            "images of two sizes",
+            post(sizes),
+            422,
+            &["\"im4.png\"", "400×400", "same size"],
+        ),
+        (
+            "unsafe archive path",
+            post(archive_form(evil)),
+            422,
+            &["unsafe path"],
+        ),
+        (
+            "archive nested two deep",
+            post(archive_form(nested)),
+            422,
+            &["one folder"],
+        ),
+        (
+            "archive without a table",
+            post(archive_form(no_table)),
+            422,
+            &["light_directions.csv"],
+        ),
+    ])
     .await;
 
     assert_eq!(
@@ -614,48 +657,61 @@ async fn unknown_things_get_404_and_unfinished_jobs_409() {
     c.stage_delay = Duration::from_millis(400);
     let s = TestServer::start(c).await;
 
-    let r = s
-        .client
-        .get(s.url(&format!("/v1/jobs/{}", uuid::Uuid::new_v4())))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 404, &["no job"]).await;
-    let r = s
-        .client
-        .get(s.url("/v1/jobs/not-a-uuid"))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 404, &["not-a-uuid"]).await;
-    let r = s
-        .client
-        .delete(s.url(&format!("/v1/jobs/{}", uuid::Uuid::new_v4())))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 404, &["no job"]).await;
-    let r = s.client.get(s.url("/v2/anything")).send().await.unwrap();
-    expect_problem(r, 404, &["/v2/anything"]).await;
-    let r = s.client.put(s.url("/v1/jobs")).send().await.unwrap();
-    expect_problem(r, 405, &["PUT"]).await;
+    expect_refusals(vec![
+        (
+            "unknown job",
+            s.client
+                .get(s.url(&format!("/v1/jobs/{}", uuid::Uuid::new_v4()))),
+            404,
+            &["no job"],
+        ),
+        (
+            "not a job id",
+            s.client.get(s.url("/v1/jobs/not-a-uuid")),
+            404,
+            &["not-a-uuid"],
+        ),
+        (
+            "deleting an unknown job",
+            s.client
+                .delete(s.url(&format!("/v1/jobs/{}", uuid::Uuid::new_v4()))),
+            404,
+            &["no job"],
+        ),
+        (
+            "unknown path",
+            s.client.get(s.url("/v2/anything")),
+            404,
+            &["/v2/anything"],
+        ),
+        (
+            "unknown method",
+            s.client.put(s.url("/v1/jobs")),
+            405,
+            &["PUT"],
+        ),
+    ])
+    .await;
 
     let job = s.submit(folder_form(&repo_root().join("res/bump"))).await;
     let id = job["id"].as_str().unwrap();
-    let r = s
-        .client
-        .get(s.url(&format!("/v1/jobs/{id}/artifacts/secrets.txt")))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 404, &["secrets.txt", "albedo.png"]).await;
-    let r = s
-        .client
-        .get(s.url(&format!("/v1/jobs/{id}/artifacts/..%2F..%2Fjobs.sqlite")))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 404, &[]).await;
+    expect_refusals(vec![
+        (
+            "unknown artifact",
+            s.client
+                .get(s.url(&format!("/v1/jobs/{id}/artifacts/secrets.txt"))),
+            404,
+            &["secrets.txt", "albedo.png"],
+        ),
+        (
+            "artifact path leaving its folder",
+            s.client
+                .get(s.url(&format!("/v1/jobs/{id}/artifacts/..%2F..%2Fjobs.sqlite"))),
+            404,
+            &[],
+        ),
+    ])
+    .await;
 
     let running = s
         .wait_for(id, Duration::from_secs(30), |j| {
@@ -759,30 +815,30 @@ async fn api_keys_guard_v1_only() {
         "Bearer realm=\"photostereo\""
     );
     expect_problem(r, 401, &["Bearer"]).await;
-    let r = s
-        .client
-        .get(s.url("/v1/jobs"))
-        .bearer_auth("second-kez")
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 401, &["not valid"]).await;
-    let r = s
-        .client
-        .get(s.url("/v1/jobs"))
-        .header("authorization", "Basic Zmlyc3Qta2V5")
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 401, &[]).await;
-    let r = s
-        .client
-        .post(s.url("/v1/jobs"))
-        .multipart(folder_form(&repo_root().join("res/bump")))
-        .send()
-        .await
-        .unwrap();
-    expect_problem(r, 401, &[]).await;
+    let list = || s.client.get(s.url("/v1/jobs"));
+    expect_refusals(vec![
+        (
+            "a wrong key",
+            list().bearer_auth("second-kez"),
+            401,
+            &["not valid"],
+        ),
+        (
+            "basic auth",
+            list().header("authorization", "Basic Zmlyc3Qta2V5"),
+            401,
+            &[],
+        ),
+        (
+            "a submission without a key",
+            s.client
+                .post(s.url("/v1/jobs"))
+                .multipart(folder_form(&repo_root().join("res/bump"))),
+            401,
+            &[],
+        ),
+    ])
+    .await;
 
     let r = s
         .client
@@ -1302,7 +1358,7 @@ async fn served_openapi_document_is_the_checked_in_one() {
     let checked_in = std::fs::read_to_string(&file).unwrap_or_default();
     assert!(
         checked_in == served,
-        "openapi/openapi.json is out of date: run `UPDATE_OPENAPI=1 cargo test --release --test api served_openapi` and commit it"
+        "openapi/openapi.json is out of date: run `UPDATE_OPENAPI=1 cargo test --release --test http served_openapi` and commit it"
     );
     s.stop().await;
 }
@@ -1725,8 +1781,8 @@ async fn a_camera_makes_depth_and_bad_cameras_get_422() {
     }));
 
     // Refusals, each a 422 naming the problem.
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
-    let with_options = |options: &str| folder_form(set.path()).text("options", options.to_string());
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
+    let mut cases: Vec<Refusal> = Vec::new();
     for (options, needles) in [
         (
             r#"{"camera": {"fx": 80, "fy": 80, "cx": 100, "cy": 31.5}}"#,
@@ -1749,31 +1805,38 @@ async fn a_camera_makes_depth_and_bad_cameras_get_422() {
             &["distance must be a positive number"],
         ),
     ] {
-        let r = post(with_options(options)).await.unwrap();
-        expect_problem(r, 422, needles).await;
+        let form = folder_form(set.path()).text("options", options.to_string());
+        cases.push((options, post(form), 422, needles));
     }
-    let part = |text: &str| folder_form(set.path()).text("camera", text.to_string());
-    expect_problem(
-        post(part("nan 0 1 0 80 2 0 0 1")).await.unwrap(),
-        422,
-        &["camera part", "fx"],
-    )
-    .await;
-    expect_problem(
-        post(part("hello")).await.unwrap(),
-        422,
-        &["camera part", "not a number"],
-    )
-    .await;
+    let part = |text: &str| post(folder_form(set.path()).text("camera", text.to_string()));
     let both = folder_form(set.path())
         .part("camera", k_part())
         .text("options", r#"{"camera": "80,80,31.5,31.5"}"#);
-    expect_problem(post(both).await.unwrap(), 422, &["not both"]).await;
     // The archive's K.txt for another resolution.
     entries.retain(|(n, _)| n != "K.txt");
     entries.push(("K.txt".into(), b"80 0 319.5\n0 80 239.5\n0 0 1\n".to_vec()));
-    let r = post(archive_form(zip(&entries))).await.unwrap();
-    expect_problem(r, 422, &["principal point", "another resolution"]).await;
+    cases.extend([
+        (
+            "a camera part with NaN",
+            part("nan 0 1 0 80 2 0 0 1"),
+            422,
+            &["camera part", "fx"][..],
+        ),
+        (
+            "a camera part of words",
+            part("hello"),
+            422,
+            &["camera part", "not a number"],
+        ),
+        ("a camera part and option", post(both), 422, &["not both"]),
+        (
+            "the archive's K.txt for another resolution",
+            post(archive_form(zip(&entries))),
+            422,
+            &["principal point", "another resolution"],
+        ),
+    ]);
+    expect_refusals(cases).await;
     s.stop().await;
 }
 
@@ -2005,102 +2068,132 @@ async fn normals_jobs_refuse_mixed_parts_and_bad_maps_naming_them() {
     let mut c = config(dir.path());
     c.max_pixels = 100 * 100; // the synth set's images
     let s = TestServer::start(c).await;
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
     let (normal, _) = ortho_sphere(40, 15.0);
     let map = || normals_part(normal_map_png16((40, 40), false, &normal), "sphere.png");
     let normals = || Form::new().part("normals", map());
-
-    // Parts of an image job, before or after the map.
     let images = || images_of(&synth).into_iter().map(|p| file_part(&p));
-    let mut both = folder_form(&synth).part("normals", map());
-    let r = post(both).await.unwrap();
-    expect_problem(r, 422, &["both a normals part and images"]).await;
-    both = normals().part("images", images().next().unwrap());
-    let r = post(both).await.unwrap();
-    expect_problem(r, 422, &["both a normals part and images"]).await;
-    for (part, value) in [("lights", "a.png, 0, 0, 1"), ("calibration", "0b6f2a43")] {
-        let r = post(normals().text(part, value)).await.unwrap();
-        expect_problem(r, 422, &["both a normals part and", part]).await;
-    }
     let archive = zip_folder(&synth, None);
-    let form = normals().part("archive", Part::bytes(archive).file_name("set.zip"));
-    expect_problem(
-        post(form).await.unwrap(),
-        422,
-        &["normals part and archive"],
-    )
-    .await;
-
-    // Maps that are no normal maps, or too large.
-    let refused = [
+    let map_of = |part: Part| post(Form::new().part("normals", part));
+    let with_options = |options: &str| post(normals().text("options", options.to_string()));
+    let writes = "mask.png, normal.png, height.png, height.exr, points.ply, mesh.glb, result.json";
+    expect_refusals(vec![
+        // Parts of an image job, before or after the map.
         (
-            Part::bytes(png(40, 40, 128)).file_name("gray.png"),
+            "images, then a map",
+            post(folder_form(&synth).part("normals", map())),
             422,
-            &["\"gray.png\"", "L8", "RGB"][..],
+            &["both a normals part and images"],
         ),
         (
-            Part::bytes(b"hello".to_vec()).file_name("n.txt"),
+            "a map, then an image",
+            post(normals().part("images", images().next().unwrap())),
+            422,
+            &["both a normals part and images"],
+        ),
+        (
+            "a map and lights",
+            post(normals().text("lights", "a.png, 0, 0, 1")),
+            422,
+            &["both a normals part and", "lights"],
+        ),
+        (
+            "a map and a calibration",
+            post(normals().text("calibration", "0b6f2a43")),
+            422,
+            &["both a normals part and", "calibration"],
+        ),
+        (
+            "a map and an archive",
+            post(normals().part("archive", Part::bytes(archive).file_name("set.zip"))),
+            422,
+            &["normals part and archive"],
+        ),
+        // Maps that are no normal maps, or too large.
+        (
+            "a gray map",
+            map_of(Part::bytes(png(40, 40, 128)).file_name("gray.png")),
+            422,
+            &["\"gray.png\"", "L8", "RGB"],
+        ),
+        (
+            "text as a map",
+            map_of(Part::bytes(b"hello".to_vec()).file_name("n.txt")),
             422,
             &["\"n.txt\"", "not a format that can be read"],
         ),
         (
-            normals_part(
+            "a map over the pixel limit",
+            map_of(normals_part(
                 normal_map_png16((120, 120), false, |_, _| Some([0.0, 0.0, 1.0])),
                 "big.png",
-            ),
+            )),
             413,
             &["big.png", "120×120"],
         ),
-    ];
-    for (part, status, needles) in refused {
-        let r = post(Form::new().part("normals", part)).await.unwrap();
-        expect_problem(r, status, needles).await;
-    }
-    // A mask of another size, options a normals job does not take, a bad convention, a
-    // convention without a map, a camera that does not fit the map.
-    let mask = Part::bytes(png(30, 20, 255)).file_name("mask.png");
-    let r = post(normals().part("mask", mask)).await.unwrap();
-    expect_problem(
-        r,
-        422,
-        &["mask \"mask.png\" is 30×20", "\"sphere.png\" is 40×40"],
-    )
+        // A mask of another size, options a normals job does not take, a bad convention, a
+        // convention without a map, a camera that does not fit the map.
+        (
+            "a mask of another size",
+            post(normals().part("mask", Part::bytes(png(30, 20, 255)).file_name("mask.png"))),
+            422,
+            &["mask \"mask.png\" is 30×20", "\"sphere.png\" is 40×40"],
+        ),
+        (
+            "a solver",
+            with_options(r#"{"solver": "l2"}"#),
+            422,
+            &["`solver` does not apply to a normals job"],
+        ),
+        // Outputs it never writes, or of the other projection, judged against its camera.
+        (
+            "outputs it never writes",
+            with_options(r#"{"outputs": ["mesh.glb", "albedo.png"]}"#),
+            422,
+            &["`outputs`", "\"albedo.png\"", writes],
+        ),
+        (
+            "depth without a camera",
+            with_options(r#"{"outputs": ["depth.exr"]}"#),
+            422,
+            &["`outputs`", "\"depth.exr\"", "needs a camera"],
+        ),
+        (
+            "heights under a camera",
+            post(
+                normals()
+                    .text("camera", "50,50,20,20")
+                    .text("options", r#"{"outputs": ["depth.exr", "height.png"]}"#),
+            ),
+            422,
+            &["`outputs`", "\"height.png\"", "under a camera"],
+        ),
+        (
+            "an unknown convention",
+            post(normals().text("convention", "sideways")),
+            422,
+            &["\"sideways\"", "opengl", "directx"],
+        ),
+        (
+            "a convention without a map",
+            post(folder_form(&synth).text("convention", "directx")),
+            422,
+            &["convention part goes with a normals part"],
+        ),
+        (
+            "a camera that does not fit the map",
+            post(normals().text("camera", "500,500,300,250")),
+            422,
+            &["principal point"],
+        ),
+        (
+            "a distance without a camera",
+            with_options(r#"{"distance": 3}"#),
+            422,
+            &["distance needs a camera"],
+        ),
+    ])
     .await;
-    let r = post(normals().text("options", r#"{"solver": "l2"}"#))
-        .await
-        .unwrap();
-    expect_problem(r, 422, &["`solver` does not apply to a normals job"]).await;
-    // Outputs it never writes, or of the other projection, judged against its camera.
-    let r = post(normals().text("options", r#"{"outputs": ["mesh.glb", "albedo.png"]}"#))
-        .await
-        .unwrap();
-    let writes = "mask.png, normal.png, height.png, height.exr, points.ply, mesh.glb, result.json";
-    expect_problem(r, 422, &["`outputs`", "\"albedo.png\"", writes]).await;
-    let r = post(normals().text("options", r#"{"outputs": ["depth.exr"]}"#))
-        .await
-        .unwrap();
-    expect_problem(r, 422, &["`outputs`", "\"depth.exr\"", "needs a camera"]).await;
-    let under_camera = normals()
-        .text("camera", "50,50,20,20")
-        .text("options", r#"{"outputs": ["depth.exr", "height.png"]}"#);
-    let r = post(under_camera).await.unwrap();
-    expect_problem(r, 422, &["`outputs`", "\"height.png\"", "under a camera"]).await;
-    let r = post(normals().text("convention", "sideways"))
-        .await
-        .unwrap();
-    expect_problem(r, 422, &["\"sideways\"", "opengl", "directx"]).await;
-    let r = post(folder_form(&synth).text("convention", "directx"))
-        .await
-        .unwrap();
-    expect_problem(r, 422, &["convention part goes with a normals part"]).await;
-    let r = post(normals().text("camera", "500,500,300,250"))
-        .await
-        .unwrap();
-    expect_problem(r, 422, &["principal point"]).await;
-    let r = post(normals().text("options", r#"{"distance": 3}"#))
-        .await
-        .unwrap();
-    expect_problem(r, 422, &["distance needs a camera"]).await;
 
     // What only decoding finds fails the job, naming it: vectors that are not unit
     // length, no usable pixel.
@@ -2310,24 +2403,41 @@ async fn a_near_light_table_makes_a_near_light_job() {
 
     // Without a working distance or a camera, refused before the job is queued, naming
     // what is missing (and only that).
-    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form).send();
-    for (missing, given) in [("distance", "camera"), ("camera", "distance")] {
-        let r = post(form(&without(missing))).await.unwrap();
-        let body = expect_problem(r, 422, &[missing]).await;
-        assert!(!body["detail"].as_str().unwrap().contains(given), "{body}");
-    }
+    let post = |form: Form| s.client.post(s.url("/v1/jobs")).multipart(form);
     // A light behind the camera: the parser's refusal, naming the row.
     let mut behind = table.clone();
     behind["lights"][1]["position"][2] = serde_json::json!(5.0);
-    expect_problem(
-        post(form(&behind)).await.unwrap(),
-        422,
-        &["row 2", "behind the camera"],
-    )
+    let bodies = expect_refusals(vec![
+        (
+            "no distance",
+            post(form(&without("distance"))),
+            422,
+            &["distance"],
+        ),
+        (
+            "no camera",
+            post(form(&without("camera"))),
+            422,
+            &["camera"],
+        ),
+        (
+            "a light behind the camera",
+            post(form(&behind)),
+            422,
+            &["row 2", "behind the camera"],
+        ),
+        // A camera that cannot have taken 64 × 64 images.
+        (
+            "a camera for other images",
+            post(form(&without("camera")).text("camera", "80,80,300,31.5")),
+            422,
+            &["principal point"],
+        ),
+    ])
     .await;
-    // A camera that cannot have taken 64 × 64 images.
-    let wide = form(&without("camera")).text("camera", "80,80,300,31.5");
-    expect_problem(post(wide).await.unwrap(), 422, &["principal point"]).await;
+    for (body, given) in bodies.iter().zip(["camera", "distance"]) {
+        assert!(!body["detail"].as_str().unwrap().contains(given), "{body}");
+    }
     s.stop().await;
 }
 

@@ -4,12 +4,12 @@
 //! the cap, where an idle connection makes room and busy ones get a 503; the server's
 //! memory through it all.
 //!
-//! The tests take turns ([`SERIAL`]): each opens thousands of sockets and measures
+//! The tests take turns with the `serial` program's others (`crate::ONE_AT_A_TIME`), and no
+//! other program's tests run beside them: each opens thousands of sockets and measures
 //! latencies on two cores.
 
-mod binserver;
-#[path = "common/raw_http.rs"]
-mod raw_http;
+use crate::binserver;
+use crate::common::raw_http;
 
 use std::time::{Duration, Instant};
 
@@ -17,8 +17,6 @@ use binserver::BinServer;
 use raw_http::{RawAnswer, read_answer};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
-
-static SERIAL: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 /// The server's `--api-key` (tenant:secret) and the bearer key its clients send.
 const API_KEY: &str = "tenant-a:s3cret-key";
@@ -199,7 +197,7 @@ fn peak_mb(s: &BinServer) -> u64 {
 /// silent and 1,500 trickling connections, opened in waves with probes between them.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn thousands_of_idle_and_trickling_connections_leave_probes_answering() {
-    let _turn = SERIAL.lock().await;
+    let _turn = crate::ONE_AT_A_TIME.lock().await;
     assert!(
         raise_own_file_limit() >= 12_000,
         "the test needs 12,000 descriptors"
@@ -268,7 +266,7 @@ fn start_with_short_timeouts(dir: &std::path::Path) -> BinServer {
 /// answer, and probes answer throughout.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn idle_trickling_and_kept_alive_connections_close_after_their_timeouts() {
-    let _turn = SERIAL.lock().await;
+    let _turn = crate::ONE_AT_A_TIME.lock().await;
     raise_own_file_limit();
     let dir = tempfile::tempdir().unwrap();
     let s = start_with_short_timeouts(dir.path());
@@ -360,7 +358,7 @@ async fn upload_in_flight(addr: &str) -> TcpStream {
 /// one makes room for a new one; a closed one frees its place.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn past_the_cap_an_idle_connection_makes_room_and_busy_ones_get_503() {
-    let _turn = SERIAL.lock().await;
+    let _turn = crate::ONE_AT_A_TIME.lock().await;
     let dir = tempfile::tempdir().unwrap();
     let flags = ["--max-connections", "20", "--upload-timeout", "1m"];
     let s = BinServer::start(dir.path(), &flags);
@@ -424,7 +422,7 @@ async fn past_the_cap_an_idle_connection_makes_room_and_busy_ones_get_503() {
 /// though its request is in flight.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_that_reads_nothing_is_closed_after_the_send_timeout() {
-    let _turn = SERIAL.lock().await;
+    let _turn = crate::ONE_AT_A_TIME.lock().await;
     let dir = tempfile::tempdir().unwrap();
     let flags = ["--send-timeout", "2s", "--keep-alive-timeout", "1m"];
     let s = BinServer::start(dir.path(), &flags);
@@ -528,7 +526,7 @@ async fn h2_status(c: &mut TcpStream) -> Option<u16> {
 /// request at the keep-alive timeout; 1,000 such silent ones leave the probes answering.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn h2c_connections_close_after_their_timeouts() {
-    let _turn = SERIAL.lock().await;
+    let _turn = crate::ONE_AT_A_TIME.lock().await;
     raise_own_file_limit();
     let dir = tempfile::tempdir().unwrap();
     let s = start_with_short_timeouts(dir.path());

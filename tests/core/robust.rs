@@ -1,7 +1,7 @@
 //! The robust solver against ground truth on the project's rendered scenes (res/), and
 //! against least squares on the seed's real data.
 
-mod seed;
+use crate::seed;
 
 use std::path::{Path, PathBuf};
 

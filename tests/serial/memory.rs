@@ -1,6 +1,7 @@
 //! The job workers give freed memory back to the kernel as each job ends
-//! (`release_free_heap`). Its own test binary, so no other test's allocations move the
-//! resident size it measures.
+//! (`release_free_heap`). In the `serial` program, taking its turn with the program's
+//! other tests (`crate::ONE_AT_A_TIME`), so no other test's allocations move the resident
+//! size it measures.
 
 /// Resident set size of this process, bytes.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
@@ -18,6 +19,7 @@ fn resident() -> u64 {
 #[test]
 fn freed_heap_is_returned_to_the_kernel() {
     const MB: u64 = 1 << 20;
+    let _turn = crate::ONE_AT_A_TIME.blocking_lock();
     // On a thread of its own, as a job's allocations are: its blocks live in a glibc arena
     // of their own. 64 KiB blocks stay below the mmap threshold, and freeing every other
     // one leaves 32 MiB of holes that no automatic trim of the heap's top can reach.

@@ -11,12 +11,10 @@
 //!   under the running cluster loses no accepted job, submissions meanwhile get 503, and
 //!   the instances go on without a restart.
 
-mod binserver;
-mod common;
-#[path = "common/postgres.rs"]
-mod postgres;
-#[path = "common/weed.rs"]
-mod weed;
+use crate::binserver;
+use crate::common;
+use crate::common::postgres;
+use crate::common::weed;
 
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};

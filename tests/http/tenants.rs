@@ -2,8 +2,8 @@
 //! answered exactly like ids that never existed), admins see all, keys files re-read on
 //! SIGHUP.
 
-mod binserver;
-mod common;
+use crate::binserver;
+use crate::common;
 
 use std::time::Duration;
 

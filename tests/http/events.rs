@@ -1,7 +1,7 @@
 //! `GET /v1/jobs/{id}/events` over HTTP: a job's events in order, a late subscriber, a
 //! deleted job, an unknown one.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

@@ -3,8 +3,8 @@
 //! duplicate `Authorization` headers, a stored record that cannot be read back, and an
 //! `Idempotency-Key` replayed after its job or calibration was deleted.
 
-mod binserver;
-mod common;
+use crate::binserver;
+use crate::common;
 
 use std::path::Path;
 use std::time::{Duration, Instant};

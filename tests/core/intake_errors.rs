@@ -2,7 +2,7 @@
 
 use std::path::Path;
 
-mod common;
+use crate::common;
 
 use image::{GrayImage, ImageBuffer, Luma, Rgb, RgbImage};
 use photostereo::core::intake::{self, Limits};

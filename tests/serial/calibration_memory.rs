@@ -2,8 +2,10 @@
 //! 0.8 MB sent, 3.2 GB once decoded as 16-bit planes) must be answered, with the server's
 //! peak resident memory (VmHWM) within its resident memory at start plus the documented
 //! peak of one calibration, `core::calibrate::peak_bytes(--max-pixels)`.
+//! It takes its turn with the `serial` program's other tests (`crate::ONE_AT_A_TIME`), which
+//! measure this process: its own allocations stay out of their figures.
 
-mod binserver;
+use crate::binserver;
 
 use binserver::BinServer;
 use photostereo::core::calibrate;
@@ -35,6 +37,7 @@ fn black_png(side: u32) -> Vec<u8> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn black_5792_square_images_stay_within_the_documented_calibration_peak() {
+    let _turn = crate::ONE_AT_A_TIME.lock().await;
     let dir = tempfile::tempdir().unwrap();
     let s = BinServer::start(dir.path(), &["--workers", "2"]);
     let start_kb = s.memory_kb("VmRSS");

@@ -4,8 +4,8 @@
 //! away keeps its slot until its work ends; a job that does not fit the budget waits in
 //! the queue; /metrics and /readyz tell.
 
-mod binserver;
-mod common;
+use crate::binserver;
+use crate::common;
 
 use std::time::{Duration, Instant};
 

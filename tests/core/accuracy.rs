@@ -1,7 +1,7 @@
 //! Accuracy against ground truth: the project's rendered sets in res/ and the seed's real
 //! data in ../shared/seed-data.
 
-mod seed;
+use crate::seed;
 
 use std::path::{Path, PathBuf};
 

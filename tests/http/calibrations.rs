@@ -2,7 +2,7 @@
 //! against their true lights, the files it keeps, its errors, tenants, idempotency, a
 //! restart, and jobs that take a calibration's lights instead of a light table.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

@@ -4,9 +4,8 @@
 //! exactly as on the data directory, the objects are really there and go with DELETE and
 //! retention, and an outage answers 503 with Retry-After while accepted jobs wait it out.
 
-mod common;
-#[path = "common/weed.rs"]
-mod weed;
+use crate::common;
+use crate::common::weed;
 
 use std::collections::BTreeSet;
 use std::path::Path;

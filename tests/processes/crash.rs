@@ -6,8 +6,8 @@
 //! artifacts of succeeded jobs: a half-written artifact is never served, and an artifact
 //! never changes once served.
 
-mod binserver;
-mod common;
+use crate::binserver;
+use crate::common;
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;

@@ -4,7 +4,7 @@
 //! median(true / estimated) over the mask (MADE). Skipped with a message on a fresh clone;
 //! required under `CI=true`.
 
-mod seed;
+use crate::seed;
 
 use std::path::Path;
 use std::time::Instant;

@@ -4,7 +4,7 @@
 //! fitted by hand (`sphere.json`). Skipped with a message on a fresh clone; required
 //! under `CI=true`.
 
-mod seed;
+use crate::seed;
 
 use std::path::Path;
 

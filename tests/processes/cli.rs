@@ -1,12 +1,12 @@
 //! The `photostereo` binary end to end: the seed's three sets and res/ through
 //! `reconstruct`, and `render` reproducing res/.
 
-mod seed;
+use crate::seed;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-mod common;
+use crate::common;
 
 use common::{PINHOLE_K, benchmark_folder, mean_normal_error_deg, pinhole_sphere_set};
 use photostereo::core::{outputs, synth};

@@ -1,8 +1,8 @@
 //! `photostereo integrate` end to end: normal maps written here (and the real DiLiGenT
 //! maps under ../shared/real/normals) through the real binary.
 
-mod common;
-mod seed;
+use crate::common;
+use crate::seed;
 
 use std::path::Path;
 use std::process::{Command, Output};

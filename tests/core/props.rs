@@ -3,7 +3,7 @@
 //! they accept must be usable, what they refuse is an input error (4xx), and each call
 //! stays fast.
 
-mod common;
+use crate::common;
 
 use std::collections::HashSet;
 use std::io::{Cursor, Write};

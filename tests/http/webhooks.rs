@@ -3,7 +3,7 @@
 //! stop (unless its retry window closed meanwhile); callback URLs off the allow-list are
 //! refused at submission.
 
-mod common;
+use crate::common;
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};

@@ -3,7 +3,7 @@
 //! against the default on every scene; the roughness it fits on the GGX scenes; and the
 //! matte controls, which check the renderer's ground truth.
 //!
-//! `cargo test --release --test glossy -- --nocapture` prints the table.
+//! `cargo test --release --test core glossy:: -- --nocapture` prints the table.
 
 use image::{DynamicImage, ImageBuffer, Luma, Rgb};
 use ndarray::{Array2, Array3, Axis};

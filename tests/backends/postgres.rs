@@ -5,11 +5,9 @@
 //! instances start together), and a service on it (with the S3 store, `common/weed.rs`)
 //! runs jobs whose records survive a restart and an outage.
 
-mod common;
-#[path = "common/postgres.rs"]
-mod postgres;
-#[path = "common/weed.rs"]
-mod weed;
+use crate::common;
+use crate::common::postgres;
+use crate::common::weed;
 
 use std::sync::Arc;
 use std::time::Duration;

@@ -8,7 +8,7 @@
 //! scene's depth range. Orthographic heights have an unknown offset instead of a scale: the
 //! estimate is shifted by `median(true − estimated)`.
 //!
-//! `cargo test --release --test depth_steps -- --nocapture` prints the tables.
+//! `cargo test --release --test core depth_steps:: -- --nocapture` prints the tables.
 
 use std::sync::Mutex;
 use std::time::Instant;

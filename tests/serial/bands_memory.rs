@@ -1,10 +1,7 @@
 //! A set of many images is read in bands and never held whole, and each kind of job
-//! peaks within what the service reserves for it. Its own test binary (as
-//! `tests/memory.rs` is), so that no other test's allocations move the peaks it measures;
-//! its tests take turns for the same reason.
-
-/// Held by each test while it measures.
-static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+//! peaks within what the service reserves for it. In the `serial` program, so that no
+//! other test's allocations move the peaks it measures; its tests take turns with the
+//! program's others (`crate::ONE_AT_A_TIME`) for the same reason.
 
 /// Peak resident size of this process (VmHWM), bytes; reset to the current size by
 /// writing 5 to /proc/self/clear_refs.
@@ -28,7 +25,7 @@ fn many_images_reconstruct_without_holding_the_stack() {
     use photostereo::core::intake::{DirMask, Limits};
     use photostereo::core::{Options, RunToEnd, pipeline, stream, synth};
     const MB: u64 = 1 << 20;
-    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let _turn = crate::ONE_AT_A_TIME.blocking_lock();
     let (size, count) = (768, 200);
     let stack = (size * size * 2 * count) as u64;
     let dir = tempfile::tempdir().unwrap();
@@ -75,7 +72,7 @@ fn each_kind_of_job_peaks_within_what_the_service_reserves() {
     use photostereo::core::{
         Options, RunToEnd, near, normalmap, normals_in, pipeline, stream, synth,
     };
-    let _turn = ONE_AT_A_TIME.lock().unwrap_or_else(|p| p.into_inner());
+    let _turn = crate::ONE_AT_A_TIME.blocking_lock();
     const MB: f64 = (1 << 20) as f64;
     let size = 2048;
     let pixels = (size * size) as u64;

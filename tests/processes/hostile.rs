@@ -5,9 +5,9 @@
 //! stayed under [`MEMORY_BOUND_KB`]. Also: the API key guards every /v1 route, and a
 //! bounded load test (20 jobs and 1,000 status requests at once).
 
-mod binserver;
-mod common;
-mod seed;
+use crate::binserver;
+use crate::common;
+use crate::seed;
 
 use std::io::Write;
 use std::path::Path;
@@ -80,6 +80,19 @@ async fn refused(s: &BinServer, case: &str, form: Form, status: u16, needles: &[
     let body = expect_problem(r, status, needles).await;
     assert_alive(s, case).await;
     body
+}
+
+/// One case of a table of refusals: its name, the form, and the problem it must get (the
+/// status and words of its detail).
+type Refusal<'a> = (&'a str, Form, u16, &'a [&'a str]);
+
+/// [`refused`] for each case in turn; returns the bodies.
+async fn all_refused(s: &BinServer, cases: Vec<Refusal<'_>>) -> Vec<Value> {
+    let mut bodies = Vec::new();
+    for (case, form, status, needles) in cases {
+        bodies.push(refused(s, case, form, status, needles).await);
+    }
+    bodies
 }
 
 /// No job was accepted and (after the refusals' clean-up) no job files are left.
@@ -246,50 +259,46 @@ async fn image_headers_claiming_huge_sizes_are_refused_before_decoding() {
     let dir = tempfile::tempdir().unwrap();
     let s = start(dir.path());
     let bomb = png_claiming(100_000, 100_000);
-    let mut form = Form::new().text("lights", TABLE3);
-    form = form.part("images", Part::bytes(bomb.clone()).file_name("a.png"));
-    refused(
-        &s,
-        "PNG claiming 100000×100000",
-        form,
-        413,
-        &["\"a.png\"", "100000×100000", "10000000000"],
-    )
-    .await;
-
+    let first = Form::new()
+        .text("lights", TABLE3)
+        .part("images", Part::bytes(bomb.clone()).file_name("a.png"));
     // The same bomb as the third image, after two good ones.
-    let form = Form::new()
+    let third = Form::new()
         .text("lights", TABLE3)
         .part("images", Part::bytes(png(16, 16, 9)).file_name("b.png"))
         .part("images", Part::bytes(png(16, 16, 9)).file_name("c.png"))
         .part("images", Part::bytes(bomb.clone()).file_name("a.png"));
-    refused(
-        &s,
-        "PNG bomb third",
-        form,
-        413,
-        &["\"a.png\"", "100000×100000"],
-    )
-    .await;
-
-    // As the mask.
-    let form = three_pngs(Part::text(TABLE3))
+    let mask = three_pngs(Part::text(TABLE3))
         .part("mask", Part::bytes(bomb.clone()).file_name("mask.png"));
-    refused(&s, "PNG bomb mask", form, 413, &["100000×100000"]).await;
-
-    // In an archive.
     let zip = common::zip_entries(&[
         ("a.png", &bomb),
         ("b.png", &png(16, 16, 1)),
         ("c.png", &png(16, 16, 1)),
         ("light_directions.csv", TABLE3.as_bytes()),
     ]);
-    refused(
+    all_refused(
         &s,
-        "PNG bomb in a zip",
-        archive_form(zip),
-        413,
-        &["\"a.png\"", "100000×100000"],
+        vec![
+            (
+                "PNG claiming 100000×100000",
+                first,
+                413,
+                &["\"a.png\"", "100000×100000", "10000000000"],
+            ),
+            (
+                "PNG bomb third",
+                third,
+                413,
+                &["\"a.png\"", "100000×100000"],
+            ),
+            ("PNG bomb mask", mask, 413, &["100000×100000"]),
+            (
+                "PNG bomb in a zip",
+                archive_form(zip),
+                413,
+                &["\"a.png\"", "100000×100000"],
+            ),
+        ],
     )
     .await;
 
@@ -358,31 +367,30 @@ async fn jobs_over_the_input_bytes_or_image_size_limits_are_refused() {
         .part("images", Part::bytes(small[0].clone()).file_name("a.png"))
         .part("images", Part::bytes(small[1].clone()).file_name("b.png"))
         .part("images", Part::bytes(noisy.clone()).file_name("c.png"));
-    refused(&s, "input bytes", form, 413, &over_bytes).await;
     let zip = common::zip_entries(&[
         ("a.png", &small[0]),
         ("b.png", &small[1]),
         ("c.png", &noisy),
         ("light_directions.csv", TABLE3.as_bytes()),
     ]);
-    refused(
-        &s,
-        "input bytes in a zip",
-        archive_form(zip),
-        413,
-        &over_bytes,
-    )
-    .await;
     // 20×20 is 400 pixels an image, over --max-pixels.
-    let form = Form::new()
+    let large = Form::new()
         .text("lights", TABLE3)
         .part("images", Part::bytes(png(20, 20, 60)).file_name("a.png"));
     let over_pixels = ["\"a.png\"", "20×20", "limit of 300"];
-    refused(&s, "image size", form, 413, &over_pixels).await;
     // A normal map is held to the same limit, and refused alike.
     let map = common::normal_map_png16((20, 20), false, |_, _| Some([0.0, 0.0, 1.0]));
-    let form = Form::new().part("normals", Part::bytes(map).file_name("a.png"));
-    refused(&s, "normal map size", form, 413, &over_pixels).await;
+    let map = Form::new().part("normals", Part::bytes(map).file_name("a.png"));
+    all_refused(
+        &s,
+        vec![
+            ("input bytes", form, 413, &over_bytes),
+            ("input bytes in a zip", archive_form(zip), 413, &over_bytes),
+            ("image size", large, 413, &over_pixels),
+            ("normal map size", map, 413, &over_pixels),
+        ],
+    )
+    .await;
     nothing_accepted(&s).await;
 
     // Under both (600 pixels in all, past the old per-job bound of 100): accepted.
@@ -432,23 +440,26 @@ async fn a_ragged_png_palette_fails_its_job_by_name_and_the_server_lives() {
         .part("images", Part::bytes(png(6, 5, 9)).file_name("a.png"))
         .part("images", Part::bytes(ragged.clone()).file_name("b.png"))
         .part("images", Part::bytes(png(6, 5, 9)).file_name("c.png"));
-    job_fails(&s, "ragged palette", form, &needles).await;
-
     let zip = common::zip_entries(&[
         ("a.png", &png(6, 5, 1)),
         ("b.png", &ragged),
         ("c.png", &png(6, 5, 1)),
         ("light_directions.csv", TABLE3.as_bytes()),
     ]);
-    job_fails(&s, "ragged palette in a zip", archive_form(zip), &needles).await;
-
-    let form = Form::new()
+    let mask = Form::new()
         .text("lights", TABLE3)
         .part("images", Part::bytes(png(6, 5, 9)).file_name("a.png"))
         .part("images", Part::bytes(png(6, 5, 9)).file_name("b.png"))
         .part("images", Part::bytes(png(6, 5, 9)).file_name("c.png"))
         .part("mask", Part::bytes(ragged).file_name("mask.png"));
-    job_fails(&s, "ragged palette mask", form, &["PLTE", "13 bytes"]).await;
+    let cases: [(&str, Form, &[&str]); 3] = [
+        ("ragged palette", form, &needles),
+        ("ragged palette in a zip", archive_form(zip), &needles),
+        ("ragged palette mask", mask, &["PLTE", "13 bytes"]),
+    ];
+    for (case, form, needles) in cases {
+        job_fails(&s, case, form, needles).await;
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -517,26 +528,30 @@ async fn zip_bombs_and_unsafe_entries_are_refused() {
     }
     w.start_file("light_directions.csv", opts).unwrap();
     w.write_all(TABLE3.as_bytes()).unwrap();
-    let zip = w.finish().unwrap().into_inner();
-    refused(&s, "symlink", archive_form(zip), 422, &["symbolic link"]).await;
+    let symlink = w.finish().unwrap().into_inner();
 
     // More entries than parts allowed; a truncated archive; garbage after the signature.
     let many: Vec<(String, Vec<u8>)> = (0..150).map(|i| (format!("{i}.png"), p.clone())).collect();
     let refs: Vec<(&str, &[u8])> = many.iter().map(|(n, d)| (n.as_str(), &d[..])).collect();
     let zip = common::zip_entries(&refs);
-    refused(
-        &s,
-        "150 entries",
-        archive_form(zip.clone()),
-        413,
-        &["150 entries", "limit of 100"],
-    )
-    .await;
     let cut = zip[..zip.len() / 2].to_vec();
-    refused(&s, "truncated zip", archive_form(cut), 422, &["archive"]).await;
     let mut junk = b"PK\x03\x04".to_vec();
     junk.extend(std::iter::repeat_n(0xA5u8, 100_000));
-    refused(&s, "junk zip", archive_form(junk), 422, &["archive"]).await;
+    all_refused(
+        &s,
+        vec![
+            ("symlink", archive_form(symlink), 422, &["symbolic link"]),
+            (
+                "150 entries",
+                archive_form(zip.clone()),
+                413,
+                &["150 entries", "limit of 100"],
+            ),
+            ("truncated zip", archive_form(cut), 422, &["archive"]),
+            ("junk zip", archive_form(junk), 422, &["archive"]),
+        ],
+    )
+    .await;
     nothing_accepted(&s).await;
 }
 
@@ -868,43 +883,41 @@ async fn hostile_light_tables() {
     }
     // Not UTF-8.
     let bad = b"a.png, 0, 0, 1\nb.png, 1, 0, 1\nc.png, 0, 1, \xff\xfe\n".to_vec();
-    refused(
-        &s,
-        "invalid UTF-8",
-        three_pngs(Part::bytes(bad)),
-        422,
-        &["UTF-8", "offset 43"],
-    )
-    .await;
     // Deeply nested JSON: serde's recursion limit, not a stack overflow.
     let deep = format!("{}{}", "[".repeat(100_000), "]".repeat(100_000));
-    refused(
-        &s,
-        "nested JSON table",
-        three_pngs(Part::text(deep)),
-        422,
-        &["invalid JSON"],
-    )
-    .await;
     // More rows than the parser takes, and more bytes than the part takes.
     let rows: String = (0..10_001)
         .map(|i| format!("i{i}.png, 0, 0, 1\n"))
         .collect();
-    refused(
-        &s,
-        "10001 rows",
-        three_pngs(Part::text(rows)),
-        422,
-        &["more than 10000 rows"],
-    )
-    .await;
     let huge = "# padding\n".repeat(200_000);
-    refused(
+    all_refused(
         &s,
-        "2 MB table",
-        three_pngs(Part::text(huge)),
-        413,
-        &["lights part is larger than 1048576 bytes"],
+        vec![
+            (
+                "invalid UTF-8",
+                three_pngs(Part::bytes(bad)),
+                422,
+                &["UTF-8", "offset 43"],
+            ),
+            (
+                "nested JSON table",
+                three_pngs(Part::text(deep)),
+                422,
+                &["invalid JSON"],
+            ),
+            (
+                "10001 rows",
+                three_pngs(Part::text(rows)),
+                422,
+                &["more than 10000 rows"],
+            ),
+            (
+                "2 MB table",
+                three_pngs(Part::text(huge)),
+                413,
+                &["lights part is larger than 1048576 bytes"],
+            ),
+        ],
     )
     .await;
     nothing_accepted(&s).await;
@@ -963,28 +976,35 @@ async fn hostile_options() {
             "{case}"
         );
     }
-    let deep = format!(
+    let deep_mesh = format!(
         "{{\"mesh\": {}{}}}",
         "[".repeat(100_000),
         "]".repeat(100_000)
     );
-    refused(&s, "nested options", with_options(&deep), 413, &["options"]).await;
     let deep = format!("{}{}", "[".repeat(20_000), "]".repeat(20_000));
-    refused(
-        &s,
-        "nested options",
-        with_options(&deep),
-        422,
-        &["not valid JSON"],
-    )
-    .await;
     let big = format!(r#"{{"solver": "l2"{}}}"#, " ".repeat(100_000));
-    refused(
+    all_refused(
         &s,
-        "100 kB options",
-        with_options(&big),
-        413,
-        &["options part is larger than 65536 bytes"],
+        vec![
+            (
+                "nested options",
+                with_options(&deep_mesh),
+                413,
+                &["options"],
+            ),
+            (
+                "nested options",
+                with_options(&deep),
+                422,
+                &["not valid JSON"],
+            ),
+            (
+                "100 kB options",
+                with_options(&big),
+                413,
+                &["options part is larger than 65536 bytes"],
+            ),
+        ],
     )
     .await;
     nothing_accepted(&s).await;
@@ -1007,17 +1027,8 @@ async fn mixed_sizes_and_bit_depths_are_refused_at_submission() {
         };
         form = form.part("images", part);
     }
-    refused(
-        &s,
-        "mixed sizes",
-        form,
-        422,
-        &["\"im3.png\"", "400×400", "100×100", "same size"],
-    )
-    .await;
-
     // 8-bit and 16-bit images of the same size.
-    let form = Form::new()
+    let depths = Form::new()
         .text("lights", TABLE3)
         .part("images", Part::bytes(png(16, 16, 90)).file_name("a.png"))
         .part(
@@ -1025,14 +1036,6 @@ async fn mixed_sizes_and_bit_depths_are_refused_at_submission() {
             Part::bytes(png16(16, 16, 30_000)).file_name("b.png"),
         )
         .part("images", Part::bytes(png(16, 16, 90)).file_name("c.png"));
-    refused(
-        &s,
-        "mixed bit depths",
-        form,
-        422,
-        &["\"b.png\"", "16-bit", "\"a.png\"", "8-bit", "bit depth"],
-    )
-    .await;
     // The same in an archive.
     let zip = common::zip_entries(&[
         ("a.png", &png16(16, 16, 1000)),
@@ -1040,18 +1043,34 @@ async fn mixed_sizes_and_bit_depths_are_refused_at_submission() {
         ("c.png", &png(16, 16, 90)),
         ("light_directions.csv", TABLE3.as_bytes()),
     ]);
-    refused(
+    // A mask of another size.
+    let mask = three_pngs(Part::text(TABLE3))
+        .part("mask", Part::bytes(png(17, 16, 255)).file_name("m.png"));
+    all_refused(
         &s,
-        "mixed bit depths in a zip",
-        archive_form(zip),
-        422,
-        &["\"c.png\"", "8-bit", "16-bit"],
+        vec![
+            (
+                "mixed sizes",
+                form,
+                422,
+                &["\"im3.png\"", "400×400", "100×100", "same size"],
+            ),
+            (
+                "mixed bit depths",
+                depths,
+                422,
+                &["\"b.png\"", "16-bit", "\"a.png\"", "8-bit", "bit depth"],
+            ),
+            (
+                "mixed bit depths in a zip",
+                archive_form(zip),
+                422,
+                &["\"c.png\"", "8-bit", "16-bit"],
+            ),
+            ("mask size", mask, 422, &["mask", "17×16"]),
+        ],
     )
     .await;
-    // A mask of another size.
-    let form = three_pngs(Part::text(TABLE3))
-        .part("mask", Part::bytes(png(17, 16, 255)).file_name("m.png"));
-    refused(&s, "mask size", form, 422, &["mask", "17×16"]).await;
     nothing_accepted(&s).await;
 }
 
