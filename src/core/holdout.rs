@@ -39,6 +39,18 @@ pub const MIN_IMAGES: usize = 2 * FOLDS;
 const CLIPPED: f64 = 0.995;
 const DARK: f64 = 0.02;
 
+/// Refuses a holdout score of a set of `count` images, too few to leave some out (a job
+/// is refused at its submission, before its 202).
+pub fn check_count(count: usize) -> Result<(), InputError> {
+    if count < MIN_IMAGES {
+        return Err(InputError::Options(format!(
+            "holdout_lights needs at least {MIN_IMAGES} images (each quarter of the lights \
+             is left out in turn); this set has {count}"
+        )));
+    }
+    Ok(())
+}
+
 /// Score `opts`' solver on `stack` by leaving out each of [`FOLDS`] folds of its lights
 /// in turn (every 4th light from the fold's index), the lights' intensities the table's.
 /// Needs [`MIN_IMAGES`] images. Once `halt` says stop, returns what was scored so far.
@@ -48,13 +60,7 @@ pub fn holdout(
     halt: Halt,
 ) -> Result<HoldoutScore, RunError> {
     let count = stack.info().lights.len();
-    if count < MIN_IMAGES {
-        return Err(InputError::Options(format!(
-            "holdout_lights needs at least {MIN_IMAGES} images (each quarter of the lights \
-             is left out in turn); this set has {count}"
-        ))
-        .into());
-    }
+    check_count(count)?;
     let mut ratios: Vec<Ratios> = (0..count).map(|_| Ratios::new()).collect();
     for fold in 0..FOLDS {
         let (kept, left): (Vec<usize>, Vec<usize>) = (0..count).partition(|k| k % FOLDS != fold);

@@ -595,6 +595,12 @@ async fn invalid_inputs_get_422_with_the_cores_message() {
         ),
         ("options not JSON", with_options("{not json"), 422, &["options"]),
         (
+            "a holdout score of 4 images",
+            with_options(r#"{"holdout_lights": true}"#),
+            422,
+            &["holdout_lights", "at least 8 images", "has 4"],
+        ),
+        (
             "unknown output",
             with_options(r#"{"outputs": ["albedo.png", "portrait.jpg"]}"#),
             422,

@@ -16,6 +16,7 @@ use axum::extract::Multipart;
 use futures_util::future::BoxFuture;
 
 use crate::core::camera::Pinhole;
+use crate::core::holdout;
 use crate::core::layout;
 use crate::core::lights;
 use crate::core::normalmap::{Convention, NormalMapError};
@@ -356,6 +357,9 @@ pub async fn receive(
         near_rig(&options, &parsed.rig, &lights, (width, height))?;
     } else {
         options.check_camera(width, height)?;
+        if options.holdout_lights {
+            holdout::check_count(lights.len())?;
+        }
     }
 
     let manifest = Manifest {
