@@ -388,7 +388,7 @@ pub(super) fn solve_pcg_until<S: Stencil>(
     max_iter: usize,
     halt: Halt,
 ) -> (Vec<f32>, PcgStats) {
-    pcg(st, b, None, tol, max_iter, halt)
+    pcg(st, b, None, Stop::at(tol, max_iter), halt)
 }
 
 /// [`solve_pcg`] from an initial guess `x0` (0 on inactive cells), e.g. the previous
@@ -407,17 +407,17 @@ pub(super) fn solve_pcg_from<S: Stencil>(
         b.len(),
         "initial guess and right-hand side differ in size"
     );
-    pcg(st, b, Some(x0), TOL, MAX_ITER, halt)
+    pcg(st, b, Some(x0), Stop::at(TOL, MAX_ITER), halt)
 }
 
 fn pcg<S: Stencil>(
     st: &S,
     b: Vec<f32>,
     x0: Option<Vec<f32>>,
-    tol: f64,
-    max_iter: usize,
+    stop: Stop,
     halt: Halt,
 ) -> (Vec<f32>, PcgStats) {
+    let Stop { tol, max_iter, .. } = stop;
     let n = b.len();
     let mut r = b;
     let bnorm = dot(&r, &r).sqrt();
@@ -457,7 +457,8 @@ fn pcg<S: Stencil>(
     // The update x += α p of each step is applied lazily, by the next direction update
     // (which reads p anyway), or after the loop.
     let (mut alpha, mut beta) = (0.0f32, 0.0f32);
-    let stop_sq = (tol * bnorm).powi(2);
+    // The warm start's residual (1 from 0) sets the forcing term's bound.
+    let stop_sq = (tol.max(stop.forcing * stats.rel_residual) * bnorm).powi(2);
     while stats.iterations < max_iter && !halt() {
         if !(rz > 0.0 && rz.is_finite()) {
             break;
@@ -495,25 +496,53 @@ pub(super) fn solve_masked<S: multigrid::Stencil>(
     start: Option<Vec<f32>>,
     halt: Halt,
 ) -> Vec<f32> {
-    solve_rhs(st, rhs(st, p, q), comps, start, (TOL, MAX_ITER), halt)
+    solve_rhs(
+        st,
+        rhs(st, p, q),
+        comps,
+        start,
+        Stop::at(TOL, MAX_ITER),
+        halt,
+    )
 }
 
-/// [`solve_masked`] of a right-hand side `b` formed by the caller, stopping at a relative
-/// residual of `stop.0` or after `stop.1` iterations.
+/// When a CG solve stops: once `‖r‖ ≤ tol ‖b‖`, after `max_iter` iterations, or once the
+/// residual is `forcing` × the warm start's (an inexact solve, as in inexact Newton: a
+/// re-weighting round whose weights will change again need not be solved further than
+/// the change it answers; 0 never stops early).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Stop {
+    pub(super) tol: f64,
+    pub(super) max_iter: usize,
+    pub(super) forcing: f64,
+}
+
+impl Stop {
+    /// At a relative residual of `tol` or after `max_iter` iterations.
+    pub(super) fn at(tol: f64, max_iter: usize) -> Self {
+        Self {
+            tol,
+            max_iter,
+            forcing: 0.0,
+        }
+    }
+}
+
+/// [`solve_masked`] of a right-hand side `b` formed by the caller, stopping as `stop` says.
 pub(super) fn solve_rhs<S: multigrid::Stencil>(
     st: &S,
     mut b: Vec<f32>,
     comps: &Components,
     start: Option<Vec<f32>>,
-    stop: (f64, usize),
+    stop: Stop,
     halt: Halt,
 ) -> Vec<f32> {
     // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
     // singular system is consistent.
     comps.remove_means(&mut b);
-    let (tol, max_iter) = stop;
-    let (z, stats) = pcg(st, b, start, tol, max_iter, halt);
-    if stats.rel_residual > tol && stats.iterations < max_iter && !halt() {
+    let (z, stats) = pcg(st, b, start, stop, halt);
+    let forced = stop.forcing > 0.0;
+    if stats.rel_residual > stop.tol && stats.iterations < stop.max_iter && !forced && !halt() {
         tracing::warn!(
             iterations = stats.iterations,
             rel_residual = stats.rel_residual,
