@@ -12,9 +12,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, anyhow, bail};
 
-use super::TempDir;
 use super::client;
 use super::memory::{reset_peak_of, status_bytes_of};
+use super::temp_dir::TempDir;
 
 /// Longest the server may take to listen and answer /healthz.
 const START_TIMEOUT: Duration = Duration::from_secs(60);

@@ -17,7 +17,6 @@ use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
-use super::TempDir;
 use super::args::{BenchArgs, Scenario};
 use super::child::{KEY_A, KEY_B, ServeChild};
 use super::client::{self, Response};
@@ -25,6 +24,7 @@ use super::memory::MB;
 use super::probe::{Prober, Probes};
 use super::sets::{self, SizeResult};
 use super::stats::{median, ms};
+use super::temp_dir::TempDir;
 
 /// The set of the job whose status is probed (the re-shading storm's is [`RESHADE_SIZE`]).
 const PROBE_JOB_SIZE: usize = 128;

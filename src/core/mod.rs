@@ -9,6 +9,7 @@
 #[macro_use]
 mod simd;
 
+mod arrays;
 pub mod bands;
 pub mod calibrate;
 pub mod camera;
@@ -42,19 +43,9 @@ pub mod solve;
 pub mod stream;
 pub mod synth;
 
+pub(crate) use arrays::contiguous;
 pub use error::{InputError, RunError};
 pub use options::Options;
 pub use pipeline::reconstruct;
 pub use progress::RunToEnd;
 pub use reconstruction::Reconstruction;
-
-/// The elements of `a` as one slice in logical (row-major) order: borrowed when the array
-/// is in standard layout, copied once otherwise, so hot loops can run over plain slices.
-pub(crate) fn contiguous<'a, T: Clone, D: ndarray::Dimension>(
-    a: ndarray::ArrayView<'a, T, D>,
-) -> std::borrow::Cow<'a, [T]> {
-    match a.to_slice() {
-        Some(s) => std::borrow::Cow::Borrowed(s),
-        None => std::borrow::Cow::Owned(a.iter().cloned().collect()),
-    }
-}

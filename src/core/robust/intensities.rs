@@ -12,7 +12,8 @@
 
 use rayon::prelude::*;
 
-use super::{Buffers, Model, dot, estimate_from, gather, norm, plane_rows, quantum};
+use super::estimate::{estimate_from, quantum};
+use super::fit::{Buffers, Model, dot, gather, norm, plane_rows};
 use crate::core::bands::Samples;
 use crate::core::intensities::Gram;
 use crate::core::lights::Light;

@@ -10,7 +10,7 @@
 //! registers while the loop runs over the lights, so a pass over a chunk stores nothing
 //! but its inlier sets, and a chunk stops re-fitting as soon as its own sets repeat.
 
-use super::{Fit, Model, SATURATED, SCALE, implausible};
+use super::fit::{Fit, Model, SATURATED, SCALE, implausible};
 
 /// Re-fits the fast path tries; a column whose set still changes after them is left to
 /// the per-pixel fit, which has the full search.
@@ -376,7 +376,7 @@ fn solve(s: &Sums) -> [V; 3] {
 
 #[cfg(test)]
 mod tests {
-    use super::super::{Buffers, gather};
+    use super::super::fit::{Buffers, gather};
     use super::*;
 
     /// Every column the fast path settles gets the per-pixel fit's answer: one row of 21

@@ -5,7 +5,11 @@
 use ndarray::{Array2, Array3};
 
 use super::surfaces::*;
+use crate::core::integrate::components::Components;
+use crate::core::integrate::multigrid::WeightStencil;
 use crate::core::integrate::*;
+use crate::core::options::Integration;
+use crate::core::progress::NEVER;
 
 #[test]
 fn full_frame_smooth_surface_accuracy() {

@@ -4,6 +4,7 @@
 use ndarray::{Array2, Array3};
 
 use super::surfaces::*;
+use crate::core::integrate::multigrid::MaskStencil;
 use crate::core::integrate::*;
 
 #[test]

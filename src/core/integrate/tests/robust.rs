@@ -5,7 +5,14 @@
 use ndarray::Array2;
 
 use super::surfaces::*;
+use crate::core::contiguous;
+use crate::core::integrate::components::Components;
+use crate::core::integrate::methods::poisson_heights;
+use crate::core::integrate::multigrid::WeightStencil;
+use crate::core::integrate::poisson::largest_change;
+use crate::core::integrate::robust_poisson::{Edges, IRLS_ROUNDS, SETTLED, cauchy_weight, irls};
 use crate::core::integrate::*;
+use crate::core::progress::NEVER;
 
 #[test]
 fn robust_poisson_stops_re_weighting_once_heights_settle() {

@@ -4,7 +4,11 @@
 use ndarray::Array2;
 
 use super::surfaces::*;
+use crate::core::integrate::components::Components;
+use crate::core::integrate::multigrid::MaskStencil;
 use crate::core::integrate::*;
+use crate::core::options::Integration;
+use crate::core::progress::NEVER;
 
 #[test]
 fn masked_pcg_matches_dct_on_full_mask() {

@@ -4,6 +4,7 @@
 use ndarray::{Array2, Array3};
 
 use crate::core::integrate::*;
+use crate::core::options::Integration;
 
 /// Analytic surface: height and its derivatives (dz/dx, dz/dy) at (x = col, y = row).
 pub(super) type Surface = dyn Fn(f64, f64) -> (f64, f64, f64);

@@ -6,7 +6,11 @@ use std::time::Instant;
 use ndarray::{Array2, Array3};
 
 use super::surfaces::*;
+use crate::core::integrate::components::Components;
+use crate::core::integrate::multigrid::MaskStencil;
 use crate::core::integrate::*;
+use crate::core::options::Integration;
+use crate::core::progress::NEVER;
 
 /// Peak resident memory of this process so far (Linux), in MiB.
 fn peak_rss_mib() -> Option<f64> {

@@ -5,7 +5,13 @@ use rayon::prelude::*;
 
 use super::super::brdf::normalise;
 use super::super::sensor::{self, Rng};
-use super::{CHROME, ChromeSet, RoomLight, SUPERSAMPLE};
+use super::set::{ChromeSet, RoomLight};
+
+/// Samples per pixel side.
+const SUPERSAMPLE: usize = 6;
+
+/// Mirror reflectance of the chrome (roughly constant with angle for a metal).
+const CHROME: f64 = 0.65;
 
 /// Mirror bounces followed between balls before the rest is taken as the dim room.
 const BOUNCES: usize = 2;

@@ -4,7 +4,8 @@ use ndarray::Array2;
 
 use super::super::brdf::normalise;
 use super::render::dot;
-use super::{ChromeSet, TRUTH, matte_intensities};
+use super::set::{ChromeSet, matte_intensities};
+use super::write::TRUTH;
 
 fn fnv(h: u64, bytes: impl IntoIterator<Item = u8>) -> u64 {
     bytes

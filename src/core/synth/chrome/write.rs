@@ -5,10 +5,13 @@ use std::path::Path;
 use image::{ImageBuffer, Luma};
 use ndarray::Array2;
 
-use super::{ChromeSet, TRUTH};
+use super::set::ChromeSet;
 use crate::core::commit::write_atomic;
 use crate::core::error::RunError;
 use crate::core::outputs::png_bytes;
+
+/// The folder of a set's true lights and circles.
+pub(super) const TRUTH: &str = "truth-lights";
 
 impl ChromeSet {
     /// Write the set: `ball01.png`…, `names.txt` naming the object images `im1.png`… in
