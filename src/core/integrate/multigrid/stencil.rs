@@ -12,8 +12,9 @@ const WEST: u8 = 2;
 const SOUTH: u8 = 4;
 const NORTH: u8 = 8;
 
-/// Lower bound of an edge weight in [`super::integrate_weighted`]: zero-confidence pixels stay
-/// connected (so the answer is well defined) but barely constrain the surface.
+/// Lower bound of an edge weight in [`crate::core::integrate::integrate_weighted`]:
+/// zero-confidence pixels stay connected (so the answer is well defined) but barely
+/// constrain the surface.
 pub const MIN_EDGE_WEIGHT: f32 = 1e-3;
 
 /// A weighted 4-neighbour graph Laplacian on an `h × w` grid.
