@@ -9,7 +9,7 @@ use std::ops::Range;
 
 use ndarray::{Array2, ArrayViewMut2, ArrayViewMut3};
 
-use super::InputError;
+use super::error::InputError;
 use super::intake::ImageSet;
 use super::lights::Light;
 

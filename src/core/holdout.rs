@@ -18,8 +18,8 @@
 
 use ndarray::{Array2, Array3};
 
-use super::InputError;
 use super::bands::{Band, Samples, SetInfo, Stack, each_band};
+use super::error::InputError;
 use super::error::RunError;
 use super::lights::Light;
 use super::mask;

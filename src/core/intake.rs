@@ -17,7 +17,7 @@ use image::{DynamicImage, ImageFormat, ImageReader};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
-use super::InputError;
+use super::error::InputError;
 use super::error::panic_message;
 use super::layout;
 pub use super::lights::LUMA_WEIGHTS;

@@ -17,7 +17,7 @@
 
 use std::collections::HashSet;
 
-use super::InputError;
+use super::error::InputError;
 use super::lights::{self, Intensity, Light};
 
 pub const SEED_CSV: &str = "light_directions.csv";

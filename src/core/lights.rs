@@ -12,8 +12,8 @@ pub mod lp;
 
 use serde::{Deserialize, Serialize};
 
-use super::InputError;
 use super::camera::Pinhole;
+use super::error::InputError;
 
 /// Rec. 709 luminance weights for R, G, B.
 pub const LUMA_WEIGHTS: [f32; 3] = [0.2126, 0.7152, 0.0722];

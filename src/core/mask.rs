@@ -3,7 +3,7 @@
 
 use ndarray::Array2;
 
-use super::InputError;
+use super::error::InputError;
 use super::histogram::{histogram, nth_nonnegative};
 use super::options::MaskMode;
 
@@ -44,7 +44,7 @@ pub fn auto(albedo: &Array2<f32>) -> Array2<bool> {
 /// else a tenth of the 99th-percentile albedo (an object filling the frame, or one on
 /// a black background with nothing to split).
 pub fn auto_threshold(albedo: &Array2<f32>) -> f32 {
-    let values = super::contiguous(albedo.view());
+    let values = super::arrays::contiguous(albedo.view());
     let Some(p99) = positive_quantile(&values, 0.99) else {
         return MIN_THRESHOLD;
     };

@@ -43,7 +43,6 @@ pub mod solve;
 pub mod stream;
 pub mod synth;
 
-pub(crate) use arrays::contiguous;
 pub use error::{InputError, RunError};
 pub use options::Options;
 pub use pipeline::reconstruct;

@@ -35,8 +35,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::InputError;
 use super::camera::{CameraError, Pinhole};
+use super::error::InputError;
 use super::intake::{self, Limits};
 
 /// Vectors shorter than this (after decoding) have no direction: off the mask.

@@ -3,8 +3,8 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::InputError;
 use super::camera::{self, Pinhole};
+use super::error::InputError;
 
 /// How albedo·normal is solved per pixel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema, Default)]

@@ -10,9 +10,9 @@ use std::time::Instant;
 use ndarray::{Array2, Array3, Zip, s};
 use rayon::prelude::*;
 
-use super::InputError;
 use super::bands::{InMemory, Stack};
 use super::commit::{self, Committer};
+use super::error::InputError;
 use super::error::RunError;
 use super::intake::ImageSet;
 use super::integrate::perspective;

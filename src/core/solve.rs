@@ -8,8 +8,8 @@ use std::ops::Range;
 use ndarray::{Array2, Array3, ArrayViewMut3, Axis, s};
 use rayon::prelude::*;
 
-use super::InputError;
 use super::bands::{Band, SetInfo, Stack, SurfaceRows, each_band};
+use super::error::InputError;
 use super::lambert::{invert3, pseudo_inverse, render_observation};
 use super::lights::Light;
 use super::options::Solver;

@@ -41,8 +41,8 @@ use rayon::prelude::*;
 
 pub use file_bands::each_band;
 
-use super::InputError;
 use super::bands::{self, Band, Samples, SetInfo, Stack};
+use super::error::InputError;
 use super::intake::{self, DirMask, Limits, NamedFile};
 use super::lights::Light;
 use scan::{Scanned, scan, scan_file};

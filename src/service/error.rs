@@ -4,9 +4,9 @@
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
-use crate::core::InputError;
-use crate::core::RunError;
 use crate::core::calibrate::CalibrationError;
+use crate::core::error::InputError;
+use crate::core::error::RunError;
 use crate::core::normalmap::NormalMapError;
 
 use super::problem::{PROBLEM_JSON, Problem};

@@ -7,9 +7,9 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 use uuid::Uuid;
 
-use crate::core::Options;
 use crate::core::intensities::Estimated;
 use crate::core::normalmap::Counts;
+use crate::core::options::Options;
 
 use super::problem::Problem;
 use super::repo::{Callback, JobRecord, JobStatus};

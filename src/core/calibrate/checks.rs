@@ -7,7 +7,7 @@ use super::error::CalibrationError;
 use super::mirror;
 use super::model::CalibratedLight;
 use super::source::Source;
-use crate::core::InputError;
+use crate::core::error::InputError;
 
 /// Lights that all come out within this angle of their mean direction are one light, or a
 /// reflection that stays put: not a calibration.

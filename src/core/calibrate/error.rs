@@ -3,7 +3,7 @@
 
 use thiserror::Error;
 
-use crate::core::InputError;
+use crate::core::error::InputError;
 
 #[derive(Debug, Error)]
 pub enum CalibrationError {

@@ -7,7 +7,7 @@ use std::path::Path;
 use super::error::CalibrationError;
 use super::model::CircleSource;
 use super::source::{ImageFiles, Source};
-use crate::core::InputError;
+use crate::core::error::InputError;
 use crate::core::intake::{self, Limits};
 use crate::core::layout;
 

@@ -24,7 +24,7 @@ use super::circle::Circle;
 use super::environment;
 use super::error::CalibrationError;
 use super::source::Source;
-use crate::core::InputError;
+use crate::core::error::InputError;
 
 /// The downscaled copies of a whole set, bytes.
 pub const COARSE_BYTES: usize = 64 << 20;

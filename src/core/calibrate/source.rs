@@ -10,7 +10,7 @@ use image::ImageReader;
 use ndarray::{Array2, ArrayView2, s};
 
 use super::error::CalibrationError;
-use crate::core::InputError;
+use crate::core::error::InputError;
 use crate::core::intake::{self, Limits, NamedFile};
 use crate::core::stream;
 

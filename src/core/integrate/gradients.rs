@@ -5,7 +5,7 @@ use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 
 use super::poisson;
-use crate::core::contiguous;
+use crate::core::arrays::contiguous;
 
 /// Smallest `nz` used when forming gradients. Grazing (or back-facing) normals would give
 /// unbounded slopes; clamping `nz ≥ 0.05` bounds `|p|, |q| ≤ √(1 − 0.05²)/0.05 ≈ 20`

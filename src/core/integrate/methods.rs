@@ -10,8 +10,8 @@ use super::multigrid::{MIN_EDGE_WEIGHT, MaskStencil, WeightStencil};
 use super::poisson::{self, solve_masked};
 use super::robust_poisson::robust_poisson;
 use super::{bilateral, fourier, path, perspective};
+use crate::core::arrays::contiguous;
 use crate::core::camera::Pinhole;
-use crate::core::contiguous;
 use crate::core::options::Integration;
 use crate::core::progress::{Halt, NEVER};
 

@@ -13,7 +13,7 @@
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
-use super::MIN_NZ;
+use super::gradients::MIN_NZ;
 use crate::core::camera::Pinhole;
 
 /// Gradients `(ζ_u, ζ_v)` of `ζ = −fx ln D` from camera-frame normals, 0 off the mask.

@@ -14,7 +14,7 @@
 use std::fmt::Write;
 
 use super::{Light, MAX_ROWS, make_light};
-use crate::core::InputError;
+use crate::core::error::InputError;
 
 /// The file extension (compared without case).
 pub const EXTENSION: &str = "lp";

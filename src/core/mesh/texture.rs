@@ -91,7 +91,7 @@ fn texels(planes: &[ArrayView2<f32>], mask: &Array2<bool>) -> Vec<u8> {
             }
         }
     });
-    let mask = crate::core::contiguous(mask.view());
+    let mask = crate::core::arrays::contiguous(mask.view());
     fill_background(&mut out, n, &mask, w);
     out
 }

@@ -8,8 +8,8 @@ use rayon::prelude::*;
 
 use super::point::{Scene, Scratch};
 use super::scale::{Observed, sampled};
-use crate::core::InputError;
 use crate::core::bands::{Stack, each_band};
+use crate::core::error::InputError;
 use crate::core::progress::Halt;
 
 /// Which pixels a pass fits.

@@ -9,9 +9,9 @@
 use ndarray::Array2;
 use rayon::prelude::*;
 
-use crate::core::InputError;
 use crate::core::bands::{Stack, each_band};
 use crate::core::camera::Pinhole;
+use crate::core::error::InputError;
 use crate::core::progress::Halt;
 
 /// The shrunk set.

@@ -22,9 +22,9 @@ use super::refine::{Fits, Pass, Pixels, fit_bands, lit};
 use super::scale::{Observed, stride_for};
 use super::shrink::{factor_for, shrink, shrink_mask};
 use super::surface::{Iteration, NearSettings, NearSurface};
-use crate::core::InputError;
 use crate::core::bands::Stack;
 use crate::core::camera::Pinhole;
+use crate::core::error::InputError;
 use crate::core::integrate::{self, perspective};
 use crate::core::progress::Halt;
 

@@ -1,7 +1,7 @@
 //! The artifacts' names: every one a job can write with its Content-Type, the default
 //! selections, and which of them a selection and a surface take.
 
-use crate::core::InputError;
+use crate::core::error::InputError;
 
 /// Every artifact a job can produce: file name and Content-Type.
 pub const ARTIFACTS: &[(&str, &str)] = &[

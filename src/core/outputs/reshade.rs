@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use super::encoding::{png16_rows_to, unit16};
-use crate::core::InputError;
+use crate::core::error::InputError;
 use crate::core::render;
 
 /// `shaded.png` under another light, from a job's stored `albedo.png` and 16-bit

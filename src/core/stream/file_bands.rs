@@ -8,7 +8,7 @@ use image::{DynamicImage, ImageBuffer, ImageFormat};
 
 use super::png_rows::png_reader;
 use super::scan::{read_up_to, read_whole, whole_decode_error};
-use crate::core::InputError;
+use crate::core::error::InputError;
 use crate::core::intake::{self, Limits, NamedFile};
 
 /// An image file's rows in order, about `band_bytes` of decoded samples at a time, each

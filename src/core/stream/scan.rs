@@ -10,8 +10,8 @@ use image::{DynamicImage, ImageFormat};
 
 use super::png_rows::{PngKind, PngRows, png_reader};
 use super::spill::Spill;
-use crate::core::InputError;
 use crate::core::bands;
+use crate::core::error::InputError;
 use crate::core::intake::{self, Limits, NamedFile};
 
 /// What the first pass learned of one image.

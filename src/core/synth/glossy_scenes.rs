@@ -4,7 +4,11 @@
 //! 24 to 96 lights, with noise, 16- and 8-bit, exposed so that some highlights clip.
 //! Tests reconstruct them in memory; none is written to `res/`.
 
-use super::{Capture, Diffuse, Exposure, Scene, Specular, light_grid, light_rings};
+use super::brdf::{Diffuse, Specular};
+use super::capture::Capture;
+use super::lights::{light_grid, light_rings};
+use super::scene::Scene;
+use super::sensor::Exposure;
 
 /// How much of a scene's appearance its specular lobe takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -4,8 +4,8 @@
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
-use super::Capture;
 use super::brdf::{Diffuse, normalise};
+use super::capture::Capture;
 use super::scene::Scene;
 use super::sensor::{self, Rng};
 use super::transport::{Bounces, Field, Horizons, turn};

@@ -6,7 +6,7 @@ use image::codecs::png::FilterType;
 use image::{ImageBuffer, Luma, Rgb, Rgba, Rgba32FImage};
 use ndarray::{Array2, Array3};
 
-use super::Capture;
+use super::capture::Capture;
 use super::render::render;
 use super::scene::Scene;
 use crate::core::commit::write_atomic;

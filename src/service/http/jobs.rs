@@ -10,8 +10,8 @@ use serde::Serialize;
 use utoipa::ToSchema;
 use uuid::Uuid;
 
-use crate::core::Options;
 use crate::core::normalmap::Convention;
+use crate::core::options::Options;
 use crate::service::config::RETRY_AFTER_SECS;
 use crate::service::error::ApiError;
 use crate::service::intake::checks::check_url;

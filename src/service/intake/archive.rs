@@ -6,8 +6,8 @@ use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::{Component, Path};
 
-use crate::core::InputError;
 use crate::core::camera::{self, Pinhole};
+use crate::core::error::InputError;
 use crate::core::layout;
 use crate::core::lights;
 use crate::service::config::{Config, MAX_LIGHTS_BYTES};

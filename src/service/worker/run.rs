@@ -27,9 +27,9 @@ use std::time::{Duration, Instant};
 
 use uuid::Uuid;
 
-use crate::core::RunError;
 use crate::core::bands::Stack;
 use crate::core::camera::Pinhole;
+use crate::core::error::RunError;
 use crate::core::error::panic_message;
 use crate::core::intake::{Limits, NamedFile};
 use crate::core::lights;

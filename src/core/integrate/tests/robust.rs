@@ -5,7 +5,7 @@
 use ndarray::Array2;
 
 use super::surfaces::*;
-use crate::core::contiguous;
+use crate::core::arrays::contiguous;
 use crate::core::integrate::components::Components;
 use crate::core::integrate::methods::poisson_heights;
 use crate::core::integrate::multigrid::WeightStencil;

@@ -164,8 +164,12 @@ fn rendered_set() -> Option<(Array3<f32>, Array2<bool>)> {
         &Default::default(),
     )
     .ok()?;
-    let rec =
-        crate::core::reconstruct(&set, &Default::default(), &mut crate::core::RunToEnd).ok()?;
+    let rec = crate::core::pipeline::reconstruct(
+        &set,
+        &Default::default(),
+        &mut crate::core::progress::RunToEnd,
+    )
+    .ok()?;
     Some((rec.normals, rec.mask))
 }
 

@@ -65,7 +65,7 @@ impl ChromeSet {
     /// grazing elevation, highlights near 0.64 of the radius), every third clipping, on an
     /// off-centre ball with distractors.
     pub fn standard(bit_depth: u8, seed: u64) -> Self {
-        let lights = super::super::light_rings(24, 10.0, 80.0);
+        let lights = super::super::lights::light_rings(24, 10.0, 80.0);
         let highlight = levels(lights.len());
         Self {
             width: 320,
@@ -110,7 +110,7 @@ impl ChromeSet {
     /// clips in every image (1.5°, level 3, 21° from the nearest light) and a window
     /// behind the ball on the upper left (20° × 14°, level 0.8, mirrored near the rim).
     pub fn real_room(bit_depth: u8, seed: u64) -> Self {
-        let lights = super::super::light_rings(20, 10.0, 80.0);
+        let lights = super::super::lights::light_rings(20, 10.0, 80.0);
         Self {
             highlight: levels(lights.len()),
             lights,
