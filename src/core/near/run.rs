@@ -79,7 +79,7 @@ pub fn run(
 ) -> Result<NearReport, RunError> {
     let mut timings = Vec::new();
     let set = stack.info().clone();
-    super::check_cones(&set.lights, &camera, distance, (set.width, set.height))?;
+    super::model::check_cones(&set.lights, &camera, distance, (set.width, set.height))?;
     let mut notes = set.notes.clone();
     step(progress, Stage::Solve)?;
     let start = Instant::now();
