@@ -13,7 +13,7 @@
 
 use std::fmt::Write;
 
-use super::{Light, MAX_ROWS, make_light};
+use super::light::{Light, MAX_ROWS, check_table, make_light};
 use crate::core::error::InputError;
 
 /// The file extension (compared without case).
@@ -35,7 +35,7 @@ pub fn is_lp(text: &str) -> bool {
 /// Parse an `.lp` table; `file` names it in errors (a file name, or `.lp`).
 pub fn parse(file: &str, text: &str) -> Result<Vec<Light>, InputError> {
     let lights = read(file, text)?;
-    super::check_table(&lights)?;
+    check_table(&lights)?;
     Ok(lights)
 }
 
