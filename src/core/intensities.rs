@@ -12,6 +12,9 @@
 //! and leaves a smallest eigenvalue that is not alone (several intensity sets explain it
 //! equally); the intensities are then refused rather than guessed.
 
+use std::ops::Range;
+
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
@@ -21,6 +24,9 @@ use crate::core::lambert::invert3;
 /// for the smallest one's eigenvector to be the answer: noise lifts both alike, an object
 /// that identifies the intensities lifts only the second.
 const MIN_GAP: f64 = 2.0;
+/// [`Gram::sum_in_runs`] splits its items into at most this many runs: a bound on the
+/// sums held at once (`k²` each) and runs enough for the threads.
+const RUNS: usize = 32;
 
 /// One light's estimated intensity, as reports list it.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
@@ -42,6 +48,25 @@ impl Gram {
             k,
             m: vec![0.0; k * k],
         }
+    }
+
+    /// The Gram of items `0..len`, `add_run` adding a run of them to a Gram of its own:
+    /// the runs are fixed by `len` alone and summed in order, so the sums (and what is
+    /// estimated from them) are the same to the bit however many threads run.
+    pub fn sum_in_runs<F>(k: usize, len: usize, add_run: F) -> Self
+    where
+        F: Fn(Range<usize>, &mut Gram) + Sync,
+    {
+        let run = len.div_ceil(RUNS).max(1);
+        let runs: Vec<Gram> = (0..len.div_ceil(run))
+            .into_par_iter()
+            .map(|i| {
+                let mut gram = Gram::new(k);
+                add_run(i * run..((i + 1) * run).min(len), &mut gram);
+                gram
+            })
+            .collect();
+        runs.into_iter().fold(Gram::new(k), Gram::merge)
     }
 
     /// One pixel: its unit-intensity light vectors, observations and which it keeps.
@@ -186,6 +211,41 @@ mod tests {
                 v.map(|c| c / n)
             })
             .collect()
+    }
+
+    /// The sum over many pixels is the same to the bit on one thread and on four: the
+    /// runs, not the threads' stealing, decide the order of the additions.
+    #[test]
+    fn the_sum_in_runs_does_not_depend_on_the_threads() {
+        let dirs = six_lights();
+        let pixel = |i: usize| {
+            let (u, v) = (
+                (i % 97) as f32 / 130.0 - 0.37,
+                (i / 97) as f32 / 130.0 - 0.37,
+            );
+            let n = [u, v, (1.0 - u * u - v * v).sqrt()];
+            let obs: Vec<f32> = (dirs.iter().enumerate())
+                .map(|(k, l)| (0.6 + 0.01 * k as f32) * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]))
+                .collect();
+            obs
+        };
+        let sum = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                Gram::sum_in_runs(6, 97 * 97, |run, gram| {
+                    for i in run {
+                        gram.add(&dirs, &pixel(i), &[true; 6]);
+                    }
+                })
+            })
+        };
+        let (one, four) = (sum(1), sum(4));
+        let bits = |g: &Gram| g.m.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&one), bits(&four));
+        assert!(one.m.iter().any(|&v| v != 0.0));
     }
 
     /// Six distant lights of different brightness over a hemisphere of normals: the

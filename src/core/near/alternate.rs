@@ -181,23 +181,18 @@ impl<'a> Pass<'a> {
         let sample = self.sample(depth);
         let lights = self.scene.lights;
         let n = lights.len();
-        let gram = sample
-            .par_chunks(256)
-            .map(|chunk| {
-                let mut scratch = Scratch::new(n);
-                let mut gram = Gram::new(n);
-                let mut unit = vec![[0f32; 3]; n];
-                for &(r, c, d) in chunk {
-                    self.fit_at(r, c, d, &mut scratch);
-                    for ((u, l), light) in unit.iter_mut().zip(&scratch.lights).zip(lights) {
-                        let e = light.intensity as f32;
-                        *u = l.map(|v| v / e);
-                    }
-                    gram.add(&unit, &scratch.obs, &scratch.keep);
+        let gram = Gram::sum_in_runs(n, sample.len(), |run, gram| {
+            let mut scratch = Scratch::new(n);
+            let mut unit = vec![[0f32; 3]; n];
+            for &(r, c, d) in &sample[run] {
+                self.fit_at(r, c, d, &mut scratch);
+                for ((u, l), light) in unit.iter_mut().zip(&scratch.lights).zip(lights) {
+                    let e = light.intensity as f32;
+                    *u = l.map(|v| v / e);
                 }
-                gram
-            })
-            .reduce(|| Gram::new(n), Gram::merge);
+                gram.add(&unit, &scratch.obs, &scratch.keep);
+            }
+        });
         let current: Vec<f64> = lights.iter().map(|l| l.intensity).collect();
         gram.intensities(&current).unwrap_or(current)
     }

@@ -10,8 +10,6 @@
 //! also leaves out each pixel's observations near the mirror direction (half-vector
 //! within [`HIGHLIGHT_CONE_DEG`] of the normal), where a glossy lobe lives.
 
-use rayon::prelude::*;
-
 use super::estimate::{estimate_from, quantum};
 use super::fit::{Buffers, Model, dot, gather, norm, plane_rows};
 use crate::core::bands::Samples;
@@ -71,12 +69,10 @@ fn gram(model: &Model, directions: &[[f32; 3]], samples: &Samples, width: usize)
     let sampled = samples.planes.first().map_or(0, |p| p.len() / width.max(1));
     let planes: Vec<&[u16]> = samples.planes.iter().map(|p| p.as_slice()).collect();
     let cone = HIGHLIGHT_CONE_DEG.to_radians().cos();
-    (0..sampled)
-        .into_par_iter()
-        .map(|r| {
-            let mut gram = Gram::new(n);
-            let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
-            let mut keep = vec![false; n];
+    Gram::sum_in_runs(n, sampled, |rows, gram| {
+        let (mut obs, mut b) = (vec![0f32; n], Buffers::new(n));
+        let mut keep = vec![false; n];
+        for r in rows {
             let rows = plane_rows(&planes, width, r);
             for c in (stride / 2..width).step_by(stride) {
                 gather(&rows, c, &mut obs);
@@ -91,9 +87,8 @@ fn gram(model: &Model, directions: &[[f32; 3]], samples: &Samples, width: usize)
                 }
                 gram.add(directions, &b.y, &keep);
             }
-            gram
-        })
-        .reduce(|| Gram::new(n), Gram::merge)
+        }
+    })
 }
 
 /// Whether light `d` (unit, towards the light) is within the highlight cone of `normal`:
