@@ -51,7 +51,7 @@ const ENERGY_TOL: f64 = 1e-5;
 /// vs 0.075 mm, harvest 3.5 vs 1.84 mm, measured with the sigmoid at full sharpness from
 /// the first round; `tests/core/depth_real.rs`).
 const CUT_FLOOR: f32 = 1e-9;
-/// Relative residual each round's solve stops at at most, and its most CG iterations:
+/// Relative residual below which a round's solve never goes, and its most CG iterations:
 /// near-cut edges make the system stiff, and a solve stopped at the Poisson solver's 2e-4
 /// leaves errors the re-weighting then amplifies.
 const SOLVE_TOL: f64 = 1e-6;
@@ -62,6 +62,12 @@ const MAX_ITER: usize = 200;
 /// same depth error on cat and pot2 (`tests/core/depth_real.rs`; harvest's depends on
 /// which minimum the rounds reach, above).
 const FORCING: f64 = 0.1;
+/// How each round's solve stops.
+const ROUND_STOP: Stop = Stop {
+    tol: SOLVE_TOL,
+    max_iter: MAX_ITER,
+    forcing: FORCING,
+};
 
 /// Heights from gradients `p`, `q` on `mask` (row-major, `h × w`), with each pixel's
 /// facing weight `a` (`n_z²`; from the gradients when None: `1 / (1 + p² + q²)`) and
@@ -140,12 +146,7 @@ impl Window {
             let b = divergence(&gx, &gy, h, w);
             drop((gx, gy));
             let st = WeightStencil::new(h, w, wx, wy);
-            let stop = Stop {
-                tol: SOLVE_TOL,
-                max_iter: MAX_ITER,
-                forcing: FORCING,
-            };
-            let mut next = solve_rhs(&st, b, &comps, z.take(), stop, halt);
+            let mut next = solve_rhs(&st, b, &comps, z.take(), ROUND_STOP, halt);
             comps.remove_means(&mut next);
             let energy = self.reweigh(&next, &mut shares, &bx, &by, sharpness(rounds));
             z = Some(next);

@@ -353,6 +353,9 @@ pub(super) struct PcgStats {
     pub iterations: usize,
     pub rel_residual: f64,
     pub levels: usize,
+    /// The relative residual it stopped for: the tolerance, or the forcing term's bound
+    /// when that is higher.
+    pub target: f64,
 }
 
 /// `n` zeros, written in parallel. A zeroed allocation (`vec![0.0; n]`) comes as untouched
@@ -425,6 +428,7 @@ fn pcg<S: Stencil>(
         iterations: 0,
         rel_residual: 0.0,
         levels: 0,
+        target: tol,
     };
     if bnorm == 0.0 || !bnorm.is_finite() {
         return (vec![0.0; n], stats);
@@ -458,7 +462,8 @@ fn pcg<S: Stencil>(
     // (which reads p anyway), or after the loop.
     let (mut alpha, mut beta) = (0.0f32, 0.0f32);
     // The warm start's residual (1 from 0) sets the forcing term's bound.
-    let stop_sq = (tol.max(stop.forcing * stats.rel_residual) * bnorm).powi(2);
+    stats.target = tol.max(stop.forcing * stats.rel_residual);
+    let stop_sq = (stats.target * bnorm).powi(2);
     while stats.iterations < max_iter && !halt() {
         if !(rz > 0.0 && rz.is_finite()) {
             break;
@@ -541,8 +546,7 @@ pub(super) fn solve_rhs<S: multigrid::Stencil>(
     // singular system is consistent.
     comps.remove_means(&mut b);
     let (z, stats) = pcg(st, b, start, stop, halt);
-    let forced = stop.forcing > 0.0;
-    if stats.rel_residual > stop.tol && stats.iterations < stop.max_iter && !forced && !halt() {
+    if stats.rel_residual > stats.target && stats.iterations < stop.max_iter && !halt() {
         tracing::warn!(
             iterations = stats.iterations,
             rel_residual = stats.rel_residual,
