@@ -57,8 +57,10 @@ impl Map {
                     k,
                     method,
                     None,
+                    Default::default(),
                     NEVER,
-                );
+                )
+                .zeta;
                 perspective::depth_from_log(&zeta, &self.mask, k, None)
             }
             None => {

@@ -195,8 +195,16 @@ pub fn surface(map: &NormalMap, settings: &Settings, halt: Halt) -> Array2<f32> 
             integrate::integrate_until(&p, &q, mask, settings.integration, halt)
         }
         Some(k) => {
-            let zeta =
-                integrate::integrate_log_depth(normals, mask, k, settings.integration, None, halt);
+            let zeta = integrate::integrate_log_depth(
+                normals,
+                mask,
+                k,
+                settings.integration,
+                None,
+                Default::default(),
+                halt,
+            )
+            .zeta;
             perspective::depth_from_log(&zeta, mask, k, settings.distance)
         }
     }

@@ -254,13 +254,22 @@ impl Slopes {
     /// Heights, or depth along the optical axis under a camera (relative, or scaled to
     /// the working distance).
     fn integrate(&self, surface: &Prepared, opts: &Options, halt: Halt) -> Array2<f32> {
-        let (p, q, mask) = (&self.p, &self.q, &surface.mask);
-        let confidence = &surface.confidence;
-        let z =
-            integrate::integrate_with_confidence(p, q, mask, opts.integration, confidence, halt);
+        let (slopes, mask) = ((&self.p, &self.q), &surface.mask);
+        let (confidence, method) = (&surface.confidence, opts.integration);
         match &opts.camera {
-            None => z,
-            Some(k) => perspective::depth_from_log(&z, mask, k, opts.distance),
+            None => integrate::integrate_with_confidence(
+                slopes.0, slopes.1, mask, method, confidence, halt,
+            ),
+            Some(k) => {
+                let normals = &surface.normals;
+                let c = Some(confidence);
+                let given = integrate::Given {
+                    slopes: Some(slopes),
+                    start: None,
+                };
+                let z = integrate::integrate_log_depth(normals, mask, k, method, c, given, halt);
+                perspective::depth_from_log(&z.zeta, mask, k, opts.distance)
+            }
         }
     }
 }

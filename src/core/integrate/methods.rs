@@ -5,11 +5,12 @@
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
+use super::bilateral::{self, Cuts};
 use super::components::Components;
 use super::multigrid::{MIN_EDGE_WEIGHT, MaskStencil, WeightStencil};
 use super::poisson::{self, solve_masked};
 use super::robust_poisson::robust_poisson;
-use super::{bilateral, fourier, path, perspective};
+use super::{fourier, path, perspective};
 use crate::core::arrays::contiguous;
 use crate::core::camera::Pinhole;
 use crate::core::options::Integration;
@@ -102,38 +103,79 @@ pub fn integrate_with_confidence(
     weighted_on_mask(p, q, mask, confidence, solver, halt)
 }
 
+/// [`integrate_log_depth`]'s result.
+pub struct LogDepth {
+    /// `ζ = −fx ln D`, pixels.
+    pub zeta: Array2<f32>,
+    /// The depth steps the method kept, when it keeps any (`bilateral`).
+    pub cuts: Option<Cuts>,
+}
+
+/// What [`integrate_log_depth`] may be given beside the normals.
+#[derive(Default)]
+pub struct Given<'a> {
+    /// The normals' log-depth gradients ([`perspective::log_depth_gradients`]), for a
+    /// caller that keeps them; formed from the normals when None.
+    pub slopes: Option<(&'a Array2<f32>, &'a Array2<f32>)>,
+    /// `ζ` that already holds the surface's steps (the last integration's, placed by other
+    /// evidence): `bilateral` starts from it. Finite on the mask.
+    pub start: Option<&'a Array2<f32>>,
+}
+
 /// Log-depth `ζ = −fx ln D` ([`perspective`]) from camera-frame `normals` under `camera`
 /// by `method`, weighted by `confidence` where the method takes weights (as
 /// [`integrate_with_confidence`]); [`perspective::depth_from_log`] turns it into depth.
-/// `bilateral` weighs each pixel's equations by its normal's `n_z²`
-/// ([`perspective::facing`]).
+/// `bilateral` weighs each pixel by its normal's facing ([`perspective::Facing`]).
 pub fn integrate_log_depth(
     normals: &Array3<f32>,
     mask: &Array2<bool>,
     camera: &Pinhole,
     method: Integration,
     confidence: Option<&Array2<f32>>,
+    given: Given<'_>,
     halt: Halt,
-) -> Array2<f32> {
-    let (p, q) = perspective::log_depth_gradients(normals, mask, camera);
+) -> LogDepth {
+    let formed;
+    let (p, q) = match given.slopes {
+        Some(slopes) => slopes,
+        None => {
+            formed = perspective::log_depth_gradients(normals, mask, camera);
+            (&formed.0, &formed.1)
+        }
+    };
     match (method, confidence) {
         (Integration::Bilateral, _) => {
             let (h, w) = mask.dim();
             let m = contiguous(mask.view());
-            let facing = perspective::facing(normals, mask);
-            let (ps, qs, fs) = (
-                contiguous(p.view()),
-                contiguous(q.view()),
-                contiguous(facing.view()),
-            );
+            let facing = perspective::facing(normals, mask, camera);
+            let (ps, qs) = (contiguous(p.view()), contiguous(q.view()));
             let wt = confidence.map(|c| contiguous(c.view()));
-            let (z, rounds) =
-                bilateral::integrate(&ps, &qs, Some(&fs), &m, h, w, wt.as_deref(), halt);
-            tracing::debug!(rounds, "bilateral integration (perspective)");
-            finish(z, &m, h, w)
+            let start = given.start.map(|s| contiguous(s.view()));
+            let done = bilateral::integrate(
+                &ps,
+                &qs,
+                Some(facing),
+                &m,
+                h,
+                w,
+                wt.as_deref(),
+                start.as_deref(),
+                halt,
+            );
+            tracing::debug!(rounds = done.rounds, "bilateral integration (perspective)");
+            LogDepth {
+                zeta: finish(done.z, &m, h, w),
+                cuts: Some(done.cuts),
+            }
         }
-        (_, Some(c)) => integrate_with_confidence(&p, &q, mask, method, c, halt),
-        (_, None) => integrate_until(&p, &q, mask, method, halt),
+        (_, Some(c)) => LogDepth {
+            zeta: integrate_with_confidence(p, q, mask, method, c, halt),
+            cuts: None,
+        },
+        (_, None) => LogDepth {
+            zeta: integrate_until(p, q, mask, method, halt),
+            cuts: None,
+        },
     }
 }
 
@@ -185,9 +227,9 @@ fn bilateral_heights(
     weights: Option<&[f32]>,
     halt: Halt,
 ) -> Vec<f32> {
-    let (z, rounds) = bilateral::integrate(p, q, None, mask, h, w, weights, halt);
-    tracing::debug!(rounds, "bilateral integration");
-    z
+    let done = bilateral::integrate(p, q, None, mask, h, w, weights, None, halt);
+    tracing::debug!(rounds = done.rounds, "bilateral integration");
+    done.z
 }
 
 /// Poisson heights, each mask component shifted to zero mean.

@@ -37,9 +37,11 @@ pub mod perspective;
 mod poisson;
 mod robust_poisson;
 
+pub use bilateral::Cuts;
 pub use gradients::{MIN_NZ, curl, gradients};
 pub use methods::{
-    integrate, integrate_log_depth, integrate_until, integrate_weighted, integrate_with_confidence,
+    Given, LogDepth, integrate, integrate_log_depth, integrate_until, integrate_weighted,
+    integrate_with_confidence,
 };
 pub use multigrid::MIN_EDGE_WEIGHT;
 

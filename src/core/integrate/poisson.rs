@@ -391,7 +391,7 @@ pub(super) fn solve_pcg_until<S: Stencil>(
     max_iter: usize,
     halt: Halt,
 ) -> (Vec<f32>, PcgStats) {
-    pcg(st, b, None, Stop::at(tol, max_iter), halt)
+    pcg(st, b, None, Stop::at(tol, max_iter), halt, None)
 }
 
 /// [`solve_pcg`] from an initial guess `x0` (0 on inactive cells), e.g. the previous
@@ -410,15 +410,19 @@ pub(super) fn solve_pcg_from<S: Stencil>(
         b.len(),
         "initial guess and right-hand side differ in size"
     );
-    pcg(st, b, Some(x0), Stop::at(TOL, MAX_ITER), halt)
+    pcg(st, b, Some(x0), Stop::at(TOL, MAX_ITER), halt, None)
 }
 
+/// Preconditioned CG on `st x = b`, preconditioned by `hier` when given (built for an
+/// operator close to `st`: still symmetric positive definite, so CG converges, in more
+/// iterations the further the two are apart), else by a hierarchy built for `st`.
 fn pcg<S: Stencil>(
     st: &S,
     b: Vec<f32>,
     x0: Option<Vec<f32>>,
     stop: Stop,
     halt: Halt,
+    hier: Option<&mut Hierarchy>,
 ) -> (Vec<f32>, PcgStats) {
     let Stop { tol, max_iter, .. } = stop;
     let n = b.len();
@@ -433,7 +437,11 @@ fn pcg<S: Stencil>(
     if bnorm == 0.0 || !bnorm.is_finite() {
         return (vec![0.0; n], stats);
     }
-    let mut hier = Hierarchy::new(st);
+    let mut own = None;
+    let hier = match hier {
+        Some(h) => h,
+        None => own.insert(Hierarchy::new(st)),
+    };
     stats.levels = hier.depth();
     stats.rel_residual = 1.0;
     // x and p are read before they are written: zero them by writing, not with calloc.
@@ -505,7 +513,7 @@ pub(super) fn solve_masked<S: multigrid::Stencil>(
         st,
         rhs(st, p, q),
         comps,
-        start,
+        (start, None),
         Stop::at(TOL, MAX_ITER),
         halt,
     )
@@ -533,19 +541,21 @@ impl Stop {
     }
 }
 
-/// [`solve_masked`] of a right-hand side `b` formed by the caller, stopping as `stop` says.
+/// [`solve_masked`] of a right-hand side `b` formed by the caller, from `start` when
+/// given, preconditioned by a kept hierarchy when given ([`pcg`]), stopping as `stop`
+/// says.
 pub(super) fn solve_rhs<S: multigrid::Stencil>(
     st: &S,
     mut b: Vec<f32>,
     comps: &Components,
-    start: Option<Vec<f32>>,
+    (start, hier): (Option<Vec<f32>>, Option<&mut Hierarchy>),
     stop: Stop,
     halt: Halt,
 ) -> Vec<f32> {
     // b sums to 0 on each component in exact arithmetic; remove the round-off so that the
     // singular system is consistent.
     comps.remove_means(&mut b);
-    let (z, stats) = pcg(st, b, start, stop, halt);
+    let (z, stats) = pcg(st, b, start, stop, halt, hier);
     if stats.rel_residual > stats.target && stats.iterations < stop.max_iter && !halt() {
         tracing::warn!(
             iterations = stats.iterations,

@@ -61,17 +61,25 @@ pub fn alternate(
         let (g, residual) = pass.fit_all(&depth);
         let (normals, albedo) = split(&g, mask);
         let (mean, p95) = changes(&previous, &normals, mask);
-        let zeta = integrate::integrate_log_depth(
+        let (p, q) = perspective::log_depth_gradients(&normals, mask, &settings.camera);
+        // After the first placement the lights have said where each piece sits.
+        let placed = (!iterations.is_empty())
+            .then(|| perspective::log_from_depth(&depth, mask, &settings.camera));
+        let given = integrate::Given {
+            slopes: Some((&p, &q)),
+            start: placed.as_ref(),
+        };
+        let surface = integrate::integrate_log_depth(
             &normals,
             mask,
             &settings.camera,
             settings.integration,
             None,
+            given,
             halt,
         );
-        let relative = perspective::depth_from_log(&zeta, mask, &settings.camera, None);
-        let (p, q) = perspective::log_depth_gradients(&normals, mask, &settings.camera);
-        let (label, sizes) = pieces(&zeta, &p, &q, mask);
+        let relative = perspective::depth_from_log(&surface.zeta, mask, &settings.camera, None);
+        let (label, sizes) = pieces(&surface, &p, &q, mask);
         let observed = pass.observed(&relative);
         (depth, scale) = observed.place(&pass.scene, &relative, (&label, &sizes), scale);
         iterations.push(Iteration {

@@ -128,18 +128,26 @@ pub fn solve(
             settled = true;
             break;
         }
-        let zeta = integrate::integrate_log_depth(
+        let (p, q) = perspective::log_depth_gradients(&previous, &full, &settings.camera);
+        // The depth placed so far holds the steps the lights found.
+        let placed = perspective::log_from_depth(&depth, &full, &settings.camera);
+        let given = integrate::Given {
+            slopes: Some((&p, &q)),
+            start: Some(&placed),
+        };
+        let surface = integrate::integrate_log_depth(
             &previous,
             &full,
             &settings.camera,
             settings.integration,
             None,
+            given,
             halt,
         );
-        let relative = perspective::depth_from_log(&zeta, &full, &settings.camera, None);
-        let (p, q) = perspective::log_depth_gradients(&previous, &full, &settings.camera);
-        let (label, sizes) = pieces(&zeta, &p, &q, &full);
-        drop((zeta, p, q));
+        drop(placed);
+        let relative = perspective::depth_from_log(&surface.zeta, &full, &settings.camera, None);
+        let (label, sizes) = pieces(&surface, &p, &q, &full);
+        drop((surface, p, q));
         let (next, s) = observed.place(&scene, &relative, (&label, &sizes), scale);
         drop((relative, label));
         let reach = nearest_light(&scene, &observed, &next);
