@@ -4,13 +4,13 @@
 //!
 //! Each pixel `i` says, along each axis, that its forward and its backward neighbour lie on
 //! its tangent plane: `z_j − z_i = g_i` (its own slope `g_i`) with weight `a_i f_i`
-//! forward and `a_i (1 − f_i)` backward. `a_i = n_z²` (under a camera the squared cosine
-//! to the ray, [`super::perspective::Facing`]) makes these the normal-form equations
-//! `n_z Δz + n_x = 0`, which stay well posed at grazing slopes; `f_i = σ(k s_i (B_i² −
-//! F_i²))`, with `F_i`, `B_i` the current forward and backward height differences and
-//! `s_i = n_z²`, gives the pixel to the side it is continuous with (the smaller step): ½
-//! and ½ on a smooth surface, ~1 and ~0 beside a step. Summed per edge,
-//! the two end pixels' equations are one: weight `W = a_i f_i + a_j (1 − f_j)` and slope
+//! forward and `a_i (1 − f_i)` backward. `a_i = n_z²` (under a camera the square of the
+//! smaller of `n_z` and the cosine to the ray, [`super::perspective::Facing`]) makes these
+//! the normal-form equations `n_z Δz + n_x = 0`, which stay well posed at grazing
+//! slopes; `f_i = σ(k s_i (B_i² − F_i²))`, with `F_i`, `B_i` the current forward and
+//! backward height differences and `s_i = n_z²`, gives the pixel to the side it is
+//! continuous with (the smaller step): ½ and ½ on a smooth surface, ~1 and ~0 beside a
+//! step. Summed per edge, the two end pixels' equations are one: weight `W = a_i f_i + a_j (1 − f_j)` and slope
 //! the `W`-weighted mean of `g_i` and `g_j` — the trapezoidal rule on a smooth surface,
 //! nothing across a step (both ends turn away from it). The edges both of whose ends
 //! turned away are the steps the integration kept ([`Cuts`]).
