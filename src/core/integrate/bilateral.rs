@@ -10,10 +10,10 @@
 //! slopes; `f_i = σ(k s_i (B_i² − F_i²))`, with `F_i`, `B_i` the current forward and
 //! backward height differences and `s_i = n_z²`, gives the pixel to the side it is
 //! continuous with (the smaller step): ½ and ½ on a smooth surface, ~1 and ~0 beside a
-//! step. Summed per edge, the two end pixels' equations are one: weight `W = a_i f_i + a_j (1 − f_j)` and slope
-//! the `W`-weighted mean of `g_i` and `g_j` — the trapezoidal rule on a smooth surface,
-//! nothing across a step (both ends turn away from it). The edges both of whose ends
-//! turned away are the steps the integration kept ([`Cuts`]).
+//! step. Summed per edge, the two end pixels' equations are one: weight `W = a_i f_i +
+//! a_j (1 − f_j)` and slope the `W`-weighted mean of `g_i` and `g_j` — the trapezoidal
+//! rule on a smooth surface, nothing across a step (both ends turn away from it). The
+//! edges both of whose ends turned away are the steps the integration kept ([`Cuts`]).
 //!
 //! Rounds alternate a weighted Poisson solve ([`super::poisson`], warm-started) with the
 //! re-weighting until the energy changes by less than [`ENERGY_TOL`] (relative). The
