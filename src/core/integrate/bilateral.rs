@@ -77,7 +77,7 @@ const ROUND_STOP: Stop = Stop {
 
 /// The depth steps an integration kept, as edges of the row-major `h × w` frame: `east[i]`
 /// for the edge from pixel `i` to `i + 1`, `south[i]` to `i + w`.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct Cuts {
     pub east: Vec<bool>,
     pub south: Vec<bool>,

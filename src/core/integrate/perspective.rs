@@ -66,9 +66,10 @@ pub struct Facing {
     /// ray's cosine makes each equation the well-posed normal form: an occluding contour
     /// off the axis, square to the ray but not to the axis, gets the small weight its
     /// unbounded slopes need (`n_z` alone leaves the rendered scenes' contours 30° off the
-    /// axis at full weight, and twice the depth error). Where the two differ, near
+    /// axis at full weight, and three times the depth error). Where the two differ, near
     /// contours, the smaller is taken: on the DiLiGenT objects the ray's alone cost a
-    /// third more depth error than `n_z` on cat and harvest (`docs/benchmarks.md`).
+    /// third more depth error than `n_z` on cat and over half more on harvest
+    /// (`docs/benchmarks.md`).
     pub equations: Array2<f32>,
     /// Scales the height differences by which the pixel chooses its side of a step:
     /// `n_z`. With the equations' weight here, a rim that grazes the rays sits at the
@@ -193,6 +194,7 @@ mod tests {
             .fold(0.0, f64::max);
         assert!(worst < 1e-4, "largest relative depth error {worst}");
     }
+
     /// A contour 30° off the axis, square to its ray while its `n_z` is 0.5, weighs its
     /// equations at the floor but keeps `n_z²` to choose its side; a normal along the ray
     /// there weighs both by `n_z²`, and one along the axis its equations by the ray's
