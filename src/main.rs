@@ -80,8 +80,23 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
         .build()?)
 }
 
+/// A command whose output is read from a pipe ends quietly when the reader stops reading
+/// (`photostereo evaluate res | head`), as Unix tools do, instead of panicking on the
+/// broken pipe: Rust ignores SIGPIPE by default. Each of these commands writes its files
+/// before it prints, so nothing is lost. The server and the bench, which talk over
+/// sockets, keep the default.
+fn end_quietly_on_a_closed_pipe(command: &Command) {
+    if !matches!(command, Command::Serve(_) | Command::Bench(_)) {
+        // SAFETY: restoring a signal's default disposition at start, before any thread.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    end_quietly_on_a_closed_pipe(&cli.command);
     let result = match cli.command {
         Command::Serve(args) => runtime().and_then(|rt| rt.block_on(service::serve(args))),
         Command::Openapi => {

@@ -280,6 +280,31 @@ fn bad_input_fails_with_a_message_naming_the_problem() {
     );
 }
 
+/// A reader that stops early (`photostereo openapi | head`) ends the command quietly, as it
+/// ends any Unix tool (killed by SIGPIPE), not with a panic on the broken pipe. The
+/// document is larger than a pipe's buffer, so the write meets the closed pipe.
+#[test]
+fn a_closed_pipe_ends_the_output_without_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    use std::process::Stdio;
+    let mut child = bin()
+        .arg("openapi")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(
+        out.status.signal(),
+        Some(libc::SIGPIPE),
+        "{:?}: {err}",
+        out.status
+    );
+}
+
 /// `--max-pixels`, as the server's flag: an image over it is refused by name before it is
 /// decoded.
 #[test]
