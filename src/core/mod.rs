@@ -42,6 +42,7 @@ pub mod robust;
 pub mod solve;
 pub mod stream;
 pub mod synth;
+mod vec3;
 
 pub use error::{InputError, RunError};
 pub use options::Options;

@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use super::mesh;
 use super::options::{MeshNormals, MeshOptions};
 use super::reconstruction::Reconstruction;
+use crate::core::vec3::{cross, dot};
 
 /// Camera elevation above the image plane and turn about its normal, in degrees.
 const ELEVATION_DEG: f64 = 40.0;
@@ -226,18 +227,6 @@ fn to_u8(v: f32) -> u8 {
 /// Twice the signed area of (a, b, p) in screen coordinates.
 fn edge(a: [f64; 3], b: [f64; 3], p: [f64; 3]) -> f64 {
     (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
 }
 
 fn unit(v: [f64; 3]) -> [f64; 3] {

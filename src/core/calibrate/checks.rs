@@ -4,10 +4,10 @@
 
 use super::circle::Circle;
 use super::error::CalibrationError;
-use super::mirror;
 use super::model::CalibratedLight;
 use super::source::Source;
 use crate::core::error::InputError;
+use crate::core::vec3::{dot, normalise};
 
 /// Lights that all come out within this angle of their mean direction are one light, or a
 /// reflection that stays put: not a calibration.
@@ -25,11 +25,11 @@ pub(super) fn check_spread(lights: &[CalibratedLight]) -> Result<(), Calibration
             mean[k] += l.highlight.direction[k];
         }
     }
-    let mean = mirror::normalise(mean);
+    let mean = normalise(mean);
     let spread = lights
         .iter()
         .map(|l| {
-            mirror::dot(l.highlight.direction, mean)
+            dot(l.highlight.direction, mean)
                 .clamp(-1.0, 1.0)
                 .acos()
                 .to_degrees()

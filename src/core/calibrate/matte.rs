@@ -7,7 +7,7 @@
 use ndarray::Array2;
 
 use super::circle::Circle;
-use super::mirror::dot;
+use crate::core::vec3::dot;
 
 /// Fraction of the radius used: the rim's pixels mix sphere and backdrop.
 const INNER: f64 = 0.9;

@@ -4,6 +4,7 @@
 //! Frame: x = column right, y = row down, z towards the camera; pixel centres at integers.
 
 use super::circle::Circle;
+use crate::core::vec3::{dot, normalise};
 
 /// Focal lengths a pinhole camera may be given (pixels). Past the upper end the view rays
 /// across any image of up to 10⁴ pixels differ by under 0.03°, below what a calibration
@@ -146,15 +147,6 @@ fn cone_of(focal: f64, len: f64, r: f64) -> Option<(f64, f64)> {
 fn reflect(d: [f64; 3], n: [f64; 3]) -> [f64; 3] {
     let k = 2.0 * dot(d, n);
     normalise([d[0] - k * n[0], d[1] - k * n[1], d[2] - k * n[2]])
-}
-
-pub(super) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(super) fn normalise(v: [f64; 3]) -> [f64; 3] {
-    let n = dot(v, v).sqrt();
-    v.map(|c| c / n)
 }
 
 #[cfg(test)]

@@ -9,8 +9,9 @@
 //! placed by its circle as in [`Camera::light_at`]. The balls are of one size.
 
 use super::circle::Circle;
-use super::mirror::{Camera, dot, normalise};
+use super::mirror::Camera;
 use super::sphere::solve3;
+use crate::core::vec3::{dot, normalise};
 
 /// A light placed from its rays.
 #[derive(Debug, Clone, Copy, PartialEq)]

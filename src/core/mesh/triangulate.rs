@@ -8,6 +8,7 @@ use super::error::MeshError;
 use crate::core::camera::Pinhole;
 use crate::core::options::{MeshNormals, MeshOptions};
 use crate::core::reconstruction::Reconstruction;
+use crate::core::vec3::sub;
 
 /// A triangulated, decimated height map in glTF's frame.
 #[derive(Debug, Clone, PartialEq)]
@@ -187,10 +188,6 @@ fn geometric_normals(positions: &[[f32; 3]], triangles: &[[u32; 3]]) -> Vec<[f32
     acc.into_iter()
         .map(|n| normalize(n).unwrap_or([0.0, 0.0, 1.0]))
         .collect()
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 fn normalize(v: [f64; 3]) -> Option<[f32; 3]> {

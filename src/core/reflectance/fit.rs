@@ -9,7 +9,8 @@
 //! more is explained, so matte surfaces keep the robust solve's normals).
 
 use super::linear::{nonnegative_pair, solve_spd};
-use super::lobe::{dot, ggx_lobe};
+use super::lobe::ggx_lobe;
+use crate::core::vec3::{cross, dot, normalise};
 
 /// One observation of a pixel: the light's unit direction and intensity, and the value
 /// seen with the black level removed ([0, 1] units). Shadowed and clipped values are the
@@ -275,19 +276,6 @@ fn normal_equations(
         }
     }
     (jtj, jtr)
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn normalise(v: [f64; 3]) -> [f64; 3] {
-    let l = dot(v, v).sqrt();
-    v.map(|c| c / l)
 }
 
 #[cfg(test)]

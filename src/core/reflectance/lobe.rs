@@ -3,6 +3,7 @@
 //! Fresnel is left out: over the angles a fixed camera sees, it moves little and the
 //! fitted specular albedo absorbs it.
 
+use crate::core::vec3::dot;
 use std::f64::consts::PI;
 
 /// The lobe's image value per unit specular albedo and unit irradiance, for unit normal
@@ -28,10 +29,6 @@ pub fn ggx_lobe(n: [f64; 3], l: [f64; 3], alpha: f64) -> f64 {
     let distribution = a2 / (PI * d * d);
     let g1 = |x: f64| 2.0 * x / (x + (a2 + (1.0 - a2) * x * x).sqrt());
     PI * distribution * g1(nl) * g1(nv) / (4.0 * nv)
-}
-
-pub(super) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 #[cfg(test)]

@@ -7,11 +7,11 @@ use ndarray::{ArrayViewMut2, Axis, s};
 use rayon::prelude::*;
 
 use super::fit::{Fitted, Observation, fit};
-use super::lobe::dot;
 use crate::core::bands::SurfaceRows;
 use crate::core::lights::Light;
 use crate::core::progress::Halt;
 use crate::core::reconstruction::Gloss;
+use crate::core::vec3::dot;
 
 /// A band's rows of [`Gloss`].
 pub struct GlossRows<'a> {

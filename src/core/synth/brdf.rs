@@ -6,6 +6,7 @@
 //! Lambertian pixel gives albedo · n·l, i.e. π · BRDF · n·l, so a specular BRDF f_s adds
 //! π · f_s · n·l.
 
+use crate::core::vec3::{dot, normalise};
 use std::f64::consts::PI;
 
 /// A specular lobe.
@@ -136,15 +137,6 @@ pub(super) fn ggx(nh: f64, alpha: f64) -> f64 {
 fn smith_g1(c: f64, alpha: f64) -> f64 {
     let a2 = alpha * alpha;
     2.0 * c / (c + (a2 + (1.0 - a2) * c * c).sqrt())
-}
-
-pub(super) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(super) fn normalise(v: [f64; 3]) -> [f64; 3] {
-    let len = dot(v, v).sqrt();
-    v.map(|c| c / len)
 }
 
 #[cfg(test)]

@@ -33,6 +33,7 @@ use super::scene::Scene;
 use crate::core::camera::Pinhole;
 use crate::core::integrate::gradients;
 use crate::core::integrate::perspective::log_depth_gradients;
+use crate::core::vec3::{dot, normalise};
 
 /// A scene with ground truth for integration: what the normals say and what the depth is.
 #[derive(Debug, Clone)]
@@ -157,7 +158,7 @@ fn beyond(dz: f64, a: f32, b: f32) -> f64 {
 /// in front of it on the other.
 fn steep_normal() -> [f64; 3] {
     let a = 35f64.to_radians();
-    unit([a.sin(), 0.1, a.cos()])
+    normalise([a.sin(), 0.1, a.cos()])
 }
 
 fn steep_plane() -> Shape {
@@ -237,7 +238,7 @@ pub fn step_plate(size: usize) -> DepthScene {
 /// The step plate's axes (as columns) and its panel's: the plate's turned −20° about the
 /// plate's own x axis (the hinge), which lifts the panel's far edge towards the camera.
 fn step_plate_frames() -> ([[f64; 3]; 3], [[f64; 3]; 3]) {
-    let plate = rotation_about(unit([1.0, 0.5, 0.0]), 10f64.to_radians());
+    let plate = rotation_about(normalise([1.0, 0.5, 0.0]), 10f64.to_radians());
     (plate, mul(plate, rotation_x(-20f64.to_radians())))
 }
 
@@ -280,7 +281,8 @@ pub fn ortho_step_plate(size: usize) -> DepthScene {
         if on { 0.4 * (0.75 * s - y) } else { 0.0 }
     };
     let on_panel = |r: usize, c: usize| lift(c as f64, r as f64) > 0.0;
-    let (plane_normal, panel_normal) = (unit([-0.12, 0.08, 1.0]), unit([-0.12, 0.48, 1.0]));
+    let (plane_normal, panel_normal) =
+        (normalise([-0.12, 0.08, 1.0]), normalise([-0.12, 0.48, 1.0]));
     DepthScene {
         name: "step-plate (orthographic)",
         camera: None,
@@ -365,7 +367,7 @@ impl Shape {
                 let t = nearest_root(dot(e, e), 2.0 * dot(o, e), dot(o, o) - 1.0)?;
                 // Gradient of Σ p_i² / a_i²: frame (p_i / a_i²) with p_i = (o + t e)_i a_i.
                 let g = [0, 1, 2].map(|k| (o[k] + t * e[k]) / axes[k]);
-                Some((t, unit(times(frame, g))))
+                Some((t, normalise(times(frame, g))))
             }
             Shape::Panel {
                 origin,
@@ -405,7 +407,7 @@ impl Shape {
                     t -= step;
                     if step.abs() < 1e-13 * t {
                         let (_, gx, gy) = g(t * d[0], t * d[1]);
-                        return Some((t, unit([gx, gy, 1.0])));
+                        return Some((t, normalise([gx, gy, 1.0])));
                     }
                 }
                 panic!("Newton did not converge along {d:?}")
@@ -479,15 +481,6 @@ fn nearest_root(a: f64, b: f64, c: f64) -> Option<f64> {
     let s = disc.sqrt();
     let (t0, t1) = ((-b - s) / (2.0 * a), (-b + s) / (2.0 * a));
     [t0, t1].into_iter().find(|&t| t > 0.0)
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn unit(v: [f64; 3]) -> [f64; 3] {
-    let l = dot(v, v).sqrt();
-    v.map(|x| x / l)
 }
 
 /// Column `k` of a matrix stored as rows.

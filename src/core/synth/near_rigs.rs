@@ -22,6 +22,7 @@ use rayon::prelude::*;
 use super::sensor::Rng;
 use crate::core::camera::Pinhole;
 use crate::core::lights::{Emitter, Light, make_light};
+use crate::core::vec3::{dot, normalise};
 
 /// A rendered near-light capture and its truth.
 #[derive(Debug, Clone)]
@@ -120,7 +121,7 @@ impl Object {
                 let (_, hx, hy) = relief(t * d[0], t * d[1]);
                 Hit {
                     point: d.map(|c| c * t),
-                    normal: unit([-hx, -hy, 1.0]),
+                    normal: normalise([-hx, -hy, 1.0]),
                 }
             }
             Object::Ball(centre, radius, background) => match sphere_t(d, centre, radius) {
@@ -128,7 +129,7 @@ impl Object {
                     let p = d.map(|c| c * t);
                     Hit {
                         point: p,
-                        normal: unit([0, 1, 2].map(|k| p[k] - centre[k])),
+                        normal: normalise([0, 1, 2].map(|k| p[k] - centre[k])),
                     }
                 }
                 None => Hit {
@@ -169,15 +170,6 @@ fn sphere_t(d: [f64; 3], centre: [f64; 3], radius: f64) -> Option<f64> {
     (disc > 0.0).then(|| (b - disc.sqrt()) / a)
 }
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn unit(v: [f64; 3]) -> [f64; 3] {
-    let n = dot(v, v).sqrt();
-    v.map(|c| c / n)
-}
-
 /// The LED's radiance factor towards the unit direction `l` (from the point to the LED).
 fn cone(e: &Emitter, l: [f64; 3]) -> f64 {
     match e.axis {
@@ -203,7 +195,7 @@ fn led(i: usize, position: [f64; 3], target: Option<[f64; 3]>, mu: f64, intensit
     .expect("a valid light");
     light.emitter = Some(Emitter {
         position,
-        axis: target.map(|t| unit([0, 1, 2].map(|k| t[k] - position[k]))),
+        axis: target.map(|t| normalise([0, 1, 2].map(|k| t[k] - position[k]))),
         anisotropy: if target.is_some() { mu } else { 0.0 },
         intensity_known: true,
     });

@@ -4,11 +4,12 @@
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
-use super::brdf::{Diffuse, normalise};
+use super::brdf::Diffuse;
 use super::capture::Capture;
 use super::scene::Scene;
 use super::sensor::{self, Rng};
 use super::transport::{Bounces, Field, Horizons, turn};
+use crate::core::vec3::normalise;
 
 /// The rendered images `(rows, cols, channels)`, 0..=max of the capture's bit depth,
 /// and the exposure gain that produced them.

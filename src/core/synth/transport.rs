@@ -4,9 +4,9 @@
 use ndarray::Array2;
 use rayon::prelude::*;
 
-use super::brdf::normalise;
 use super::scene::{Scene, bilinear};
 use super::sensor::Rng;
+use crate::core::vec3::{cross, normalise};
 
 /// Horizontal step of the ray march, pixels: well below the scale of the surfaces' bumps.
 const STEP: f64 = 0.5;
@@ -207,14 +207,6 @@ fn basis(n: [f64; 3]) -> ([f64; 3], [f64; 3]) {
     };
     let u = normalise(cross(n, a));
     (u, cross(n, u))
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
 }
 
 /// One bounce of light off the rest of the surface. For each object pixel, where its

@@ -3,9 +3,9 @@
 use ndarray::Array2;
 use rayon::prelude::*;
 
-use super::super::brdf::normalise;
 use super::super::sensor::{self, Rng};
 use super::set::{ChromeSet, RoomLight};
+use crate::core::vec3::{add, cross, dot, normalise, scale, sub};
 
 /// Samples per pixel side.
 const SUPERSAMPLE: usize = 6;
@@ -393,28 +393,4 @@ fn hit_sphere(p: [f64; 3], d: [f64; 3], c: [f64; 3], r: f64) -> Option<f64> {
 fn reflect(n: [f64; 3]) -> [f64; 3] {
     let k = 2.0 * n[2];
     [k * n[0], k * n[1], k * n[2] - 1.0]
-}
-
-pub(super) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-fn scale(a: [f64; 3], k: f64) -> [f64; 3] {
-    [a[0] * k, a[1] * k, a[2] * k]
 }

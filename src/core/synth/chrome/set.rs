@@ -1,8 +1,8 @@
 //! The sets: the types of a calibration capture ([`ChromeSet`]) and of the room's static
 //! lights ([`RoomLight`]), the usual capture and its variants, and the room lights.
 
-use super::super::brdf::normalise;
 use super::super::sensor::Rng;
+use crate::core::vec3::normalise;
 
 /// A calibration capture: the frame, the balls, the lights and the camera.
 #[derive(Debug, Clone)]

@@ -2,10 +2,9 @@ use std::path::{Path, PathBuf};
 
 use ndarray::Array2;
 
-use super::super::brdf::normalise;
-use super::render::dot;
 use super::set::{ChromeSet, matte_intensities};
 use super::write::TRUTH;
+use crate::core::vec3::{dot, normalise};
 
 fn fnv(h: u64, bytes: impl IntoIterator<Item = u8>) -> u64 {
     bytes
