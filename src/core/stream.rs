@@ -39,7 +39,7 @@ use std::path::Path;
 use image::DynamicImage;
 use rayon::prelude::*;
 
-pub use file_bands::each_band;
+pub use file_bands::each_file_band;
 
 use super::bands::{self, Band, Samples, SetInfo, Stack};
 use super::error::InputError;

@@ -211,7 +211,7 @@ impl Source for ImageFiles {
         k: usize,
         rows: &mut dyn FnMut(usize, ArrayView2<u16>),
     ) -> Result<(), CalibrationError> {
-        stream::each_band(&self.files[k], &self.limits, BAND_BYTES, |r, band| {
+        stream::each_file_band(&self.files[k], &self.limits, BAND_BYTES, |r, band| {
             rows(r, intake::to_luma16(band).view())
         })?;
         Ok(())

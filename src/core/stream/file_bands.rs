@@ -16,7 +16,7 @@ use crate::core::intake::{self, Limits, NamedFile};
 /// reader that needs every row once and never the whole image, e.g. the light
 /// calibration). PNGs that can be read row by row are; any other file is decoded whole
 /// first. Errors are [`intake::decode`]'s for the same file.
-pub fn each_band(
+pub fn each_file_band(
     file: &NamedFile,
     limits: &Limits,
     band_bytes: usize,
