@@ -83,10 +83,13 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 /// A command whose output is read from a pipe ends quietly when the reader stops reading
 /// (`photostereo evaluate res | head`), as Unix tools do, instead of panicking on the
 /// broken pipe: Rust ignores SIGPIPE by default. Each of these commands writes its files
-/// before it prints, so nothing is lost. The server and the bench, which talk over
-/// sockets, keep the default.
+/// before it prints, so nothing is lost. The commands that talk over sockets (the server,
+/// its health check, the bench) keep ignoring it.
 fn end_quietly_on_a_closed_pipe(command: &Command) {
-    if !matches!(command, Command::Serve(_) | Command::Bench(_)) {
+    if !matches!(
+        command,
+        Command::Serve(_) | Command::Healthcheck(_) | Command::Bench(_)
+    ) {
         // SAFETY: restoring a signal's default disposition at start, before any thread.
         unsafe {
             libc::signal(libc::SIGPIPE, libc::SIG_DFL);
