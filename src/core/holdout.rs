@@ -26,7 +26,7 @@ use super::mask;
 use super::options::Options;
 use super::progress::Halt;
 use super::reconstruction::{Gloss, HoldoutScore};
-use super::reflectance::Fitted;
+use super::reflectance::{Facets, Fitted};
 use super::solve;
 
 /// Folds the lights are split into (each left out once).
@@ -126,10 +126,14 @@ impl Model {
                     diffuse: self.albedo[[r, c]].min(1.0) as f64,
                     specular: 0.0,
                     roughness: 1.0,
+                    facets: Facets::Ggx,
                 };
                 if let Some(g) = self.gloss.as_ref().filter(|g| g.used[[r, c]]) {
                     model.specular = g.specular[[r, c]] as f64;
                     model.roughness = g.roughness[[r, c]] as f64;
+                    if g.beckmann[[r, c]] {
+                        model.facets = Facets::Beckmann;
+                    }
                 }
                 out.add(model.predict(light.direction, light.intensity), observed);
             }

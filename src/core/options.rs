@@ -21,9 +21,10 @@ pub enum Solver {
     /// Least squares weighted by the intensities themselves, T = diag(i) (the seed's
     /// "solution 1"): down-weights dark observations but biases normals; less accurate.
     Weighted,
-    /// `robust`, then, where a pixel shows highlights, a diffuse term and a GGX lobe
-    /// fitted with the normal: for glossy surfaces (glazes, varnish, metal), whose
-    /// highlights then inform the normal; gives specular albedo and roughness maps.
+    /// `robust`, then, where a pixel shows highlights, a diffuse term and a microfacet
+    /// lobe (GGX or Beckmann, whichever explains the pixel better) fitted with the normal:
+    /// for glossy surfaces (glazes, varnish, metal), whose highlights then inform the
+    /// normal; gives specular albedo and roughness maps.
     Glossy,
 }
 

@@ -174,6 +174,9 @@ fn prepare(
                     (*s, *r, *u, *e, *l) = (0.0, 0.0, false, 0.0, 0.0);
                 }
             });
+        Zip::from(&mut g.beckmann)
+            .and(&g.used)
+            .par_for_each(|b, &u| *b &= u);
     }
     if let Some(rgb) = &mut albedo_rgb {
         Zip::from(rgb.rows_mut())

@@ -40,28 +40,32 @@ pub struct Reconstruction {
     pub report: Report,
 }
 
-/// The lobe model's maps over the whole image: specular albedo, roughness, and where the
-/// lobe was kept (elsewhere the pixel is Lambertian: both maps 0), with the fit's RMS
-/// residual there under the lobe model and under the Lambertian fit it replaced (over
-/// the same observations: lit and not clipped).
+/// The lobe model's maps over the whole image: specular albedo, roughness (GGX's for both
+/// lobe families), where the lobe was kept (elsewhere the pixel is Lambertian: both maps
+/// 0) and where the kept lobe is Beckmann's rather than GGX's
+/// ([`Facets`](crate::core::reflectance::Facets)), with the fit's RMS residual there under
+/// the lobe model and under the Lambertian fit it replaced (over the same observations:
+/// lit and not clipped).
 #[derive(Debug, Clone)]
 pub struct Gloss {
     pub specular: Array2<f32>,
     pub roughness: Array2<f32>,
     pub used: Array2<bool>,
+    pub beckmann: Array2<bool>,
     pub residual: Array2<f32>,
     pub lambertian_residual: Array2<f32>,
 }
 
 impl Gloss {
     /// Bytes per pixel of the maps (a `glossy` job holds them beside the solve's).
-    pub const BYTES_PER_PIXEL: u64 = 17;
+    pub const BYTES_PER_PIXEL: u64 = 18;
 
     pub fn zeros(rows: usize, cols: usize) -> Self {
         Self {
             specular: Array2::zeros((rows, cols)),
             roughness: Array2::zeros((rows, cols)),
             used: Array2::from_elem((rows, cols), false),
+            beckmann: Array2::from_elem((rows, cols), false),
             residual: Array2::zeros((rows, cols)),
             lambertian_residual: Array2::zeros((rows, cols)),
         }

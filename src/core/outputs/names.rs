@@ -56,8 +56,9 @@ pub const DEFAULT_OUTPUTS: &[&str] = &[
 /// what a perspective reconstruction is for.
 pub const DEFAULT_DEPTH_OUTPUTS: &[&str] = &["depth.png", "depth.exr", "points.ply"];
 
-/// The `glossy` solver's material maps: specular albedo and GGX roughness (0 where the
-/// pixel is Lambertian), each 16-bit over [0, 1]; `albedo.png` is then the diffuse albedo.
+/// The `glossy` solver's material maps: specular albedo and GGX roughness (a Beckmann
+/// lobe's as the GGX lobe of its width; 0 where the pixel is Lambertian), each 16-bit over
+/// [0, 1]; `albedo.png` is then the diffuse albedo.
 pub const GLOSSY_OUTPUTS: [&str; 2] = ["specular.png", "roughness.png"];
 
 /// In an `outputs` selection, stands for every artifact.

@@ -10,5 +10,5 @@ mod lobe;
 mod rows;
 
 pub use fit::{Fitted, Observation, fit};
-pub use lobe::ggx_lobe;
+pub use lobe::Facets;
 pub use rows::{GlossRows, refine_rows};

@@ -7,6 +7,7 @@ use ndarray::{ArrayViewMut2, Axis, s};
 use rayon::prelude::*;
 
 use super::fit::{Fitted, Observation, fit};
+use super::lobe::Facets;
 use crate::core::bands::SurfaceRows;
 use crate::core::lights::Light;
 use crate::core::progress::Halt;
@@ -18,6 +19,7 @@ pub struct GlossRows<'a> {
     pub specular: ArrayViewMut2<'a, f32>,
     pub roughness: ArrayViewMut2<'a, f32>,
     pub used: ArrayViewMut2<'a, bool>,
+    pub beckmann: ArrayViewMut2<'a, bool>,
     pub residual: ArrayViewMut2<'a, f32>,
     pub lambertian_residual: ArrayViewMut2<'a, f32>,
 }
@@ -29,6 +31,7 @@ impl<'a> GlossRows<'a> {
             specular: gloss.specular.slice_mut(s![a..b, ..]),
             roughness: gloss.roughness.slice_mut(s![a..b, ..]),
             used: gloss.used.slice_mut(s![a..b, ..]),
+            beckmann: gloss.beckmann.slice_mut(s![a..b, ..]),
             residual: gloss.residual.slice_mut(s![a..b, ..]),
             lambertian_residual: gloss.lambertian_residual.slice_mut(s![a..b, ..]),
         }
@@ -62,6 +65,7 @@ pub fn refine_rows(
         mut specular,
         mut roughness,
         mut used,
+        mut beckmann,
         mut residual,
         mut lambertian_residual,
     } = gloss;
@@ -76,6 +80,7 @@ pub fn refine_rows(
         .zip(specular.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(roughness.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(used.axis_iter_mut(Axis(0)).into_par_iter())
+        .zip(beckmann.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(residual.axis_iter_mut(Axis(0)).into_par_iter())
         .zip(lambertian_residual.axis_iter_mut(Axis(0)).into_par_iter())
         .enumerate()
@@ -83,7 +88,10 @@ pub fn refine_rows(
             |(
                 r,
                 (
-                    (((((mut a_row, mut n_row), mut s_row), mut r_row), mut u_row), mut e_row),
+                    (
+                        (((((mut a_row, mut n_row), mut s_row), mut r_row), mut u_row), mut b_row),
+                        mut e_row,
+                    ),
                     mut l_row,
                 ),
             )| {
@@ -126,6 +134,7 @@ pub fn refine_rows(
                             diffuse: albedo,
                             specular: 0.0,
                             roughness: 1.0,
+                            facets: Facets::Ggx,
                         };
                         e_row[c] = rms(&obs, &f) as f32;
                         l_row[c] = rms(&obs, &lambert) as f32;
@@ -136,6 +145,7 @@ pub fn refine_rows(
                         s_row[c] = f.specular as f32;
                         r_row[c] = f.roughness as f32;
                         u_row[c] = true;
+                        b_row[c] = f.facets == Facets::Beckmann;
                     }
                 }
             },

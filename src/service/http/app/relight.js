@@ -2,7 +2,9 @@
 // plus an optional Blinn-Phong term that exaggerates fine relief (specular enhancement).
 // With the glossy solver's material maps (specular.png, roughness.png) the highlights are
 // the fitted ones: the core's GGX lobe, π·D·G/(4 n·v) per unit specular albedo, seen from
-// the camera (v = +z), which the viewer can switch off for Lambertian shading.
+// the camera (v = +z), which the viewer can switch off for Lambertian shading. Pixels the
+// core fitted with a Beckmann lobe are shaded with the GGX lobe of the same width (the
+// roughness map's), whose peak matches and whose tail is longer.
 // Normals are normal.png's: the camera frame with y up, as the light is given.
 
 import { context, program, texture, FULL_SCREEN_VERTEX } from "./gl.js";
