@@ -9,10 +9,12 @@ use crate::seed;
 use std::path::Path;
 use std::time::Instant;
 
-use ndarray::{Array2, Array3};
+use ndarray::Array2;
 use photostereo::core::camera::Pinhole;
+use photostereo::core::intake::Limits;
 use photostereo::core::integrate::{self, perspective};
 use photostereo::core::metrics::{self, Align};
+use photostereo::core::normalmap::{self, Convention, Lens};
 use photostereo::core::options::Integration;
 use photostereo::core::progress::NEVER;
 
@@ -55,31 +57,20 @@ fn read_npy_f32(path: &Path) -> Array2<f32> {
     }
 }
 
-/// The normal map (16-bit, x right, y up, z towards the camera) in the project's frame.
-fn read_normals(dir: &Path) -> Array3<f32> {
-    let img = image::open(dir.join("normal_map.png"))
-        .unwrap()
-        .into_rgb16();
-    let (w, h) = img.dimensions();
-    Array3::from_shape_fn((h as usize, w as usize, 3), |(r, c, k)| {
-        let v = f32::from(img.get_pixel(c as u32, r as u32)[k]) / 65535.0 * 2.0 - 1.0;
-        if k == 1 { -v } else { v }
-    })
-}
-
-fn read_mask(dir: &Path) -> Array2<bool> {
-    let img = image::open(dir.join("mask.png")).unwrap().into_luma8();
-    let (w, h) = img.dimensions();
-    Array2::from_shape_fn((h as usize, w as usize), |(r, c)| {
-        img.get_pixel(c as u32, r as u32)[0] > 127
-    })
-}
-
 fn score(name: &str, method: Integration) -> Option<(f64, f64)> {
     let dir = seed::real_or_skip(&format!("normals/diligent-{name}"))?;
-    let normals = read_normals(&dir);
-    let mask = read_mask(&dir);
     let camera = Pinhole::read(&dir.join("K.txt")).unwrap();
+    // Read as `photostereo integrate <map> --mask … --camera K.txt` reads it: 16-bit, the
+    // benchmark convention (x right, y up, z towards the camera), renormalised.
+    let map = normalmap::read(
+        &dir.join("normal_map.png"),
+        Some(&dir.join("mask.png")),
+        Convention::Opengl,
+        Some(Lens::Pinhole(camera)),
+        &Limits::default(),
+    )
+    .unwrap();
+    let (normals, mask) = (map.normals, map.mask);
     let truth = read_npy_f32(&dir.join("depth_gt.npy"));
     let t = Instant::now();
     let given = Default::default();
