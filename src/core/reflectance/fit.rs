@@ -137,15 +137,19 @@ fn grid_start(obs: &[Observation], normal: [f64; 3], facets: Facets) -> Option<(
         .filter(|&r| r <= facets.max_roughness())
     {
         let alpha = roughness * roughness;
-        if !seen(obs, normal, facets, alpha) {
-            continue;
-        }
         let (mut uu, mut uv, mut vv, mut uy, mut vy, mut yy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+        let mut brightest = 0f64;
         for o in obs {
+            let lobe = facets.lobe(normal, o.light, alpha);
+            brightest = brightest.max(lobe);
             let u = o.intensity * dot(normal, o.light).max(0.0);
-            let v = o.intensity * facets.lobe(normal, o.light, alpha);
+            let v = o.intensity * lobe;
             (uu, uv, vv) = (uu + u * u, uv + u * v, vv + v * v);
             (uy, vy, yy) = (uy + u * o.value, vy + v * o.value, yy + o.value * o.value);
+        }
+        let floor = seen_floor(normal, facets, alpha);
+        if !(floor > 0.0 && brightest >= floor) {
+            continue;
         }
         let (a, b) = nonnegative_pair(uu, uv, vv, uy, vy);
         let sse = yy - 2.0 * (a * uy + b * vy) + a * a * uu + 2.0 * a * b * uv + b * b * vv;
@@ -168,13 +172,18 @@ fn grid_start(obs: &[Observation], normal: [f64; 3], facets: Facets) -> Option<(
 /// within (a narrow one between the lights) is not in the images, and its specular albedo,
 /// fitted to its far tail (Beckmann's falls to nothing), would be anything.
 fn seen(obs: &[Observation], normal: [f64; 3], facets: Facets, alpha: f64) -> bool {
-    // The light the camera (+z) sees mirrored at the normal: the lobe's peak.
-    let mirror = [0, 1, 2].map(|k| 2.0 * normal[2] * normal[k] - f64::from(u8::from(k == 2)));
-    let floor = LOBE_SEEN * facets.lobe(normal, mirror, alpha);
+    let floor = seen_floor(normal, facets, alpha);
     floor > 0.0
         && obs
             .iter()
             .any(|o| facets.lobe(normal, o.light, alpha) >= floor)
+}
+
+/// The lobe's value a light must reach for the lobe to be [`seen`]: [`LOBE_SEEN`] of its
+/// peak, the value under the light the camera (+z) sees mirrored at the normal.
+fn seen_floor(normal: [f64; 3], facets: Facets, alpha: f64) -> f64 {
+    let mirror = [0, 1, 2].map(|k| 2.0 * normal[2] * normal[k] - f64::from(u8::from(k == 2)));
+    LOBE_SEEN * facets.lobe(normal, mirror, alpha)
 }
 
 /// Parameters of the refinement: two tangent offsets of the normal from a base, the two
