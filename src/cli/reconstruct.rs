@@ -31,7 +31,7 @@ pub(crate) struct ReconstructArgs {
     /// Options as a JSON file (the HTTP API's `options` part); flags below override it.
     #[arg(long)]
     pub(crate) options: Option<PathBuf>,
-    /// robust (default) | l2 | weighted
+    /// robust (default) | l2 | weighted | glossy (a lobe fitted where a pixel shows highlights)
     #[arg(long, value_parser = kebab::<Solver>)]
     pub(crate) solver: Option<Solver>,
     /// auto (default) | none | given. Unless a mode is chosen (here or in --options), a

@@ -5,7 +5,6 @@
 //! albedo absorbs it.
 
 use crate::core::vec3::dot;
-use std::f64::consts::PI;
 
 /// How a lobe's microfacet slopes are distributed, which sets how fast the highlight
 /// falls off away from its peak. Real surfaces differ: rough plastics and many metals
@@ -32,41 +31,83 @@ impl Facets {
         }
     }
 
-    /// The lobe's image value per unit specular albedo and unit irradiance, for unit
-    /// normal `n`, unit light `l` and width `alpha` (GGX's, = roughness²): π · D · G /
-    /// (4 n·v), so that it adds to the diffuse term albedo · n·l as a Cook–Torrance BRDF
-    /// times n·l would. Zero when the light or the camera is below the surface.
-    pub fn lobe(self, n: [f64; 3], l: [f64; 3], alpha: f64) -> f64 {
-        let nl = dot(n, l);
+    /// The lobe of this family and width `alpha` (GGX's, = roughness²) about unit normal
+    /// `n`: what does not depend on the light worked out once, as a pixel's fit evaluates
+    /// it under every light.
+    pub fn about(self, n: [f64; 3], alpha: f64) -> Lobe {
         // Grazing views make the 1/(n·v) factor explode; no pixel of a real object is fit
         // that close to its silhouette.
         let nv = n[2].max(0.05);
-        if nl <= 0.0 || n[2] <= 0.0 {
-            return 0.0;
-        }
-        let h = [l[0], l[1], l[2] + 1.0];
-        let hn = dot(h, h).sqrt();
-        let nh = dot(n, h) / hn;
-        if nh <= 0.0 {
-            return 0.0;
-        }
-        let a2 = alpha * alpha;
-        let c2 = nh * nh;
-        let (distribution, shadowing) = match self {
+        let (width, view) = match self {
             Self::Ggx => {
-                let d = c2 * (a2 - 1.0) + 1.0;
-                let g1 = |x: f64| 2.0 * x / (x + (a2 + (1.0 - a2) * x * x).sqrt());
-                (a2 / (PI * d * d), g1(nl) * g1(nv))
+                let a2 = alpha * alpha;
+                (a2, ggx_g1(nv, a2))
             }
             Self::Beckmann => {
                 let m = alpha / BECKMANN_SLOPE;
-                let m2 = m * m;
-                let d = (-(1.0 - c2) / (c2 * m2)).exp() / (PI * m2 * c2 * c2);
-                (d, beckmann_g1(nl, m) * beckmann_g1(nv, m))
+                (m, beckmann_g1(nv, m))
             }
         };
-        PI * distribution * shadowing / (4.0 * nv)
+        Lobe {
+            facets: self,
+            n,
+            width,
+            // π D G / (4 n·v) with the view's shadowing in G.
+            scale: if n[2] > 0.0 { view / (4.0 * nv) } else { 0.0 },
+        }
     }
+}
+
+/// A lobe about one normal ([`Facets::about`]), ready to be evaluated under any light.
+#[derive(Debug, Clone, Copy)]
+pub struct Lobe {
+    facets: Facets,
+    n: [f64; 3],
+    /// GGX's alpha², or Beckmann's RMS slope.
+    width: f64,
+    /// π / (4 n·v) times the view's shadowing; 0 when the camera is below the surface.
+    scale: f64,
+}
+
+impl Lobe {
+    /// The lobe's image value per unit specular albedo and unit irradiance under unit
+    /// light `l`: π · D · G / (4 n·v), so that it adds to the diffuse term albedo · n·l as
+    /// a Cook–Torrance BRDF times n·l would. Zero when the light or the camera is below
+    /// the surface.
+    pub fn at(&self, l: [f64; 3]) -> f64 {
+        let n = self.n;
+        let nl = dot(n, l);
+        if nl <= 0.0 || self.scale == 0.0 {
+            return 0.0;
+        }
+        let h = [l[0], l[1], l[2] + 1.0];
+        let nh2 = {
+            let nh = dot(n, h);
+            if nh <= 0.0 {
+                return 0.0;
+            }
+            nh * nh / dot(h, h)
+        };
+        let (distribution_pi, light) = match self.facets {
+            Facets::Ggx => {
+                let a2 = self.width;
+                let d = nh2 * (a2 - 1.0) + 1.0;
+                (a2 / (d * d), ggx_g1(nl, a2))
+            }
+            Facets::Beckmann => {
+                let m2 = self.width * self.width;
+                let d = (-(1.0 - nh2) / (nh2 * m2)).exp() / (m2 * nh2 * nh2);
+                (d, beckmann_g1(nl, self.width))
+            }
+        };
+        distribution_pi * light * self.scale
+    }
+}
+
+/// Smith's shadowing of one direction at cosine `x` to the normal over GGX facets of
+/// width² `a2`.
+fn ggx_g1(x: f64, a2: f64) -> f64 {
+    2.0 * x / (x + (a2 + (1.0 - a2) * x * x).sqrt())
 }
 
 /// The broadest GGX lobe fitted.
@@ -111,7 +152,7 @@ mod tests {
     fn the_lobe_peaks_at_the_mirror_direction_and_narrows_with_alpha() {
         let n = [0.0, 0.0, 1.0];
         for facets in [Facets::Ggx, Facets::Beckmann] {
-            let lobe = |l, alpha| facets.lobe(n, l, alpha);
+            let lobe = |l, alpha| facets.about(n, alpha).at(l);
             for alpha in [0.05, 0.2, 0.5] {
                 let peak = lobe(at(0.0), alpha);
                 assert!(peak > lobe(at(10.0), alpha), "{facets:?} alpha {alpha}");
@@ -120,6 +161,7 @@ mod tests {
             let ratio = |alpha| lobe(at(20.0), alpha) / lobe(at(0.0), alpha);
             assert!(ratio(0.05) < ratio(0.2) && ratio(0.2) < ratio(0.5));
             assert_eq!(lobe([0.0, 0.0, -1.0], 0.2), 0.0);
+            assert_eq!(facets.about([0.6, 0.0, -0.8], 0.2).at(at(0.0)), 0.0);
         }
     }
 
@@ -129,18 +171,19 @@ mod tests {
     fn ggx_has_the_longer_tail() {
         let n = [0.0, 0.0, 1.0];
         let alpha = 0.2;
-        let tail = |f: Facets| f.lobe(n, at(60.0), alpha) / f.lobe(n, at(0.0), alpha);
+        let tail = |f: Facets| f.about(n, alpha).at(at(60.0)) / f.about(n, alpha).at(at(0.0));
         assert!(tail(Facets::Ggx) > 100.0 * tail(Facets::Beckmann));
         // Near the peak the two agree to within a few percent, and at half the peak's value
         // they are equally wide.
-        let near = |f: Facets| f.lobe(n, at(4.0), alpha) / f.lobe(n, at(0.0), alpha);
+        let near = |f: Facets| f.about(n, alpha).at(at(4.0)) / f.about(n, alpha).at(at(0.0));
         assert!((near(Facets::Ggx) / near(Facets::Beckmann) - 1.0).abs() < 0.05);
         let narrow = 0.05;
         let half = |f: Facets| {
-            let peak = f.lobe(n, at(0.0), narrow);
+            let lobe = f.about(n, narrow);
+            let peak = lobe.at(at(0.0));
             (1..2000)
                 .map(|k| k as f64 * 0.01)
-                .find(|&d| f.lobe(n, at(d), narrow) < 0.5 * peak)
+                .find(|&d| lobe.at(at(d)) < 0.5 * peak)
         };
         let (g, b) = (half(Facets::Ggx).unwrap(), half(Facets::Beckmann).unwrap());
         assert!((g - b).abs() <= 0.02 * g, "half widths {g}° and {b}°");
