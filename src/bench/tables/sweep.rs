@@ -74,9 +74,10 @@ pub(crate) fn sweep_table(
             continue;
         };
         let job = |p: &crate::bench::sweep::Point| median(&p.ms).map(|m| p.ns_per_pixel_image(m));
+        // None for the first light count, and for a second one when only one was swept.
         let added = |i: usize| {
-            i.checked_sub(1)
-                .and_then(|b| of_size[i].ns_per_added_pixel_image(of_size[b]))
+            let before = of_size.get(i.checked_sub(1)?)?;
+            of_size.get(i)?.ns_per_added_pixel_image(before)
         };
         let first_step = added(1);
         let peak = |p: &crate::bench::sweep::Point| max_of(&p.peak_bytes);
