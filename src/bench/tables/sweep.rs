@@ -170,3 +170,47 @@ fn against_table(o: &mut String, other: &std::path::Path, points: &[crate::bench
         );
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+    use crate::bench::sweep::Point;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        bench: BenchArgs,
+    }
+
+    fn point(lights: usize, ms: f64) -> Point {
+        Point {
+            size: 64,
+            lights,
+            ms: vec![ms],
+            per_pixel_ms: vec![1.0],
+            peak_bytes: vec![2e7],
+            against_ms: Vec::new(),
+            against_peak_bytes: Vec::new(),
+        }
+    }
+
+    /// One light count has no added image to show, and three show each step.
+    #[test]
+    fn the_table_takes_any_number_of_light_counts() {
+        let args = Cli::try_parse_from(["bench", "--sizes", "64", "--light-sweep", "24"])
+            .unwrap()
+            .bench;
+        let one = sweep_table(&args, "test", ("0", "0"), &[point(24, 10.0)]);
+        assert!(one.contains("| 64² × 24 | 10 |"), "{one}");
+        assert!(
+            one.contains("not measured: it takes three light counts"),
+            "{one}"
+        );
+        let three = [point(8, 5.0), point(16, 8.0), point(24, 11.0)];
+        let table = sweep_table(&args, "test", ("0", "0"), &three);
+        assert_eq!(table.matches("| 64² × ").count(), 3, "{table}");
+        assert!(table.contains("within 0 % of the first step"), "{table}");
+    }
+}
