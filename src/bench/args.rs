@@ -56,6 +56,12 @@ pub struct BenchArgs {
     /// same work), as one space-separated value.
     #[arg(long, allow_hyphen_values = true, value_delimiter = ' ')]
     pub sweep_options: Vec<String>,
+    /// With --light-sweep: the scene rendered. `sphere`: the matte textured sphere the
+    /// other measurements use; `glossy`: `res/glossy`'s (a dark sphere under a GGX coat
+    /// of roughness 0.2, highlights clipping a little), where the `glossy` solver fits a
+    /// lobe at about a third of the object's pixels.
+    #[arg(long, value_enum, default_value_t = SweepScene::Sphere)]
+    pub sweep_scene: SweepScene,
     /// Instead of the other measurements: health and status probes, and the server's
     /// memory, under hostile loads, against `photostereo serve` run as a child process
     /// with its default limits (a fresh data directory per scenario).
@@ -136,6 +142,10 @@ impl BenchArgs {
             );
         }
         ensure!(
+            self.sweep_scene == SweepScene::Sphere || !self.light_sweep.is_empty(),
+            "--sweep-scene needs --light-sweep"
+        );
+        ensure!(
             (1..=100_000).contains(&self.requests),
             "--requests must be 1..=100000"
         );
@@ -181,6 +191,13 @@ pub enum Scenario {
     ReshadeStorm,
 }
 
+/// The scene `--light-sweep` renders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum SweepScene {
+    Sphere,
+    Glossy,
+}
+
 #[cfg(test)]
 mod tests {
     use clap::Parser;
@@ -218,5 +235,15 @@ mod tests {
         assert!(parse(&["--hostile", "--hostile-seconds", "0"]).is_err());
         assert!(parse(&["--hostile", "--probe-ms", "5"]).is_err());
         assert!(parse(&["--hostile", "--hostile-connections", "0"]).is_err());
+    }
+
+    #[test]
+    fn the_sweep_scene_goes_with_a_light_sweep() {
+        let sweep = parse(&["--light-sweep", "24", "--sweep-scene", "glossy"]).unwrap();
+        assert_eq!(sweep.sweep_scene, SweepScene::Glossy);
+        assert_eq!(parse(&[]).unwrap().sweep_scene, SweepScene::Sphere);
+        let alone = parse(&["--sweep-scene", "glossy"]).unwrap_err();
+        assert!(alone.to_string().contains("--light-sweep"), "{alone}");
+        assert!(parse(&["--light-sweep", "24", "--sweep-scene", "bunny"]).is_err());
     }
 }

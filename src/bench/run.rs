@@ -68,7 +68,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
             &args.light_sweep,
             args.runs,
             against,
-            options,
+            (options, args.sweep_scene),
             &tmp.0,
         )?;
         let loads = (load_at_start.as_str(), load_average());

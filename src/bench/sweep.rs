@@ -13,6 +13,7 @@ use anyhow::{Context, bail};
 use photostereo::core::progress::Stage;
 use photostereo::core::synth;
 
+use super::args::SweepScene;
 use super::memory::{reset_peak, status_bytes, wait_with_peak};
 use super::stats::{median, ms};
 
@@ -53,7 +54,7 @@ pub(super) fn run(
     counts: &[usize],
     runs: usize,
     against: Option<&Path>,
-    options: &[String],
+    (options, scene): (&[String], SweepScene),
     tmp: &Path,
 ) -> anyhow::Result<Vec<Point>> {
     let this = std::env::current_exe().context("finding this binary")?;
@@ -62,10 +63,13 @@ pub(super) fn run(
         for &lights in counts {
             let dir = tmp.join(format!("sweep-{size}-{lights}"));
             let directions = synth::light_rings(lights, 10.0, 60.0);
-            let scene = synth::Scene::sphere(size);
-            synth::write_set(&dir, &scene, &directions, &synth::Capture::default())
+            let (surface, capture) = match scene {
+                SweepScene::Sphere => (synth::Scene::sphere(size), synth::Capture::default()),
+                SweepScene::Glossy => (synth::Scene::dark_sphere(size), synth::glossy_coat()),
+            };
+            synth::write_set(&dir, &surface, &directions, &capture)
                 .with_context(|| format!("rendering the {size}² × {lights} set"))?;
-            drop(scene);
+            drop(surface);
             let mut point = Point {
                 size,
                 lights,

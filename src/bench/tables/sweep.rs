@@ -4,7 +4,7 @@
 use std::fmt::Write as _;
 
 use super::format::heading;
-use crate::bench::args::BenchArgs;
+use crate::bench::args::{BenchArgs, SweepScene};
 use crate::bench::memory::MB;
 use crate::bench::stats::{max_of, median};
 
@@ -36,7 +36,7 @@ pub(crate) fn sweep_table(
     );
     let _ = writeln!(
         o,
-        "- command: `photostereo bench --sizes {} --light-sweep {} --runs {}{}{}`",
+        "- command: `photostereo bench --sizes {} --light-sweep {} --runs {}{}{}{}`",
         list(&args.sizes),
         list(&args.light_sweep),
         args.runs,
@@ -47,12 +47,22 @@ pub(crate) fn sweep_table(
             String::new()
         } else {
             format!(" --sweep-options '{}'", args.sweep_options.join(" "))
+        },
+        match args.sweep_scene {
+            SweepScene::Sphere => "",
+            SweepScene::Glossy => " --sweep-scene glossy",
         }
     );
+    let scene = match args.sweep_scene {
+        SweepScene::Sphere => "`synth::Scene::sphere(size)` (matte)",
+        SweepScene::Glossy => {
+            "`synth::Scene::dark_sphere(size)` under `synth::glossy_coat()` (res/glossy's GGX coat)"
+        }
+    };
     let _ = writeln!(
         o,
         "- each run: the default job (with --sweep-options) as `photostereo reconstruct` in a process of its own on \
-         `synth::Scene::sphere(size)` under `light_rings(n, 10, 60)` (16-bit gray PNG); wall \
+         {scene} under `light_rings(n, 10, 60)` (16-bit gray PNG); wall \
          time of the process and its peak RSS (`wait4`); medians of {} run(s); MB = 10⁶ bytes",
         args.runs
     );

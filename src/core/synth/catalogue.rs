@@ -19,6 +19,25 @@ pub fn chrome_catalogue() -> Vec<(&'static str, ChromeSet)> {
     vec![("chrome", chrome)]
 }
 
+/// The capture of `res/glossy` (with [`Scene::dark_sphere`]), also the bench's glossy
+/// scene: a dielectric GGX coat of roughness 0.2 over a dark diffuse body, exposed so
+/// that the highlights clip a little, with a black level and shot noise.
+pub fn glossy_coat() -> Capture {
+    Capture {
+        // alpha = roughness².
+        specular: Some(Specular::CookTorrance {
+            alpha: 0.04,
+            f0: 0.04,
+        }),
+        exposure: Exposure::Highlights(1.3),
+        black_level: 0.002,
+        noise_sigma: 0.0003,
+        full_well: Some(20_000.0),
+        seed: 17,
+        ..Capture::default()
+    }
+}
+
 /// The data sets `photostereo render` writes into `res/`: name, scene, lights, capture.
 /// `step-plate` is perspective ([`step_plate`]): it carries its camera (`K.txt`,
 /// `camera.json`) and depth along the optical axis as truth; it is kept small (96², eight
@@ -133,19 +152,7 @@ pub fn catalogue() -> Vec<(&'static str, Scene, Vec<[f64; 3]>, Capture)> {
             "glossy",
             Scene::dark_sphere(128),
             light_rings(64, 10.0, 60.0),
-            Capture {
-                // Roughness 0.2 (alpha = roughness²), a dielectric coat.
-                specular: Some(Specular::CookTorrance {
-                    alpha: 0.04,
-                    f0: 0.04,
-                }),
-                exposure: Exposure::Highlights(1.3),
-                black_level: 0.002,
-                noise_sigma: 0.0003,
-                full_well: Some(20_000.0),
-                seed: 17,
-                ..Capture::default()
-            },
+            glossy_coat(),
         ),
         (
             "rgb96",

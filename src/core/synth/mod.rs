@@ -27,7 +27,7 @@ mod write;
 
 pub use brdf::{Diffuse, Specular};
 pub use capture::Capture;
-pub use catalogue::{catalogue, chrome_catalogue};
+pub use catalogue::{catalogue, chrome_catalogue, glossy_coat};
 pub use chrome::{ChromeSet, RoomLight, matte_intensities};
 pub use depth_scenes::{DepthScene, depth_scenes, ortho_step_plate, sphere_in_front, step_plate};
 pub use glossy_scenes::{Gloss, GlossyScene, glossy_catalogue};
