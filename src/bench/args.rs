@@ -198,23 +198,24 @@ pub enum SweepScene {
     Glossy,
 }
 
+/// `bench`'s arguments from `args` (the flags after `bench`), checked: for tests.
 #[cfg(test)]
-mod tests {
+pub(crate) fn parse(args: &[&str]) -> anyhow::Result<BenchArgs> {
     use clap::Parser;
-
-    use super::*;
 
     #[derive(Parser)]
     struct Cli {
         #[command(flatten)]
         bench: BenchArgs,
     }
+    let cli = Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied()))?;
+    cli.bench.check()?;
+    Ok(cli.bench)
+}
 
-    fn parse(args: &[&str]) -> anyhow::Result<BenchArgs> {
-        let cli = Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied()))?;
-        cli.bench.check()?;
-        Ok(cli.bench)
-    }
+#[cfg(test)]
+mod tests {
+    use super::*;
 
     #[test]
     fn hostile_flags_parse_and_are_checked() {

@@ -183,16 +183,9 @@ fn against_table(o: &mut String, other: &std::path::Path, points: &[crate::bench
 
 #[cfg(test)]
 mod tests {
-    use clap::Parser;
-
     use super::*;
+    use crate::bench::args::parse;
     use crate::bench::sweep::Point;
-
-    #[derive(Parser)]
-    struct Cli {
-        #[command(flatten)]
-        bench: BenchArgs,
-    }
 
     fn point(lights: usize, ms: f64) -> Point {
         Point {
@@ -209,9 +202,7 @@ mod tests {
     /// One light count has no added image to show, and three show each step.
     #[test]
     fn the_table_takes_any_number_of_light_counts() {
-        let args = Cli::try_parse_from(["bench", "--sizes", "64", "--light-sweep", "24"])
-            .unwrap()
-            .bench;
+        let args = parse(&["--sizes", "64", "--light-sweep", "24"]).unwrap();
         let one = sweep_table(&args, "test", ("0", "0"), &[point(24, 10.0)]);
         assert!(one.contains("| 64² × 24 | 10 |"), "{one}");
         assert!(
