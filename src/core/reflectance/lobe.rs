@@ -52,7 +52,8 @@ impl Facets {
             facets: self,
             n,
             width,
-            // π D G / (4 n·v) with the view's shadowing in G.
+            // π D G / (4 n·v) = (π D) · G(l) · [G(v) / (4 n·v)]: the bracket does not
+            // depend on the light.
             scale: if n[2] > 0.0 { view / (4.0 * nv) } else { 0.0 },
         }
     }
@@ -65,7 +66,7 @@ pub struct Lobe {
     n: [f64; 3],
     /// GGX's alpha², or Beckmann's RMS slope.
     width: f64,
-    /// π / (4 n·v) times the view's shadowing; 0 when the camera is below the surface.
+    /// The view's shadowing over 4 n·v; 0 when the camera is below the surface.
     scale: f64,
 }
 
@@ -88,6 +89,7 @@ impl Lobe {
             }
             nh * nh / dot(h, h)
         };
+        // π D, and the light's shadowing.
         let (distribution_pi, light) = match self.facets {
             Facets::Ggx => {
                 let a2 = self.width;
