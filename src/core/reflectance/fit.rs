@@ -48,11 +48,19 @@ impl Fitted {
     /// [`predict`](Self::predict) with the model's [`lobe`](Self::lobe) worked out: a
     /// pixel's fit evaluates one model under every light.
     fn predict_with(&self, lobe: &Lobe, light: [f64; 3], intensity: f64) -> f64 {
+        let [irradiance, specular] = self.terms(lobe, light, intensity);
+        self.diffuse * irradiance + self.specular * specular
+    }
+
+    /// The prediction's two terms under `light` of `intensity`, whose sum weighted by the
+    /// albedos is the prediction (and which are its derivatives by them): the irradiance
+    /// `I·n·l` and the lobe `I·lobe`; both 0 when the light is below the surface.
+    fn terms(&self, lobe: &Lobe, light: [f64; 3], intensity: f64) -> [f64; 2] {
         let nl = dot(self.normal, light);
         if nl <= 0.0 {
-            return 0.0;
+            return [0.0; 2];
         }
-        intensity * (self.diffuse * nl + self.specular * lobe.at(light))
+        [intensity * nl, intensity * lobe.at(light)]
     }
 
     /// The specular lobe, ready to be evaluated under any light.
@@ -155,14 +163,14 @@ fn grid_start(obs: &[Observation], normal: [f64; 3], facets: Facets) -> Option<(
         let (mut uu, mut uv, mut vv, mut uy, mut vy, mut yy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         let mut brightest = 0f64;
         for o in obs {
-            let lobe = lobe.at(o.light);
-            brightest = brightest.max(lobe);
+            let value = lobe.at(o.light);
+            brightest = brightest.max(value);
             let u = o.intensity * dot(normal, o.light).max(0.0);
-            let v = o.intensity * lobe;
+            let v = o.intensity * value;
             (uu, uv, vv) = (uu + u * u, uv + u * v, vv + v * v);
             (uy, vy, yy) = (uy + u * o.value, vy + v * o.value, yy + o.value * o.value);
         }
-        let floor = seen_floor(normal, facets, roughness * roughness);
+        let floor = seen_floor(&lobe, normal);
         if !(floor > 0.0 && brightest >= floor) {
             continue;
         }
@@ -187,16 +195,17 @@ fn grid_start(obs: &[Observation], normal: [f64; 3], facets: Facets) -> Option<(
 /// within (a narrow one between the lights) is not in the images, and its specular albedo,
 /// fitted to its far tail (Beckmann's falls to nothing), would be anything.
 fn seen(obs: &[Observation], normal: [f64; 3], facets: Facets, alpha: f64) -> bool {
-    let floor = seen_floor(normal, facets, alpha);
     let lobe = facets.about(normal, alpha);
+    let floor = seen_floor(&lobe, normal);
     floor > 0.0 && obs.iter().any(|o| lobe.at(o.light) >= floor)
 }
 
-/// The lobe's value a light must reach for the lobe to be [`seen`]: [`LOBE_SEEN`] of its
-/// peak, the value under the light the camera (+z) sees mirrored at the normal.
-fn seen_floor(normal: [f64; 3], facets: Facets, alpha: f64) -> f64 {
+/// The value a light must reach under `lobe` (about `normal`) for it to be [`seen`]:
+/// [`LOBE_SEEN`] of its peak, the value under the light the camera (+z) sees mirrored at
+/// the normal.
+fn seen_floor(lobe: &Lobe, normal: [f64; 3]) -> f64 {
     let mirror = [0, 1, 2].map(|k| 2.0 * normal[2] * normal[k] - f64::from(u8::from(k == 2)));
-    LOBE_SEEN * facets.about(normal, alpha).at(mirror)
+    LOBE_SEEN * lobe.at(mirror)
 }
 
 /// Parameters of the refinement: two tangent offsets of the normal from a base, the two
@@ -302,9 +311,8 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
     current
 }
 
-/// A model's residuals over the observations, and each observation's two terms, whose
-/// sum weighted by the albedos is the prediction: the irradiance `I·max(0, n·l)` and
-/// the lobe `I·lobe`. They are the prediction's derivatives by the two albedos.
+/// A model's residuals over the observations, and each observation's two terms
+/// ([`Fitted::terms`]).
 struct Point {
     residuals: Vec<f64>,
     terms: Vec<[f64; 2]>,
@@ -327,12 +335,7 @@ impl Point {
             .zip(obs)
             .zip(weights)
         {
-            let nl = dot(m.normal, o.light);
-            *t = if nl > 0.0 {
-                [o.intensity * nl, o.intensity * lobe.at(o.light)]
-            } else {
-                [0.0; 2]
-            };
+            *t = m.terms(&lobe, o.light, o.intensity);
             *r = m.diffuse * t[0] + m.specular * t[1] - o.value;
             sum += w * *r * *r;
         }
