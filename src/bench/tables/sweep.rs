@@ -34,6 +34,14 @@ pub(crate) fn sweep_table(
         machine,
         (load_at_start, load_at_end),
     );
+    // The scene's flag on the command line, and what it renders.
+    let (flag, scene) = match args.sweep_scene {
+        SweepScene::Sphere => ("", "`synth::Scene::sphere(size)` (matte)"),
+        SweepScene::Glossy => (
+            " --sweep-scene glossy",
+            "`synth::Scene::dark_sphere(size)` under `synth::glossy_coat()` (res/glossy's GGX coat)",
+        ),
+    };
     let _ = writeln!(
         o,
         "- command: `photostereo bench --sizes {} --light-sweep {} --runs {}{}{}{}`",
@@ -48,17 +56,8 @@ pub(crate) fn sweep_table(
         } else {
             format!(" --sweep-options '{}'", args.sweep_options.join(" "))
         },
-        match args.sweep_scene {
-            SweepScene::Sphere => "",
-            SweepScene::Glossy => " --sweep-scene glossy",
-        }
+        flag,
     );
-    let scene = match args.sweep_scene {
-        SweepScene::Sphere => "`synth::Scene::sphere(size)` (matte)",
-        SweepScene::Glossy => {
-            "`synth::Scene::dark_sphere(size)` under `synth::glossy_coat()` (res/glossy's GGX coat)"
-        }
-    };
     let _ = writeln!(
         o,
         "- each run: the default job (with --sweep-options) as `photostereo reconstruct` in a process of its own on \
@@ -213,5 +212,19 @@ mod tests {
         let table = sweep_table(&args, "test", ("0", "0"), &three);
         assert_eq!(table.matches("| 64² × ").count(), 3, "{table}");
         assert!(table.contains("within 0 % of the first step"), "{table}");
+        let glossy = parse(&[
+            "--sizes",
+            "64",
+            "--light-sweep",
+            "24",
+            "--sweep-scene",
+            "glossy",
+        ]);
+        let glossy = sweep_table(&glossy.unwrap(), "test", ("0", "0"), &three);
+        assert!(
+            glossy.contains("--runs 3 --sweep-scene glossy`"),
+            "{glossy}"
+        );
+        assert!(glossy.contains("under `synth::glossy_coat()`"), "{glossy}");
     }
 }
