@@ -22,7 +22,7 @@
 //! minimum whose pieces sit at the wrong depths. The sigmoid therefore starts soft and is
 //! sharpened to `k` over the first rounds (graduated non-convexity): large steps are cut
 //! first, while the pieces still pull on each other, and smaller ones after. Each
-//! round's solve is inexact (a forcing term, [`FORCING`]): solving weights that the next
+//! round's solve is inexact (a forcing term, [`ROUND_FORCING`]): solving weights that the next
 //! round changes anyway further than that change is wasted. The solve runs on the mask's
 //! bounding box ([`super::crop`]).
 
@@ -32,7 +32,7 @@ use super::components::Components;
 use super::crop::Crop;
 use super::multigrid::{self, Hierarchy, MIN_EDGE_WEIGHT, WeightStencil};
 use super::perspective::Facing;
-use super::poisson::{Stop, solve_rhs};
+use super::poisson::{ROUND_FORCING, Stop, solve_rhs};
 use crate::core::arrays::contiguous;
 use crate::core::progress::Halt;
 
@@ -60,19 +60,18 @@ const CUT_FLOOR: f32 = 1e-9;
 /// leaves errors the re-weighting then amplifies.
 const SOLVE_TOL: f64 = 1e-6;
 const MAX_ITER: usize = 200;
-/// Each round's solve also stops once its residual is this fraction of the residual the
-/// previous round's heights leave under the new weights: on DiLiGenT's objects a tenth
-/// takes 20–40 % of the CG iterations of solving each round to [`SOLVE_TOL`], for the
-/// same depth error on cat and pot2 (`tests/core/depth_real.rs`; harvest's depends on
-/// which minimum the rounds reach, above).
-const FORCING: f64 = 0.1;
 /// An edge is cut when both its ends give it less than this share.
 const CUT_SHARE: f32 = 0.1;
-/// How each round's solve stops.
+/// How each round's solve stops: at [`SOLVE_TOL`], or once its residual is
+/// [`ROUND_FORCING`] × the residual the previous round's heights leave under the new
+/// weights. On DiLiGenT's objects a tenth takes 20–40 % of the CG iterations of solving
+/// each round to [`SOLVE_TOL`], for the same depth error on cat and pot2
+/// (`tests/core/depth_real.rs`; harvest's depends on which minimum the rounds reach,
+/// above).
 const ROUND_STOP: Stop = Stop {
     tol: SOLVE_TOL,
     max_iter: MAX_ITER,
-    forcing: FORCING,
+    forcing: ROUND_FORCING,
 };
 
 /// The depth steps an integration kept, as edges of the row-major `h × w` frame: `east[i]`
