@@ -8,7 +8,7 @@ use rayon::prelude::*;
 use super::bilateral::{self, Cuts};
 use super::components::Components;
 use super::multigrid::{MIN_EDGE_WEIGHT, MaskStencil, WeightStencil};
-use super::poisson::{self, solve_masked};
+use super::poisson::{self, Stop, solve_masked};
 use super::robust_poisson::robust_poisson;
 use super::{fourier, path, perspective};
 use crate::core::arrays::contiguous;
@@ -248,13 +248,22 @@ pub(super) fn poisson_heights(
             let st = MaskStencil::new(mask, h, w);
             poisson::solve_dct(poisson::rhs(&st, p, q), h, w)
         }
-        None => solve_masked(&MaskStencil::new(mask, h, w), p, q, &comps, None, halt),
+        None => solve_masked(
+            &MaskStencil::new(mask, h, w),
+            p,
+            q,
+            &comps,
+            None,
+            Stop::FULL,
+            halt,
+        ),
         Some(wt) => solve_masked(
             &WeightStencil::from_pixel_weights(mask, wt, h, w, MIN_EDGE_WEIGHT),
             p,
             q,
             &comps,
             None,
+            Stop::FULL,
             halt,
         ),
     };

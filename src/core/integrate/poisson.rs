@@ -420,7 +420,7 @@ pub(super) fn solve_pcg_from<S: Stencil>(
         b.len(),
         "initial guess and right-hand side differ in size"
     );
-    pcg(st, b, Some(x0), Stop::at(TOL, MAX_ITER), halt, None)
+    pcg(st, b, Some(x0), Stop::FULL, halt, None)
 }
 
 /// Preconditioned CG on `st x = b`, preconditioned by `hier` when given (built for an
@@ -510,23 +510,18 @@ fn pcg<S: Stencil>(
     (x, stats)
 }
 
-/// The masked solve, from 0 or from `start` (a previous solution on the same mask).
+/// The masked solve, from 0 or from `start` (a previous solution on the same mask),
+/// stopping as `stop` says.
 pub(super) fn solve_masked<S: multigrid::Stencil>(
     st: &S,
     p: &[f32],
     q: &[f32],
     comps: &Components,
     start: Option<Vec<f32>>,
+    stop: Stop,
     halt: Halt,
 ) -> Vec<f32> {
-    solve_rhs(
-        st,
-        rhs(st, p, q),
-        comps,
-        (start, None),
-        Stop::at(TOL, MAX_ITER),
-        halt,
-    )
+    solve_rhs(st, rhs(st, p, q), comps, (start, None), stop, halt)
 }
 
 /// When a CG solve stops: once `‖r‖ ≤ tol ‖b‖`, after `max_iter` iterations, or once the
@@ -541,8 +536,11 @@ pub(super) struct Stop {
 }
 
 impl Stop {
+    /// At [`TOL`] or after [`MAX_ITER`] iterations: a solve whose answer is final.
+    pub(super) const FULL: Stop = Stop::at(TOL, MAX_ITER);
+
     /// At a relative residual of `tol` or after `max_iter` iterations.
-    pub(super) fn at(tol: f64, max_iter: usize) -> Self {
+    pub(super) const fn at(tol: f64, max_iter: usize) -> Self {
         Self {
             tol,
             max_iter,
@@ -550,13 +548,6 @@ impl Stop {
         }
     }
 }
-
-/// A re-weighting round's stop: [`TOL`], [`MAX_ITER`] and [`ROUND_FORCING`].
-pub(super) const ROUND_STOP: Stop = Stop {
-    tol: TOL,
-    max_iter: MAX_ITER,
-    forcing: ROUND_FORCING,
-};
 
 /// [`solve_masked`] of a right-hand side `b` formed by the caller, from `start` when
 /// given, preconditioned by a kept hierarchy when given ([`pcg`]), stopping as `stop`

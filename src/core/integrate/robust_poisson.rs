@@ -6,7 +6,7 @@ use rayon::prelude::*;
 
 use super::components::Components;
 use super::multigrid::{self, MIN_EDGE_WEIGHT, WeightStencil};
-use super::poisson::{self, ROUND_STOP, largest_change, rhs, solve_masked, solve_rhs};
+use super::poisson::{self, MAX_ITER, ROUND_FORCING, Stop, TOL, largest_change, solve_masked};
 use crate::core::histogram::nth_nonnegative;
 use crate::core::progress::Halt;
 
@@ -26,6 +26,13 @@ const TAU_SAMPLE: usize = 1 << 20;
 /// Surfaces with depth steps or wrong normals (the seed dog: 3.9, 2.7, 2.2, 1.9 px) keep
 /// every round.
 pub(super) const SETTLED: f32 = 0.01;
+/// How a re-weighting round's solve stops: at the Poisson solver's [`TOL`], or once its
+/// residual is [`ROUND_FORCING`] × its warm start's (the next round changes the weights).
+const ROUND_STOP: Stop = Stop {
+    tol: TOL,
+    max_iter: MAX_ITER,
+    forcing: ROUND_FORCING,
+};
 
 /// Iteratively reweighted least squares with Cauchy weights on the edge equations
 /// `z_j − z_i = g_ij`: each round, an edge's weight is its base weight (confidence, or 1)
@@ -62,7 +69,15 @@ pub(super) fn irls(
     // The first round solves with the base weights. Later rounds form them a row at a
     // time: held beside those rounds' own weights, they would add two maps to the peak.
     let (bx, by) = multigrid::edge_weights(mask, weights, h, w, MIN_EDGE_WEIGHT);
-    let mut z = solve_masked(&WeightStencil::new(h, w, bx, by), p, q, &comps, None, halt);
+    let mut z = solve_masked(
+        &WeightStencil::new(h, w, bx, by),
+        p,
+        q,
+        &comps,
+        None,
+        Stop::FULL,
+        halt,
+    );
     let edges = Edges {
         mask,
         weights,
@@ -98,14 +113,7 @@ pub(super) fn irls(
         // Each round's solve starts from the previous heights, which the new weights change
         // only where residuals were large (all rounds on the 2048² sphere: 13 CG iterations
         // instead of 30), and stops at a tenth of their residual (inexact, ROUND_STOP).
-        z = solve_rhs(
-            &st,
-            rhs(&st, p, q),
-            &comps,
-            (Some(z), None),
-            ROUND_STOP,
-            halt,
-        );
+        z = solve_masked(&st, p, q, &comps, Some(z), ROUND_STOP, halt);
         if largest_change(&z, &previous, mask) <= settled {
             comps.remove_means(&mut z);
             return (z, round);
