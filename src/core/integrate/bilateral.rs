@@ -30,7 +30,7 @@ use rayon::prelude::*;
 
 use super::components::Components;
 use super::crop::Crop;
-use super::multigrid::{self, Hierarchy, MIN_EDGE_WEIGHT, WeightStencil};
+use super::multigrid::{self, Bands, Hierarchy, MIN_EDGE_WEIGHT, WeightStencil};
 use super::perspective::Facing;
 use super::poisson::{ROUND_FORCING, Stop, solve_rhs};
 use crate::core::arrays::contiguous;
@@ -199,13 +199,17 @@ impl Window {
         let mut last_energy: Option<f64> = None;
         let mut rounds = 0;
         let mut kept: Option<Hierarchy> = None;
+        let mut spare: Option<(Vec<f32>, Vec<f32>)> = None;
         while rounds < MAX_ROUNDS && !halt() {
             rounds += 1;
             round += 1;
-            let (wx, gx) = self.edges(&shares.x, &bx, &self.p, 1);
-            let (wy, gy) = self.edges(&shares.y, &by, &self.q, w);
-            let b = divergence(&gx, &gy, h, w);
-            drop((gx, gy));
+            // Edge buffers come back from the last round's stencil: a fresh 2048² pair
+            // page-faults in the kernel on every round.
+            let (mut wx, mut wy) = spare
+                .take()
+                .unwrap_or_else(|| (vec![0.0; h * w], vec![0.0; h * w]));
+            let mut b = vec![0f32; h * w];
+            self.assemble(&shares, (&bx, &by), &mut wx, &mut wy, &mut b);
             let st = WeightStencil::new(h, w, wx, wy);
             // The first sharp round's hierarchy preconditions the later rounds' solves: their
             // weights differ from its on few edges, it stays symmetric positive definite
@@ -219,6 +223,7 @@ impl Window {
             };
             let start = (z.take(), Some(hier));
             let mut next = solve_rhs(&st, b, &comps, start, ROUND_STOP, halt);
+            spare = Some(st.into_weights());
             comps.remove_means(&mut next);
             let energy = self.reweigh(&next, &mut shares, &bx, &by, sharpness(round));
             z = Some(next);
@@ -247,31 +252,86 @@ impl Window {
         (east, south)
     }
 
-    /// Weights and fluxes (weight × slope) of the edges from each pixel `i` to `i + step`
-    /// (1: east, `w`: south) under the forward shares `f`: `W = b (a_i f_i + a_j (1 − f_j))`
-    /// with `b` the base weight (`base`, 0 where there is no edge), floored at
-    /// [`CUT_FLOOR`] × `b`; the slope is the mean of `g_i` and `g_j` weighted by the two
-    /// terms (their plain mean where both are ~0).
-    fn edges(&self, f: &[f32], base: &[f32], g: &[f32], step: usize) -> (Vec<f32>, Vec<f32>) {
-        let n = self.h * self.w;
-        let a = &self.a;
-        let edge = |i: usize| -> (f32, f32) {
-            let b = base[i];
-            if b <= 0.0 {
-                return (0.0, 0.0);
-            }
-            let j = i + step;
-            let (ti, tj) = (a[i] * f[i], a[j] * (1.0 - f[j]));
-            let sum = ti + tj;
-            let slope = if sum > 1e-12 {
-                (ti * g[i] + tj * g[j]) / sum
-            } else {
-                0.5 * (g[i] + g[j])
-            };
-            let weight = b * sum.max(CUT_FLOOR);
-            (weight, weight * slope)
-        };
-        (0..n).into_par_iter().map(edge).unzip()
+    /// One round's weighted Poisson system under `shares`: the weights of the edges east
+    /// (`wx`) and south (`wy`) of each pixel ([`edge`]) and the right-hand side `b`, the
+    /// divergence of their fluxes (`b_i = Σ_{edges into i} flux − Σ_{edges out of i}
+    /// flux`). One pass over the multigrid's bands of rows, each band first forming the
+    /// south fluxes of the row above it: one read of the inputs, no flux maps.
+    fn assemble(
+        &self,
+        shares: &Shares,
+        (bx, by): (&[f32], &[f32]),
+        wx: &mut [f32],
+        wy: &mut [f32],
+        b: &mut [f32],
+    ) {
+        let (h, w) = (self.h, self.w);
+        let rows = Bands::new(h, w).rows;
+        (wx.par_chunks_mut(rows * w).zip(wy.par_chunks_mut(rows * w)))
+            .zip(b.par_chunks_mut(rows * w))
+            .enumerate()
+            .for_each(|(k, ((wxb, wyb), bb))| {
+                let r0 = k * rows;
+                let [mut fx, mut above, mut fy, mut sink] = [(); 4].map(|_| vec![0f32; w]);
+                if r0 > 0 {
+                    self.south_row(&shares.y, by, r0 - 1, &mut sink, &mut above);
+                }
+                let band = wxb
+                    .chunks_mut(w)
+                    .zip(wyb.chunks_mut(w))
+                    .zip(bb.chunks_mut(w));
+                for (j, ((wxr, wyr), br)) in band.enumerate() {
+                    let r = r0 + j;
+                    self.east_row(&shares.x, bx, r, wxr, &mut fx);
+                    self.south_row(&shares.y, by, r, wyr, &mut fy);
+                    for c in 0..w {
+                        let mut v = -fx[c] - fy[c];
+                        if c > 0 {
+                            v += fx[c - 1];
+                        }
+                        if r > 0 {
+                            v += above[c];
+                        }
+                        br[c] = v;
+                    }
+                    std::mem::swap(&mut above, &mut fy);
+                }
+            });
+    }
+
+    /// Row `r`'s east edges under the forward shares `f`: weights into `wr`, fluxes into `fr`.
+    fn east_row(&self, f: &[f32], base: &[f32], r: usize, wr: &mut [f32], fr: &mut [f32]) {
+        let w = self.w;
+        let i = r * w;
+        let (a, g, f, base) = (
+            &self.a[i..i + w],
+            &self.p[i..i + w],
+            &f[i..i + w],
+            &base[i..i + w],
+        );
+        for c in 0..w - 1 {
+            (wr[c], fr[c]) = edge(base[c], (a[c], f[c], g[c]), (a[c + 1], f[c + 1], g[c + 1]));
+        }
+        (wr[w - 1], fr[w - 1]) = (0.0, 0.0);
+    }
+
+    /// Row `r`'s south edges under the forward shares `f`: weights into `wr`, fluxes into
+    /// `fr` (none below the last row).
+    fn south_row(&self, f: &[f32], base: &[f32], r: usize, wr: &mut [f32], fr: &mut [f32]) {
+        let w = self.w;
+        if r + 1 >= self.h {
+            wr.fill(0.0);
+            fr.fill(0.0);
+            return;
+        }
+        let (i, j) = (r * w, (r + 1) * w);
+        let (a0, a1) = (&self.a[i..i + w], &self.a[j..j + w]);
+        let (g0, g1) = (&self.q[i..i + w], &self.q[j..j + w]);
+        let (f0, f1) = (&f[i..i + w], &f[j..j + w]);
+        let base = &base[i..i + w];
+        for c in 0..w {
+            (wr[c], fr[c]) = edge(base[c], (a0[c], f0[c], g0[c]), (a1[c], f1[c], g1[c]));
+        }
     }
 
     /// New forward shares at heights `z` under the sigmoid's sharpness `k`, in place;
@@ -329,29 +389,30 @@ fn reweigh_axis(
     multigrid::ordered_sum(rows.into_par_iter())
 }
 
+/// Weight and flux of an edge of base weight `base` between pixels `i` and `j` (facing
+/// weight, forward share and slope of each): `W = base (a_i f_i + a_j (1 − f_j))`, floored
+/// at [`CUT_FLOOR`] × `base`, its slope the mean of `g_i` and `g_j` weighted by the two
+/// terms (their plain mean where both are ~0); nothing where `base` is 0 (no edge).
+#[inline(always)]
+fn edge(base: f32, (ai, fi, gi): (f32, f32, f32), (aj, fj, gj): (f32, f32, f32)) -> (f32, f32) {
+    let (ti, tj) = (ai * fi, aj * (1.0 - fj));
+    let sum = ti + tj;
+    let slope = if sum > 1e-12 {
+        (ti * gi + tj * gj) / sum
+    } else {
+        0.5 * (gi + gj)
+    };
+    let weight = base * sum.max(CUT_FLOOR);
+    if base > 0.0 {
+        (weight, weight * slope)
+    } else {
+        (0.0, 0.0)
+    }
+}
+
 #[inline(always)]
 fn sigmoid(t: f32) -> f32 {
     1.0 / (1.0 + (-t).exp())
-}
-
-/// `b_i = Σ_{edges into i} flux − Σ_{edges out of i} flux`, the right-hand side of the
-/// weighted Poisson system whose edge equations carry fluxes `gx` (east) and `gy` (south).
-fn divergence(gx: &[f32], gy: &[f32], h: usize, w: usize) -> Vec<f32> {
-    let mut b = vec![0f32; h * w];
-    b.par_chunks_mut(w).enumerate().for_each(|(r, row)| {
-        for (c, b) in row.iter_mut().enumerate() {
-            let i = r * w + c;
-            let mut v = -gx[i] - gy[i];
-            if c > 0 {
-                v += gx[i - 1];
-            }
-            if r > 0 {
-                v += gy[i - w];
-            }
-            *b = v;
-        }
-    });
-    b
 }
 
 #[cfg(test)]

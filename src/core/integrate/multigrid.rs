@@ -36,6 +36,7 @@ mod stencil;
 mod sums;
 mod sweeps;
 
+pub(super) use bands::Bands;
 pub use stencil::MIN_EDGE_WEIGHT;
 pub(super) use stencil::{MaskStencil, Stencil, WeightStencil, edge_weight_row, edge_weights};
 pub(super) use sums::{dot_f64, ordered_sum};

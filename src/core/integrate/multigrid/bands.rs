@@ -10,13 +10,13 @@ use super::stencil::Stencil;
 
 /// Band partition of `h` rows.
 #[derive(Clone, Copy)]
-pub(super) struct Bands {
-    pub(super) rows: usize,
+pub(crate) struct Bands {
+    pub(crate) rows: usize,
     pub(super) count: usize,
 }
 
 impl Bands {
-    pub(super) fn new(h: usize, w: usize) -> Self {
+    pub(crate) fn new(h: usize, w: usize) -> Self {
         // Small grids run as one band: splitting them costs more than it saves.
         let rows = if h * w < 1 << 15 {
             h

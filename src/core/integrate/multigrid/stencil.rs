@@ -179,6 +179,11 @@ impl WeightStencil {
         }
     }
 
+    /// The edge weights east and south, to be refilled for another operator.
+    pub(crate) fn into_weights(self) -> (Vec<f32>, Vec<f32>) {
+        (self.wx, self.wy)
+    }
+
     /// Weighted least squares on a mask: edge weights from [`edge_weights`].
     pub(crate) fn from_pixel_weights(
         mask: &[bool],
