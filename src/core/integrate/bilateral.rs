@@ -203,8 +203,8 @@ impl Window {
         while rounds < MAX_ROUNDS && !halt() {
             rounds += 1;
             round += 1;
-            // Edge buffers come back from the last round's stencil: a fresh 2048² pair
-            // page-faults in the kernel on every round.
+            // The edge weights are written into the last round's vectors: fresh
+            // frame-sized ones would page-fault on their first write every round.
             let (mut wx, mut wy) = spare
                 .take()
                 .unwrap_or_else(|| (vec![0.0; h * w], vec![0.0; h * w]));
