@@ -10,8 +10,6 @@
 use std::io::Cursor;
 use std::panic::AssertUnwindSafe;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use image::{DynamicImage, ImageFormat, ImageReader};
 use ndarray::{Array2, Array3};
@@ -216,39 +214,47 @@ pub fn load_with(
     let ordered = check_files(&lights, files, limits)?;
     let mut lights = lights;
 
-    let moments: Mutex<Option<Array3<f32>>> = Mutex::new(None);
-    let colour_count = AtomicUsize::new(0);
-    let decoded: Vec<(Decoded, Option<f64>)> = ordered
-        .par_iter()
-        .zip(lights.par_iter())
-        .map(|(&i, light)| {
-            if let Some(ready) = predecoded(i) {
-                // Gray by construction: no colour moments to add, the scalar stands.
-                return ready.map(|d| (d, None));
-            }
-            let (decoded, colour) = decode_file(&files[i], limits, light.rgb)?;
-            let Some(colour) = colour else {
-                return Ok((decoded, None));
-            };
-            let intensity = colour.balanced.unwrap_or(light.intensity);
-            let scaled = light.direction.map(|c| c * intensity);
-            accumulate_moments(&moments, &colour.rgb, scaled);
-            colour_count.fetch_add(1, Ordering::Relaxed);
-            Ok((decoded, colour.balanced))
-        })
-        .collect::<Vec<Result<_, InputError>>>()
+    // Images are decoded in parallel a few at a time, and each colour image's moments are
+    // added in table order before the next few are decoded: the f32 sums are then the same
+    // on every run (and the same as a streamed set's), with no more RGB images held at once
+    // than there are threads.
+    let mut moments: Option<Array3<f32>> = None;
+    let mut colour_count = 0;
+    let mut decoded = Vec::with_capacity(ordered.len());
+    let at_once = rayon::current_num_threads().max(1);
+    for (order, lights) in ordered.chunks(at_once).zip(lights.chunks_mut(at_once)) {
+        let part: Vec<Result<_, InputError>> = (order.par_iter())
+            .zip(lights.par_iter())
+            .map(|(&i, light)| {
+                if let Some(ready) = predecoded(i) {
+                    // Gray by construction: no colour moments to add, the scalar stands.
+                    return ready.map(|d| (d, None));
+                }
+                decode_file(&files[i], limits, light.rgb)
+            })
+            .collect();
         // The first failure in table order, not the first in time: the error a set gets
         // must not depend on thread scheduling.
-        .into_iter()
-        .collect::<Result<_, InputError>>()?;
-    let decoded: Vec<Decoded> = (decoded.into_iter().zip(&mut lights))
-        .map(|((d, intensity), light)| {
-            if let Some(s) = intensity {
-                light.intensity = s;
+        for (result, light) in part.into_iter().zip(lights.iter_mut()) {
+            let (d, colour) = result?;
+            if let Some(colour) = colour {
+                if let Some(s) = colour.balanced {
+                    light.intensity = s;
+                }
+                let scaled = light.direction.map(|c| (c * light.intensity) as f32);
+                let (w, h) = (colour.rgb.width() as usize, colour.rgb.height() as usize);
+                let m = moments.get_or_insert_with(|| Array3::zeros((h, w, 9)));
+                // A size mismatch is reported below.
+                if m.dim() == (h, w, 9)
+                    && let Some(m) = m.as_slice_mut()
+                {
+                    add_moments(m, &colour.rgb, scaled);
+                }
+                colour_count += 1;
             }
-            d
-        })
-        .collect();
+            decoded.push(d);
+        }
+    }
 
     let sizes: Vec<_> = decoded.iter().map(|d| (d.plane.dim(), d.depth)).collect();
     check_sizes(&lights, &sizes)?;
@@ -256,10 +262,10 @@ pub fn load_with(
     let bit_depth = sizes[0].1;
     let mask_file = mask;
     let mask = mask.map(|m| load_mask(m, rows, cols, limits)).transpose()?;
-    let colour_moments = moments.into_inner().unwrap_or_else(|p| p.into_inner());
+    let colour_moments = moments;
     // A set where only some images carry colour is treated as gray: moments from a
     // subset of lights would bias every channel.
-    let colour_images = colour_count.into_inner() == lights.len();
+    let colour_images = colour_count == lights.len();
     Ok(ImageSet {
         width: cols,
         height: rows,
@@ -568,26 +574,21 @@ fn luma_of(pixels: impl Iterator<Item = [f32; 3]>) -> Vec<u16> {
         .collect()
 }
 
-/// Add one image's Σ l·I_c, with `scaled` its light as the solve sees it.
-fn accumulate_moments(
-    moments: &Mutex<Option<Array3<f32>>>,
-    rgb: &image::Rgb32FImage,
-    scaled: [f64; 3],
-) {
-    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    let s = scaled.map(|v| v as f32);
-    let mut guard = moments.lock().unwrap_or_else(|p| p.into_inner());
-    let m = guard.get_or_insert_with(|| Array3::zeros((h, w, 9)));
-    if m.dim() != (h, w, 9) {
-        return; // size mismatch is reported by the caller
-    }
-    for (px, mut out) in rgb.pixels().zip(m.rows_mut()) {
-        for c in 0..3 {
-            for k in 0..3 {
-                out[c * 3 + k] += s[k] * px.0[c];
+/// Add one image's (or band's) Σ s_k·I_c to each pixel's moments, `s` its light as the
+/// solve sees it (direction × intensity). The one place moments are summed: images added
+/// in table order give the same sums run to run, whole or streamed.
+pub(super) fn add_moments(moments: &mut [f32], rgb: &image::Rgb32FImage, s: [f32; 3]) {
+    (moments.par_chunks_mut(9 * 1024))
+        .zip(rgb.as_raw().par_chunks(3 * 1024))
+        .for_each(|(m, px)| {
+            for (out, p) in m.chunks_exact_mut(9).zip(px.chunks_exact(3)) {
+                for c in 0..3 {
+                    for k in 0..3 {
+                        out[c * 3 + k] += s[k] * p[c];
+                    }
+                }
             }
-        }
-    }
+        });
 }
 
 pub(super) fn load_mask(

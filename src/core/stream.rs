@@ -244,7 +244,7 @@ impl Stack for Streamed {
         }
         for ((plane, rgb), image) in read.into_iter().zip(&self.images) {
             if let Some(rgb) = rgb {
-                add_moments(&mut self.moments, &rgb, image.scaled);
+                intake::add_moments(&mut self.moments, &rgb, image.scaled);
             }
             self.planes.push(plane);
         }
@@ -284,22 +284,6 @@ impl Image {
         let (plane, rgb) = intake::band_plane(rows, self.colour, self.gains, with_rgb);
         (plane.into_raw_vec_and_offset().0, rgb)
     }
-}
-
-/// Σ s_k·I_c per pixel of a band, added in table order (so the sums are the same run to
-/// run).
-fn add_moments(moments: &mut [f32], rgb: &image::Rgb32FImage, s: [f32; 3]) {
-    (moments.par_chunks_mut(9 * 1024))
-        .zip(rgb.as_raw().par_chunks(3 * 1024))
-        .for_each(|(m, px)| {
-            for (out, p) in m.chunks_exact_mut(9).zip(px.chunks_exact(3)) {
-                for c in 0..3 {
-                    for k in 0..3 {
-                        out[c * 3 + k] += s[k] * p[c];
-                    }
-                }
-            }
-        });
 }
 
 #[cfg(test)]
