@@ -262,7 +262,6 @@ pub fn load_with(
     let bit_depth = sizes[0].1;
     let mask_file = mask;
     let mask = mask.map(|m| load_mask(m, rows, cols, limits)).transpose()?;
-    let colour_moments = moments;
     // A set where only some images carry colour is treated as gray: moments from a
     // subset of lights would bias every channel.
     let colour_images = colour_count == lights.len();
@@ -272,7 +271,7 @@ pub fn load_with(
         bit_depth,
         lights,
         planes: decoded.into_iter().map(|d| d.plane).collect(),
-        colour_moments: if colour_images { colour_moments } else { None },
+        colour_moments: if colour_images { moments } else { None },
         mask,
         mask_file: mask_file.map(|m| m.name.clone()),
         notes: Vec::new(),
