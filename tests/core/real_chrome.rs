@@ -133,11 +133,9 @@ fn check(name: &str, dir: &Path, auto_mean: f64, given_mean: f64) {
     );
 }
 
-// The target is a mean of 0.6° at most and a max of 2°, with the outline found
-// automatically. psbox meets it. harvard does not quite (0.64°): its rim is a faint ramp
-// 10 px wide, and the fitted outline lies 2.2 px from the authors' hand-fitted circle
-// (with theirs: 0.31°). Its bound is today's figure, so that a change that makes it worse
-// fails.
+// The target (issue 40): a mean of 0.6° at most and a max of 2°, with the outline found
+// automatically, on each capture; with the authors' hand-fitted circles the lights come
+// out at about half of that.
 
 #[test]
 fn real_psbox_ball_12_lights_within_2_degrees() {
@@ -152,5 +150,5 @@ fn real_harvard_ball_with_a_room_light_20_lights_within_2_degrees() {
     // environment cannot explain. The median takes it in by its share of the light, as
     // the authors' rule does.
     let dir = seed::real!("chrome/harvard-cat-probe1");
-    check("harvard-cat-probe1", &dir, 0.66, 0.35);
+    check("harvard-cat-probe1", &dir, 0.60, 0.35);
 }

@@ -3,8 +3,10 @@
 //! The outlines are fitted on the per-pixel median of downscaled copies of the images
 //! (see [`sphere`]): the best one (the ball when the frame holds one), then every further
 //! round outline as strong as a ball's, of its size and beside the others
-//! ([`sphere::is_another_ball`]). A second pass reads each ball's window at full resolution, where each
-//! outline is refined and judged again. Last, the images confirm them: a ball shows a
+//! ([`sphere::is_another_ball`]). A second pass reads each ball's window at full
+//! resolution, where each outline is refined and judged again. Each ball's outline is then
+//! refined on the images themselves: along each ray, the strongest step any one image
+//! shows. Last, the images confirm them: a ball shows a
 //! light's highlight in most images, so an outline whose window has none in most images
 //! (a plate, a round patch of the backdrop) is no ball and is left out, unless none is
 //! left: then the best one is the ball, whatever it shows, and its errors are the
@@ -14,6 +16,7 @@
 //! first ball, which the light table's directions and the positions' origin are on, is
 //! the leftmost.
 
+use std::borrow::Cow;
 use std::path::Path;
 
 use ndarray::Array2;
@@ -63,7 +66,9 @@ impl From<CalibrationError> for LocateError {
 
 /// Fit the ball's outline (`several`: every ball's): on the per-pixel median of the images
 /// (raised to `ambient`) downscaled to fit the budget, then, when they were downscaled,
-/// refined at full resolution on the median of a second pass over each ball's window.
+/// refined at full resolution on the median of a second pass over each ball's window;
+/// last, each ball's outline refined on the images themselves
+/// ([`sphere::refine_on_images`]), once it has been judged a ball on the median.
 pub(super) fn locate(
     images: &dyn Source,
     ambient: Option<&dyn Source>,
@@ -101,7 +106,15 @@ pub(super) fn locate(
         .filter(|fit| check_circle(&fit.circle, w, h).is_ok())
         .collect();
     if f == 1 {
-        // The copies are the images: the balls' windows are cut from them, one at a time.
+        // The copies are the images: each outline is refined on them, and the balls'
+        // windows are cut from them, one at a time.
+        let images = &first.coarse;
+        let image = |k: usize| Ok::<_, CalibrationError>(Cow::Borrowed(&images[k]));
+        let threshold = sphere::edge_threshold(&env);
+        let rough = rough
+            .iter()
+            .map(|fit| sphere::refine_on_images(threshold, images.len(), image, fit))
+            .collect::<Result<Vec<OutlineFit>, _>>()?;
         let windows: Vec<Window> = rough
             .iter()
             .map(|fit| Window::around(&fit.circle, 0.0, dim))
@@ -168,12 +181,13 @@ pub(super) fn locate(
         let env = ws.median(amb.as_ref())?;
         drop(amb);
         let fine = refined(&env, up, win, off, dim, f);
-        let fit = match (fits.is_empty(), fine) {
+        let (fit, threshold) = match (fits.is_empty(), fine) {
             (true, fine) => fine?,
-            (false, Ok(fit)) if sphere::is_another_ball(&fit, &fits) => fit,
+            (false, Ok((fit, t))) if sphere::is_another_ball(&fit, &fits) => (fit, t),
             // At full resolution it is no ball's outline after all.
             (false, _) => continue,
         };
+        let fit = on_images(threshold, &ws, win, &fit)?;
         fits.push(fit);
         windows.push(ws);
         envs.push(env);
@@ -209,7 +223,8 @@ fn plan<'a>(
 }
 
 /// The outline `up` (fitted on the `f`× downscaled copies) refined at full resolution on
-/// `env`, the environment over its window `win`: in the image's coordinates.
+/// `env`, the environment over its window `win`: in the image's coordinates, with `env`'s
+/// edge threshold.
 fn refined(
     env: &Array2<u16>,
     up: &Circle,
@@ -217,8 +232,9 @@ fn refined(
     off: f64,
     dim: (usize, usize),
     f: usize,
-) -> Result<OutlineFit, LocateError> {
-    let fine = sphere::refine_outline(env, win.local(up), off).map_err(LocateError::NoOutline)?;
+) -> Result<(OutlineFit, f32), LocateError> {
+    let (fine, threshold) =
+        sphere::refine_outline(env, win.local(up), off).map_err(LocateError::NoOutline)?;
     let circle = Circle {
         cx: fine.circle.cx + win.c0 as f64,
         cy: fine.circle.cy + win.r0 as f64,
@@ -231,7 +247,31 @@ fn refined(
             circle.cx, circle.cy, circle.r
         )));
     }
-    Ok(OutlineFit { circle, ..fine })
+    Ok((OutlineFit { circle, ..fine }, threshold))
+}
+
+/// `fit` (in the image's coordinates, fitted on the environment over `win`, whose edge
+/// threshold is `threshold`) refined on the images' windows `ws` themselves
+/// ([`sphere::refine_on_images`]).
+fn on_images(
+    threshold: f32,
+    ws: &Windows,
+    win: &Window,
+    fit: &OutlineFit,
+) -> Result<OutlineFit, CalibrationError> {
+    let local = OutlineFit {
+        circle: win.local(&fit.circle),
+        ..*fit
+    };
+    let fine = sphere::refine_on_images(threshold, ws.count(), |k| ws.image(k), &local)?;
+    Ok(OutlineFit {
+        circle: Circle {
+            cx: fine.circle.cx + win.c0 as f64,
+            cy: fine.circle.cy + win.r0 as f64,
+            r: fine.circle.r,
+        },
+        ..fine
+    })
 }
 
 /// Per image, its highlight on one ball or why it has none.

@@ -25,7 +25,7 @@ use super::sphere::circle_of_mask;
 /// The images are read a few at a time, twice at most (see [`reading`]): with
 /// [`CircleSource::Fit`] the outlines of every ball in the frame are fitted on the
 /// per-pixel median of downscaled copies and refined at full resolution on the median of
-/// each ball's window (see [`balls`]), and each highlight is found in its own image's
+/// each ball's window and on each image's (see [`balls`]), and each highlight is found in its own image's
 /// window, so the memory held is [`peak_bytes`](super::peak_bytes) whatever the number of images.
 pub fn calibrate(
     images: &dyn Source,

@@ -23,7 +23,9 @@
 //!    outvoting one long round outline.
 //! 4. Refinement: along 720 rays from the centre, the strongest intensity step within a
 //!    few pixels of the circle, to sub-pixel by a parabola; a geometric circle fit with
-//!    Tukey weights over those points; repeated with a narrowing window.
+//!    Tukey weights over those points; repeated with a narrowing window. Then again on
+//!    the images themselves ([`refine_on_images`]): per ray, the strongest step of any
+//!    one image, since the median blends rims that differ from image to image.
 //! 5. More balls ([`fit_outlines_downscaled`]; a dome's rig holds two or more): the same
 //!    search among the candidate centres outside the balls found, again and again. One
 //!    more ball is a round outline as strong as a ball's: traced along at least half its
@@ -42,13 +44,14 @@
 //! (a dark ball on a dark backdrop) is not found, and must be given.
 //!
 //! This file is the search (its candidates tried, refined and judged); its stages are
-//! below it: `filter` (blur, gradients), `edges` (step 1), `hough` (steps 2 and 3) and
-//! `fit` (step 4's refinement and circle fits).
+//! below it: `filter` (blur, gradients), `edges` (step 1), `hough` (steps 2 and 3),
+//! `fit` (step 4's refinement and circle fits) and `stack` (step 4 on the images).
 
 mod edges;
 mod filter;
 mod fit;
 mod hough;
+mod stack;
 
 use ndarray::Array2;
 
@@ -281,8 +284,12 @@ impl Search {
 /// sub-pixel refinement as [`fit_outline`]'s, the edge threshold from the image's own
 /// gradients (a sample of them); the first round looks `off` pixels either side of the
 /// rough circle at least, as far as it may be off. Holds the smoothed image (4 bytes a
-/// pixel) and little else.
-pub fn refine_outline(image: &Array2<u16>, rough: Circle, off: f64) -> Result<OutlineFit, String> {
+/// pixel) and little else. Also gives the image's [`edge_threshold`].
+pub fn refine_outline(
+    image: &Array2<u16>,
+    rough: Circle,
+    off: f64,
+) -> Result<(OutlineFit, f32), String> {
     let smooth = gaussian_u16(image, 1.0);
     let threshold = sampled_threshold(&smooth);
     let mut fit = OutlineFit {
@@ -301,7 +308,26 @@ pub fn refine_outline(image: &Array2<u16>, rough: Circle, off: f64) -> Result<Ou
             100.0 * fit.coverage
         ));
     }
-    Ok(fit)
+    Ok((fit, threshold))
+}
+
+/// The outline `start` (fitted on an environment whose [`edge_threshold`] is `threshold`)
+/// refined on the `count` images `image(k)` themselves, all over the environment's pixels
+/// ([`stack`]: per ray, the strongest step any one image shows, at least `threshold`).
+/// `start` itself when too few rays find one.
+pub fn refine_on_images<'a, E>(
+    threshold: f32,
+    count: usize,
+    image: impl Fn(usize) -> Result<std::borrow::Cow<'a, Array2<u16>>, E>,
+    start: &OutlineFit,
+) -> Result<OutlineFit, E> {
+    Ok(stack::refine_on_images(count, image, start, threshold)?.unwrap_or(*start))
+}
+
+/// The edge threshold of a full-resolution `image` (0..=65535): what the refinement holds
+/// a ray's step to.
+pub fn edge_threshold(image: &Array2<u16>) -> f32 {
+    sampled_threshold(&gaussian_u16(image, 1.0))
 }
 
 /// How far outside its circle [`refine_outline`] may look, pixels: what the image around

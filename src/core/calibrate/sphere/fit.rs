@@ -8,7 +8,7 @@ use super::filter::bilinear;
 use crate::core::calibrate::circle::Circle;
 
 /// Rays of the refinement (per full turn).
-const RAYS: usize = 720;
+pub(super) const RAYS: usize = 720;
 
 /// A fitted outline and how well the images support it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -69,11 +69,17 @@ pub(super) fn refine(
         let rho = circle.r - window + (i as f64 + 1.0 + t) * step;
         points.push((circle.cx + rho * ux, circle.cy + rho * uy));
     }
+    robust_fit(&points, circle)
+}
+
+/// A Tukey-weighted geometric circle fit from `start` through the outline points the rays
+/// found (None with fewer than 12), the scale from the residuals' MAD; its coverage is the
+/// share of the [`RAYS`] whose point it keeps.
+pub(super) fn robust_fit(points: &[(f64, f64)], start: Circle) -> Option<OutlineFit> {
     if points.len() < 12 {
         return None;
     }
-    // Tukey-weighted geometric fit, scale from the residuals' MAD.
-    let mut c = circle;
+    let mut c = start;
     let mut weights = vec![1.0; points.len()];
     for _ in 0..8 {
         let mut res: Vec<f64> = points
@@ -88,7 +94,7 @@ pub(super) fn refine(
             let u = r / cutoff;
             *wt = if u < 1.0 { (1.0 - u * u).powi(2) } else { 0.0 };
         }
-        c = geometric_fit(&points, c, &weights);
+        c = geometric_fit(points, c, &weights);
     }
     let (mut sq, mut kept) = (0.0, 0usize);
     for (&(x, y), &wt) in points.iter().zip(&weights) {
