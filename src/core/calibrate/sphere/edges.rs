@@ -4,6 +4,8 @@
 
 use ndarray::Array2;
 
+use super::filter::parabola_peak;
+
 /// Most edge points kept (the strongest).
 const MAX_EDGES: usize = 60_000;
 
@@ -73,12 +75,7 @@ pub(super) fn edge_points(gx: &Array2<f32>, gy: &Array2<f32>, downscaled: f32) -
             if m < before || m <= after {
                 continue;
             }
-            let curvature = before - 2.0 * m + after;
-            let t = if curvature < 0.0 {
-                (0.5 * (before - after) / curvature).clamp(-0.5, 0.5)
-            } else {
-                0.0
-            };
+            let t = parabola_peak(before.into(), m.into(), after.into()) as f32;
             edges.push((
                 m,
                 Edge {

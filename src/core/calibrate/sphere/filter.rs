@@ -97,3 +97,15 @@ pub(super) fn bilinear(a: &Array2<f32>, x: f64, y: f64) -> f64 {
     (p(r0, c0) * (1.0 - fx) + p(r0, c0 + 1) * fx) * (1.0 - fy)
         + (p(r0 + 1, c0) * (1.0 - fx) + p(r0 + 1, c0 + 1) * fx) * fy
 }
+
+/// Where a sampled peak lies between its neighbours, in samples from the middle one
+/// (−½..½): the vertex of the parabola through the three values; 0 where they do not bend
+/// down.
+pub(super) fn parabola_peak(before: f64, peak: f64, after: f64) -> f64 {
+    let curvature = before - 2.0 * peak + after;
+    if curvature < 0.0 {
+        (0.5 * (before - after) / curvature).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    }
+}

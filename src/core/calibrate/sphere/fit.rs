@@ -4,7 +4,7 @@
 
 use ndarray::Array2;
 
-use super::filter::bilinear;
+use super::filter::{bilinear, parabola_peak};
 use crate::core::calibrate::circle::Circle;
 
 /// Rays of the refinement (per full turn).
@@ -59,13 +59,7 @@ pub(super) fn refine(
         if peak < threshold as f64 || i == 0 || i + 1 == deriv.len() {
             continue;
         }
-        let (a0, a1, a2) = (deriv[i - 1], peak, deriv[i + 1]);
-        let curvature = a0 - 2.0 * a1 + a2;
-        let t = if curvature < 0.0 {
-            (0.5 * (a0 - a2) / curvature).clamp(-0.5, 0.5)
-        } else {
-            0.0
-        };
+        let t = parabola_peak(deriv[i - 1], peak, deriv[i + 1]);
         let rho = circle.r - window + (i as f64 + 1.0 + t) * step;
         points.push((circle.cx + rho * ux, circle.cy + rho * uy));
     }

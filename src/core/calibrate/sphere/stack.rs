@@ -15,6 +15,7 @@ use std::borrow::Cow;
 use ndarray::Array2;
 use rayon::prelude::*;
 
+use super::filter::parabola_peak;
 use super::fit::{OutlineFit, RAYS, robust_fit};
 use crate::core::calibrate::circle::Circle;
 
@@ -133,12 +134,7 @@ impl Strongest {
             if a1 < threshold || i == lo || i == hi {
                 continue;
             }
-            let curvature = a0 - 2.0 * a1 + a2;
-            let shift = if curvature < 0.0 {
-                (0.5 * (a0 - a2) / curvature).clamp(-0.5, 0.5)
-            } else {
-                0.0
-            };
+            let shift = parabola_peak(a0, a1, a2);
             let rho = c0.r - SPAN + (i as f64 + shift) * STEP;
             points.push((c0.cx + rho * ux, c0.cy + rho * uy));
         }
