@@ -10,6 +10,12 @@ use crate::core::calibrate::circle::Circle;
 /// Rays of the refinement (per full turn).
 pub(super) const RAYS: usize = 720;
 
+/// Unit direction of ray `k` of [`RAYS`].
+pub(super) fn ray_direction(k: usize) -> (f64, f64) {
+    let a = k as f64 / RAYS as f64 * std::f64::consts::TAU;
+    (a.cos(), a.sin())
+}
+
 /// A fitted outline and how well the images support it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct OutlineFit {
@@ -33,8 +39,7 @@ pub(super) fn refine(
     let n = (2.0 * window / step).round() as usize + 1;
     let mut points = Vec::new();
     for k in 0..RAYS {
-        let a = k as f64 / RAYS as f64 * std::f64::consts::TAU;
-        let (ux, uy) = (a.cos(), a.sin());
+        let (ux, uy) = ray_direction(k);
         let at = |i: usize| {
             let rho = circle.r - window + i as f64 * step;
             (circle.cx + rho * ux, circle.cy + rho * uy)

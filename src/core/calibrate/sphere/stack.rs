@@ -18,7 +18,7 @@ use ndarray::Array2;
 use rayon::prelude::*;
 
 use super::filter::parabola_peak;
-use super::fit::{OutlineFit, RAYS, robust_fit};
+use super::fit::{OutlineFit, RAYS, ray_direction, robust_fit};
 use crate::core::calibrate::circle::Circle;
 
 /// How far either side of the start circle the profiles reach, pixels: the widest window
@@ -32,6 +32,8 @@ const WINDOWS: [f64; 4] = [4.0, 3.0, 2.0, 2.0];
 /// Standard deviation of the Gaussian each sample is taken with, pixels: the environment's
 /// smoothing.
 const SIGMA: f64 = 1.0;
+/// Most pixels a sample's Gaussian spans along a row or column (those within 3σ).
+const TAPS: usize = 2 * (3.0 * SIGMA) as usize + 1;
 
 /// Per ray and position along it, the strongest step over the images: the derivative's
 /// magnitude there and at the positions either side, in the same image.
@@ -86,7 +88,7 @@ impl Strongest {
                 if !*inside {
                     return;
                 }
-                let (ux, uy) = direction(ray);
+                let (ux, uy) = ray_direction(ray);
                 let mut samples = vec![0.0; n];
                 for (i, s) in samples.iter_mut().enumerate() {
                     let rho = c0.r - SPAN + i as f64 * STEP;
@@ -114,7 +116,7 @@ impl Strongest {
         let n = self.positions;
         let mut points = Vec::new();
         for ray in (0..RAYS).filter(|&r| self.inside[r]) {
-            let (ux, uy) = direction(ray);
+            let (ux, uy) = ray_direction(ray);
             // Distance from c0's centre along the ray to `circle`.
             let (ox, oy) = (c0.cx - circle.cx, c0.cy - circle.cy);
             let b = ux * ox + uy * oy;
@@ -144,12 +146,6 @@ impl Strongest {
     }
 }
 
-/// Unit direction of ray `ray` of [`RAYS`].
-fn direction(ray: usize) -> (f64, f64) {
-    let a = ray as f64 / RAYS as f64 * std::f64::consts::TAU;
-    (a.cos(), a.sin())
-}
-
 /// `img` at `(x, y)` seen through a Gaussian of [`SIGMA`] (the weighted mean of the pixels
 /// within 3σ); None where that reaches past the image.
 fn gaussian_at(img: &Array2<u16>, x: f64, y: f64) -> Option<f64> {
@@ -162,13 +158,19 @@ fn gaussian_at(img: &Array2<u16>, x: f64, y: f64) -> Option<f64> {
     }
     // The Gaussian is separable: 7 + 7 exponentials rather than 49.
     let g = |d: f64| (-(d * d) / (2.0 * SIGMA * SIGMA)).exp();
+    // At most TAPS columns: their weights on the stack, not a fresh vector per sample
+    // (tens of thousands per image).
     let (c0, r0) = (c0 as usize, r0 as usize);
-    let gx: Vec<f64> = (c0..=c1 as usize).map(|c| g(c as f64 - x)).collect();
+    let cols = c1 as usize - c0 + 1;
+    let mut gx = [0.0; TAPS];
+    for (k, wx) in gx[..cols].iter_mut().enumerate() {
+        *wx = g((c0 + k) as f64 - x);
+    }
     let (mut sum, mut weight) = (0.0, 0.0);
     for r in r0..=r1 as usize {
         let gy = g(r as f64 - y);
         let row = img.row(r);
-        for (k, &wx) in gx.iter().enumerate() {
+        for (k, &wx) in gx[..cols].iter().enumerate() {
             sum += gy * wx * f64::from(row[c0 + k]);
             weight += gy * wx;
         }
