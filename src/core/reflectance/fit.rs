@@ -69,6 +69,22 @@ impl Fitted {
     }
 }
 
+/// The lobe an object's pixels share: its family and roughness, fitted on a sample of
+/// them ([`super::material`]). A pixel's few observations of a highlight rarely pin its
+/// width down (a lobe narrower than the lights' spacing is seen by one light at most), and
+/// a width fitted per pixel overshoots where the next light would show its tail; one
+/// material per object is what the images of many pixels do determine.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Material {
+    pub facets: Facets,
+    pub roughness: f64,
+}
+
+/// A shared material's fit is kept where its loss is at most this many σ² per
+/// observation (an RMS residual of about twice the noise).
+const SHARED_FIT: f64 = 4.0;
+/// Brightest observations whose mirror normals start a shared material's fit.
+const MIRROR_STARTS: usize = 3;
 /// Roughness values the lobe's width is first picked from (mirror-like to broad).
 const ROUGHNESS_GRID: [f64; 11] = [
     0.04, 0.06, 0.09, 0.13, 0.18, 0.25, 0.33, 0.43, 0.55, 0.7, 0.85,
@@ -87,9 +103,18 @@ const STEP_GAIN: f64 = 1e-3;
 const MIN_GAIN: f64 = 0.8;
 
 /// Fit the lobe model to `obs`, starting from the Lambertian `normal` and `albedo`
-/// (the robust solve's), with `noise` the images' noise (σ, [0, 1] units). `None` when
-/// the Lambertian fit explains the pixel as well (or there is too little to fit).
-pub fn fit(obs: &[Observation], normal: [f64; 3], albedo: f64, noise: f64) -> Option<Fitted> {
+/// (the robust solve's), with `noise` the images' noise (σ, [0, 1] units): the shared
+/// `material` when given (normal and albedos fitted), and where it does not explain the
+/// pixel (another material, or a start too far from the lobe for its fixed width) the
+/// family and width that fit the pixel best. `None` when the Lambertian fit explains the
+/// pixel as well (or there is too little to fit).
+pub fn fit(
+    obs: &[Observation],
+    normal: [f64; 3],
+    albedo: f64,
+    noise: f64,
+    material: Option<Material>,
+) -> Option<Fitted> {
     if obs.len() < MIN_OBSERVATIONS || normal[2] <= 0.0 {
         return None;
     }
@@ -103,40 +128,98 @@ pub fn fit(obs: &[Observation], normal: [f64; 3], albedo: f64, noise: f64) -> Op
         roughness: 1.0,
         facets: Facets::Ggx,
     };
-    let lambert_loss = loss(obs, &lambert, scale);
-    // Two starts: the Lambertian normal, and the normal that mirrors the brightest
-    // observation's light into the camera (the lobe's peak), which is nearer the truth
-    // where a strong lobe has pulled the Lambertian fit away. GGX is refined from both,
-    // Beckmann from the one its grid fits better: refining it from both cost a third
-    // more time in the solve and moved no rendered scene's mean error by 0.01°.
-    let brightest = obs.iter().max_by(|a, b| a.value.total_cmp(&b.value))?;
-    let mirror = normalise([
-        brightest.light[0],
-        brightest.light[1],
-        brightest.light[2] + 1.0,
-    ]);
-    let starts = |f| {
-        [normal, mirror]
-            .into_iter()
-            .filter_map(move |n| grid_start(obs, n, f))
+    let pixel = Pixel {
+        obs,
+        normal,
+        noise,
+        scale,
+        lambert_loss: loss(obs, &lambert, scale),
     };
-    let beckmann = starts(Facets::Beckmann).min_by(|a, b| a.0.total_cmp(&b.0));
-    let (fitted, fitted_loss) = (starts(Facets::Ggx).chain(beckmann))
-        .map(|(_, start)| start)
-        .map(|start| {
-            let fitted = refine(obs, start, scale);
-            (fitted, loss(obs, &fitted, scale))
-        })
-        .min_by(|a, b| a.1.total_cmp(&b.1))?;
-    // Two more parameters than the Lambertian fit, each worth about σ² ln m of loss at
-    // the noise level (BIC).
-    let penalty = 2.0 * noise.max(1e-4).powi(2) * (obs.len() as f64).ln();
-    let alpha = fitted.roughness * fitted.roughness;
-    let kept = fitted.specular > 0.0
-        && fitted.specular.is_finite()
-        && seen(obs, fitted.normal, fitted.facets, alpha)
-        && fitted_loss + penalty < MIN_GAIN * lambert_loss;
-    kept.then_some(fitted)
+    (material.and_then(|m| pixel.of_material(m))).or_else(|| pixel.own())
+}
+
+/// One pixel's observations, its Lambertian start and that start's loss.
+struct Pixel<'a> {
+    obs: &'a [Observation],
+    normal: [f64; 3],
+    noise: f64,
+    scale: f64,
+    lambert_loss: f64,
+}
+
+impl Pixel<'_> {
+    /// The lobe of the shared material `m`, from the Lambertian normal and the normals
+    /// that mirror the [`MIRROR_STARTS`] brightest observations' lights into the camera
+    /// (with the width fixed, a lobe whose peak falls between the lights is not found
+    /// from a start beside it): the two whose albedos fit best are refined.
+    fn of_material(&self, m: Material) -> Option<Fitted> {
+        let mut bright: Vec<&Observation> = self.obs.iter().collect();
+        bright.sort_by(|a, b| b.value.total_cmp(&a.value));
+        let mut starts: Vec<(f64, Fitted)> = std::iter::once(self.normal)
+            .chain(
+                bright
+                    .iter()
+                    .take(MIRROR_STARTS)
+                    .map(|o| mirror_of(o.light)),
+            )
+            .filter_map(|n| grid_start(self.obs, n, m.facets, &[m.roughness]))
+            .collect();
+        starts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        starts.truncate(2);
+        // Kept only where it fits to about the noise: a pixel of another material is
+        // often still explained better than by Lambert, with its normal tilted and its
+        // diffuse albedo taking the rest of its lobe.
+        let most = SHARED_FIT * self.obs.len() as f64 * self.noise.max(1e-4).powi(2);
+        self.best_kept(starts, false)
+            .filter(|f| loss(self.obs, f, self.scale) <= most)
+    }
+
+    /// The pixel's own lobe. Two starts: the Lambertian normal, and the normal that
+    /// mirrors the brightest observation's light into the camera (the lobe's peak), which
+    /// is nearer the truth where a strong lobe has pulled the Lambertian fit away. GGX is
+    /// refined from both, Beckmann from the one its grid fits better: refining it from
+    /// both cost a third more time in the solve and moved no rendered scene's mean error
+    /// by 0.01°.
+    fn own(&self) -> Option<Fitted> {
+        let brightest = (self.obs.iter()).max_by(|a, b| a.value.total_cmp(&b.value))?;
+        let mirror = mirror_of(brightest.light);
+        let starts = |f: Facets| {
+            let widths: Vec<f64> = (ROUGHNESS_GRID.into_iter())
+                .filter(|&r| r <= f.max_roughness())
+                .collect();
+            [self.normal, mirror]
+                .into_iter()
+                .filter_map(move |n| grid_start(self.obs, n, f, &widths))
+        };
+        let beckmann = starts(Facets::Beckmann).min_by(|a, b| a.0.total_cmp(&b.0));
+        self.best_kept(starts(Facets::Ggx).chain(beckmann).collect(), true)
+    }
+
+    /// The best of `starts` once refined (the width too if `free_width`), if it explains
+    /// the pixel clearly better than the Lambertian fit.
+    fn best_kept(&self, starts: Vec<(f64, Fitted)>, free_width: bool) -> Option<Fitted> {
+        let (obs, scale) = (self.obs, self.scale);
+        let (fitted, fitted_loss) = (starts.into_iter())
+            .map(|(_, start)| {
+                let fitted = refine(obs, start, scale, free_width);
+                (fitted, loss(obs, &fitted, scale))
+            })
+            .min_by(|a, b| a.1.total_cmp(&b.1))?;
+        // Two more parameters than the Lambertian fit, each worth about σ² ln m of loss
+        // at the noise level (BIC).
+        let penalty = 2.0 * self.noise.max(1e-4).powi(2) * (obs.len() as f64).ln();
+        let alpha = fitted.roughness * fitted.roughness;
+        let kept = fitted.specular > 0.0
+            && fitted.specular.is_finite()
+            && seen(obs, fitted.normal, fitted.facets, alpha)
+            && fitted_loss + penalty < MIN_GAIN * self.lambert_loss;
+        kept.then_some(fitted)
+    }
+}
+
+/// The normal that mirrors light `l` into the camera (+z).
+fn mirror_of(l: [f64; 3]) -> [f64; 3] {
+    normalise([l[0], l[1], l[2] + 1.0])
 }
 
 /// The Cauchy loss Σ c² ln(1 + (r/c)²) of `model` over `obs`.
@@ -151,14 +234,16 @@ fn loss(obs: &[Observation], model: &Fitted, scale: f64) -> f64 {
         .sum()
 }
 
-/// The best width on the grid for `normal` and the lobe family `facets`, with its
-/// non-negative albedos (least squares).
-fn grid_start(obs: &[Observation], normal: [f64; 3], facets: Facets) -> Option<(f64, Fitted)> {
+/// The best of the `widths` (roughness) for `normal` and the lobe family `facets`, with
+/// its non-negative albedos (least squares).
+fn grid_start(
+    obs: &[Observation],
+    normal: [f64; 3],
+    facets: Facets,
+    widths: &[f64],
+) -> Option<(f64, Fitted)> {
     let mut best: Option<(f64, Fitted)> = None;
-    for roughness in ROUGHNESS_GRID
-        .into_iter()
-        .filter(|&r| r <= facets.max_roughness())
-    {
+    for &roughness in widths {
         let lobe = facets.about(normal, roughness * roughness);
         let (mut uu, mut uv, mut vv, mut uy, mut vy, mut yy) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
         let mut brightest = 0f64;
@@ -246,9 +331,10 @@ impl Base {
 }
 
 /// Levenberg–Marquardt on the weighted squares, the Cauchy weights renewed from the
-/// residuals a few times (iteratively re-weighted least squares). Each round's steps
-/// stop once one lowers the weighted squares by less than [`STEP_GAIN`].
-fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
+/// residuals a few times (iteratively re-weighted least squares); the width is held at
+/// the start's unless `free_width`. Each round's steps stop once one lowers the weighted
+/// squares by less than [`STEP_GAIN`].
+fn refine(obs: &[Observation], start: Fitted, scale: f64, free_width: bool) -> Fitted {
     let facets = start.facets;
     let mut current = start;
     let c2 = scale * scale;
@@ -269,7 +355,22 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64) -> Fitted {
         let mut cost = now.evaluate(obs, &weights, &model_at(&base, &p, facets));
         let mut lambda = 1e-3;
         for _step in 0..8 {
-            let (jtj, jtr) = normal_equations(obs, &weights, (&base, facets), &p, &now, &mut jac);
+            let (mut jtj, mut jtr) = normal_equations(
+                obs,
+                &weights,
+                (&base, facets),
+                &p,
+                &now,
+                &mut jac,
+                free_width,
+            );
+            if !free_width {
+                // The width's row and column drop out: its step is 0.
+                for k in 0..5 {
+                    (jtj[4][k], jtj[k][4]) = (0.0, 0.0);
+                }
+                (jtj[4][4], jtr[4]) = (1.0, 0.0);
+            }
             let mut improved = false;
             let mut converged = false;
             for _try in 0..4 {
@@ -344,7 +445,7 @@ impl Point {
 }
 
 /// JᵀWJ and JᵀWr at `p` (evaluated in `at`): the albedos' columns are `at`'s terms, the
-/// normal's and the width's by forward differences.
+/// normal's and (if `free_width`, else 0) the width's by forward differences.
 fn normal_equations(
     obs: &[Observation],
     weights: &[f64],
@@ -352,11 +453,13 @@ fn normal_equations(
     p: &Params,
     at: &Point,
     jac: &mut [[f64; 5]],
+    free_width: bool,
 ) -> ([[f64; 5]; 5], [f64; 5]) {
     for (row, t) in jac.iter_mut().zip(&at.terms) {
-        (row[2], row[3]) = (t[0], t[1]);
+        (row[2], row[3], row[4]) = (t[0], t[1], 0.0);
     }
-    for k in [0, 1, 4] {
+    let columns: &[usize] = if free_width { &[0, 1, 4] } else { &[0, 1] };
+    for &k in columns {
         let h = 1e-6 * p[k].abs().max(1e-2);
         let mut q = *p;
         q[k] += h;
@@ -429,7 +532,7 @@ mod tests {
         };
         let obs = observe(&truth, &lights(24));
         let start = normalise([0.28, -0.05, 1.0]);
-        let got = fit(&obs, start, 0.5, 0.001).expect("the lobe is kept");
+        let got = fit(&obs, start, 0.5, 0.001, None).expect("the lobe is kept");
         assert!(angle(got.normal, normal) < 0.05, "{got:?}");
         assert!((got.roughness - 0.4).abs() < 0.01, "{got:?}");
         assert!((got.diffuse - 0.4).abs() < 0.005 && (got.specular - 0.3).abs() < 0.01);
@@ -450,11 +553,42 @@ mod tests {
             };
             let obs = observe(&truth, &lights(48));
             let start = normalise([0.22, 0.14, 1.0]);
-            let got = fit(&obs, start, 0.35, 0.001).expect("the lobe is kept");
+            let got = fit(&obs, start, 0.35, 0.001, None).expect("the lobe is kept");
             assert_eq!(got.facets, facets, "{got:?}");
             assert!(angle(got.normal, normal) < 0.05, "{got:?}");
             assert!((got.roughness - 0.5).abs() < 0.01, "{got:?}");
         }
+    }
+
+    /// Given the shared material, a pixel of it is fitted at that width; a pixel of
+    /// another material (a broad lobe where the shared one is narrow) still gets its own.
+    #[test]
+    fn a_shared_material_is_fitted_and_another_falls_back_to_its_own() {
+        let normal = normalise([0.1, 0.2, 1.0]);
+        let shared = Material {
+            facets: Facets::Ggx,
+            roughness: 0.3,
+        };
+        let truth = Fitted {
+            normal,
+            diffuse: 0.3,
+            specular: 0.5,
+            roughness: 0.3,
+            facets: Facets::Ggx,
+        };
+        let start = normalise([0.16, 0.15, 1.0]);
+        let obs = observe(&truth, &lights(48));
+        let got = fit(&obs, start, 0.4, 0.001, Some(shared)).expect("the lobe is kept");
+        assert!(angle(got.normal, normal) < 0.05, "{got:?}");
+        assert_eq!(got.roughness, 0.3);
+        let broad = Fitted {
+            roughness: 0.6,
+            ..truth
+        };
+        let obs = observe(&broad, &lights(48));
+        let got = fit(&obs, start, 0.4, 0.001, Some(shared)).expect("the lobe is kept");
+        assert!(angle(got.normal, normal) < 0.05, "{got:?}");
+        assert!((got.roughness - 0.6).abs() < 0.01, "{got:?}");
     }
 
     /// A Lambertian pixel keeps its Lambertian fit.
@@ -469,6 +603,6 @@ mod tests {
             facets: Facets::Ggx,
         };
         let obs = observe(&truth, &lights(24));
-        assert_eq!(fit(&obs, normal, 0.6, 0.001), None);
+        assert_eq!(fit(&obs, normal, 0.6, 0.001, None), None);
     }
 }

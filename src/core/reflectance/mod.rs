@@ -7,8 +7,10 @@
 mod fit;
 mod linear;
 mod lobe;
+mod material;
 mod rows;
 
-pub use fit::{Fitted, Observation, fit};
+pub use fit::{Fitted, Material, Observation, fit};
 pub use lobe::Facets;
+pub use material::shared;
 pub use rows::{GlossRows, refine_rows};

@@ -6,7 +6,7 @@
 use ndarray::{ArrayViewMut2, Axis, s};
 use rayon::prelude::*;
 
-use super::fit::{Fitted, Observation, fit};
+use super::fit::{Fitted, Material, Observation, fit};
 use super::lobe::Facets;
 use crate::core::bands::SurfaceRows;
 use crate::core::lights::Light;
@@ -43,8 +43,9 @@ const CLIPPED: f64 = 0.995;
 
 /// Refit the band's pixels (`planes[k]`: the band's rows of image `k`, `cols` wide) that
 /// show a highlight, given the robust solve's rows in `surface`, the images' `black`
-/// level and `noise` (σ). Once `halt` says stop, the rows not yet started are left as
-/// the robust solve left them.
+/// level and `noise` (σ), with the object's shared `material` if there is one (else
+/// each pixel's own). Once `halt` says stop, the rows not yet started are left as the
+/// robust solve left them.
 #[allow(clippy::too_many_arguments)]
 pub fn refine_rows(
     planes: &[&[u16]],
@@ -52,6 +53,7 @@ pub fn refine_rows(
     lights: &[Light],
     black: f64,
     noise: f64,
+    material: Option<Material>,
     surface: SurfaceRows<'_>,
     gloss: GlossRows<'_>,
     halt: Halt,
@@ -128,7 +130,7 @@ pub fn refine_rows(
                     if !highlight {
                         continue;
                     }
-                    if let Some(f) = fit(&obs, normal, albedo, noise) {
+                    if let Some(f) = fit(&obs, normal, albedo, noise, material) {
                         let lambert = Fitted {
                             normal,
                             diffuse: albedo,
