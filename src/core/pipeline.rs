@@ -352,6 +352,7 @@ impl Prepared {
             glossy_residual_rms: self.gloss.as_ref().and_then(|g| g.rms(&g.residual)),
             glossy_lambertian_rms: (self.gloss.as_ref())
                 .and_then(|g| g.rms(&g.lambertian_residual)),
+            glossy_material: self.gloss.as_ref().and_then(|g| g.material),
             holdout: None,
             estimated_intensities: self.estimated.then(|| {
                 (self.lights.iter())

@@ -10,6 +10,7 @@ use super::intensities::Estimated;
 use super::lights::Light;
 use super::options::Options;
 use super::progress::Stage;
+use super::reflectance::Material;
 
 /// Everything recovered from one image set. Arrays are indexed `[row, col]`; the frame is
 /// the seed's: x = column (right), y = row (down), z towards the camera.
@@ -54,6 +55,8 @@ pub struct Gloss {
     pub beckmann: Array2<bool>,
     pub residual: Array2<f32>,
     pub lambertian_residual: Array2<f32>,
+    /// The lobe the pixels shared, where the sample held enough lobes for one.
+    pub material: Option<Material>,
 }
 
 impl Gloss {
@@ -68,6 +71,7 @@ impl Gloss {
             beckmann: Array2::from_elem((rows, cols), false),
             residual: Array2::zeros((rows, cols)),
             lambertian_residual: Array2::zeros((rows, cols)),
+            material: None,
         }
     }
 
@@ -159,6 +163,10 @@ pub struct Report {
     pub glossy_residual_rms: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub glossy_lambertian_rms: Option<f64>,
+    /// With the `glossy` solver: the lobe the object's pixels shared (fitted at a sample
+    /// of them), absent where the sample held too few lobes and each pixel fitted its own.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub glossy_material: Option<Material>,
     /// With the `holdout_lights` option: how well the solver predicts images it was not
     /// given (see `core::holdout`).
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -93,9 +93,10 @@ pub fn solve(
     let linear = Linear::new(&info, solver);
     surface.estimate = robust.as_ref().map(|r| r.estimate);
     let mut gloss = (solver == Solver::Glossy).then(|| Gloss::zeros(rows, cols));
-    let material = match (&robust, &surface.estimate, &gloss) {
-        (Some(r), Some(e), Some(_)) => {
-            shared_material(stack.samples(), cols, &info.lights, r, e, halt)
+    let material = match (&robust, &surface.estimate, &mut gloss) {
+        (Some(r), Some(e), Some(g)) => {
+            g.material = shared_material(stack.samples(), cols, &info.lights, r, e, halt);
+            g.material
         }
         _ => None,
     };

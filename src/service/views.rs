@@ -10,6 +10,7 @@ use uuid::Uuid;
 use crate::core::intensities::Estimated;
 use crate::core::normalmap::Counts;
 use crate::core::options::Options;
+use crate::core::reflectance::Material;
 
 use super::problem::Problem;
 use super::repo::{Callback, JobRecord, JobStatus};
@@ -130,6 +131,9 @@ pub struct ResultSummary {
     pub glossy_residual_rms: Option<f64>,
     /// `glossy` solver: the same under the Lambertian fit the lobe replaced there.
     pub glossy_lambertian_rms: Option<f64>,
+    /// `glossy` solver: the lobe the object's pixels shared (fitted at a sample of them);
+    /// null where the sample held too few lobes and each pixel fitted its own.
+    pub glossy_material: Option<Material>,
 }
 
 pub(crate) fn job_url(id: Uuid) -> String {

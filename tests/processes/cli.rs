@@ -715,6 +715,16 @@ fn the_glossy_solver_writes_its_material_maps() {
         (median - truth).abs() <= 0.15 * truth,
         "roughness {median:.3}, truth {truth}"
     );
+    // One material for the whole coat: GGX, at the coat's roughness.
+    let material = &report["glossy_material"];
+    assert_eq!(material["facets"], "ggx", "{material}");
+    let shared = material["roughness"]
+        .as_f64()
+        .expect("the shared roughness");
+    assert!(
+        (shared - truth).abs() <= 0.05 * truth,
+        "shared roughness {shared:.3}, truth {truth}"
+    );
 }
 
 /// `evaluate --holdout-lights` scores each solver on a capture by the images it was not

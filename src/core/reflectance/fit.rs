@@ -10,6 +10,9 @@
 //! same robust loss, with a penalty for its two extra parameters (Lambertian where nothing
 //! more is explained, so matte surfaces keep the robust solve's normals).
 
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
 use super::linear::{nonnegative_pair, solve_spd};
 use super::lobe::{Facets, Lobe};
 use crate::core::vec3::{cross, dot, normalise};
@@ -70,13 +73,16 @@ impl Fitted {
 }
 
 /// The lobe an object's pixels share: its family and roughness, fitted on a sample of
-/// them ([`super::material`]). A pixel's few observations of a highlight rarely pin its
+/// them. A pixel's few observations of a highlight rarely pin its
 /// width down (a lobe narrower than the lights' spacing is seen by one light at most), and
 /// a width fitted per pixel overshoots where the next light would show its tail; one
 /// material per object is what the images of many pixels do determine.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct Material {
+    /// The lobe's family: `ggx` or `beckmann`.
     pub facets: Facets,
+    /// GGX's roughness (√α; a Beckmann lobe's is that of the GGX lobe as wide at half its
+    /// peak).
     pub roughness: f64,
 }
 

@@ -4,6 +4,9 @@
 //! out: over the angles a fixed camera sees, it moves little and the fitted specular
 //! albedo absorbs it.
 
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
 use crate::core::vec3::dot;
 
 /// How a lobe's microfacet slopes are distributed, which sets how fast the highlight
@@ -15,8 +18,9 @@ use crate::core::vec3::dot;
 ///
 /// Both are parametrised by GGX's width `alpha` (roughness², as renderers and glTF take
 /// it), so that one roughness map serves both: a Beckmann lobe of width `alpha` is the one
-/// as wide at half its peak as GGX's ([`BECKMANN_SLOPE`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// as wide at half its peak as GGX's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
 pub enum Facets {
     Ggx,
     Beckmann,

@@ -623,7 +623,7 @@ fn summarize_near(report: &NearReport) -> serde_json::Value {
 
 /// The report's headline numbers (as in `result.json`).
 fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
-    const KEYS: [&str; 23] = [
+    const KEYS: [&str; 24] = [
         "width",
         "height",
         "light_count",
@@ -647,6 +647,7 @@ fn summarize(report: &impl serde::Serialize) -> serde_json::Value {
         "glossy_pixels",
         "glossy_residual_rms",
         "glossy_lambertian_rms",
+        "glossy_material",
     ];
     let full = serde_json::to_value(report).unwrap_or_default();
     let mut out = serde_json::Map::new();

@@ -377,9 +377,13 @@ function showSummary(job) {
       : []),
     ["mean confidence", fmt(r.confidence_mean)],
     ["reprojection RMS", fmt(r.reprojection_rms)],
-    // The glossy solver's: where its lobe was kept, and the residual it leaves there.
+    // The glossy solver's: where its lobe was kept, the residual it leaves there, and
+    // the lobe the pixels shared.
     ...(r.glossy_pixels != null
       ? [["glossy pixels", `${r.glossy_pixels}${r.glossy_residual_rms != null ? ` (residual RMS ${fmt(r.glossy_residual_rms)}, Lambertian ${fmt(r.glossy_lambertian_rms)})` : ""}`]]
+      : []),
+    ...(r.glossy_material
+      ? [["shared lobe", `${r.glossy_material.facets === "beckmann" ? "Beckmann" : "GGX"}, roughness ${fmt(r.glossy_material.roughness)}`]]
       : []),
     ["unreliable pixels", r.unreliable_pixels ?? "–"],
     ["queued", ms(job.created_at, job.started_at)],
