@@ -93,13 +93,9 @@ pub fn solve(
     let linear = Linear::new(&info, solver);
     surface.estimate = robust.as_ref().map(|r| r.estimate);
     let mut gloss = (solver == Solver::Glossy).then(|| Gloss::zeros(rows, cols));
-    let material = match (&robust, &surface.estimate, &mut gloss) {
-        (Some(r), Some(e), Some(g)) => {
-            g.material = shared_material(stack.samples(), cols, &info.lights, r, e, halt);
-            g.material
-        }
-        _ => None,
-    };
+    if let (Some(r), Some(e), Some(g)) = (&robust, &surface.estimate, &mut gloss) {
+        g.material = shared_material(stack.samples(), cols, &info.lights, r, e, halt);
+    }
     each_band(stack, halt, |band_rows, band| {
         let (r0, r1) = (band_rows.start, band_rows.end);
         let out = surface.rows_mut(r0..r1);
@@ -114,7 +110,7 @@ pub fn solve(
                 &info.lights,
                 e.black_level as f64,
                 e.noise_sigma as f64,
-                material,
+                g.material,
                 surface.rows_mut(r0..r1),
                 GlossRows::of(g, r0, r1),
                 halt,
@@ -136,7 +132,7 @@ pub fn solve(
 
 /// The lobe the object's pixels share ([`reflectance::shared`]), from lobes fitted freely
 /// at the pre-pass's sample lattice (`samples`' rows, every `stride`-th column of a set
-/// `cols` wide): about 12,000 pixels, a few per cent of a large glossy job's fits.
+/// `cols` wide): about 12,000 pixels, 0.3 % of a 2048² frame's.
 fn shared_material(
     samples: &Samples,
     cols: usize,

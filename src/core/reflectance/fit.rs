@@ -141,7 +141,8 @@ pub fn fit(
         scale,
         lambert_loss: loss(obs, &lambert, scale),
     };
-    (material.and_then(|m| pixel.of_material(m))).or_else(|| pixel.own())
+    let shared = material.and_then(|m| pixel.of_material(m));
+    shared.or_else(|| pixel.own()).map(|(fitted, _)| fitted)
 }
 
 /// One pixel's observations, its Lambertian start and that start's loss.
@@ -158,16 +159,14 @@ impl Pixel<'_> {
     /// that mirror the [`MIRROR_STARTS`] brightest observations' lights into the camera
     /// (with the width fixed, a lobe whose peak falls between the lights is not found
     /// from a start beside it): the two whose albedos fit best are refined.
-    fn of_material(&self, m: Material) -> Option<Fitted> {
+    fn of_material(&self, m: Material) -> Option<(Fitted, f64)> {
         let mut bright: Vec<&Observation> = self.obs.iter().collect();
-        bright.sort_by(|a, b| b.value.total_cmp(&a.value));
+        let top = MIRROR_STARTS.min(bright.len());
+        if top < bright.len() {
+            bright.select_nth_unstable_by(top, |a, b| b.value.total_cmp(&a.value));
+        }
         let mut starts: Vec<(f64, Fitted)> = std::iter::once(self.normal)
-            .chain(
-                bright
-                    .iter()
-                    .take(MIRROR_STARTS)
-                    .map(|o| mirror_of(o.light)),
-            )
+            .chain(bright[..top].iter().map(|o| mirror_of(o.light)))
             .filter_map(|n| grid_start(self.obs, n, m.facets, &[m.roughness]))
             .collect();
         starts.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -177,7 +176,7 @@ impl Pixel<'_> {
         // diffuse albedo taking the rest of its lobe.
         let most = SHARED_FIT * self.obs.len() as f64 * self.noise.max(1e-4).powi(2);
         self.best_kept(starts, false)
-            .filter(|f| loss(self.obs, f, self.scale) <= most)
+            .filter(|&(_, fitted_loss)| fitted_loss <= most)
     }
 
     /// The pixel's own lobe. Two starts: the Lambertian normal, and the normal that
@@ -186,24 +185,24 @@ impl Pixel<'_> {
     /// refined from both, Beckmann from the one its grid fits better: refining it from
     /// both cost a third more time in the solve and moved no rendered scene's mean error
     /// by 0.01°.
-    fn own(&self) -> Option<Fitted> {
+    fn own(&self) -> Option<(Fitted, f64)> {
         let brightest = (self.obs.iter()).max_by(|a, b| a.value.total_cmp(&b.value))?;
         let mirror = mirror_of(brightest.light);
         let starts = |f: Facets| {
-            let widths: Vec<f64> = (ROUGHNESS_GRID.into_iter())
-                .filter(|&r| r <= f.max_roughness())
-                .collect();
+            // The grid rises: its widths up to the family's broadest.
+            let widths =
+                &ROUGHNESS_GRID[..ROUGHNESS_GRID.partition_point(|&r| r <= f.max_roughness())];
             [self.normal, mirror]
                 .into_iter()
-                .filter_map(move |n| grid_start(self.obs, n, f, &widths))
+                .filter_map(move |n| grid_start(self.obs, n, f, widths))
         };
         let beckmann = starts(Facets::Beckmann).min_by(|a, b| a.0.total_cmp(&b.0));
         self.best_kept(starts(Facets::Ggx).chain(beckmann).collect(), true)
     }
 
-    /// The best of `starts` once refined (the width too if `free_width`), if it explains
-    /// the pixel clearly better than the Lambertian fit.
-    fn best_kept(&self, starts: Vec<(f64, Fitted)>, free_width: bool) -> Option<Fitted> {
+    /// The best of `starts` once refined (the width too if `free_width`), with its robust
+    /// loss, if it explains the pixel clearly better than the Lambertian fit.
+    fn best_kept(&self, starts: Vec<(f64, Fitted)>, free_width: bool) -> Option<(Fitted, f64)> {
         let (obs, scale) = (self.obs, self.scale);
         let (fitted, fitted_loss) = (starts.into_iter())
             .map(|(_, start)| {
@@ -219,7 +218,7 @@ impl Pixel<'_> {
             && fitted.specular.is_finite()
             && seen(obs, fitted.normal, fitted.facets, alpha)
             && fitted_loss + penalty < MIN_GAIN * self.lambert_loss;
-        kept.then_some(fitted)
+        kept.then_some((fitted, fitted_loss))
     }
 }
 
@@ -361,7 +360,7 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64, free_width: bool) -> F
         let mut cost = now.evaluate(obs, &weights, &model_at(&base, &p, facets));
         let mut lambda = 1e-3;
         for _step in 0..8 {
-            let (mut jtj, mut jtr) = normal_equations(
+            let (mut jtj, jtr) = normal_equations(
                 obs,
                 &weights,
                 (&base, facets),
@@ -371,11 +370,9 @@ fn refine(obs: &[Observation], start: Fitted, scale: f64, free_width: bool) -> F
                 free_width,
             );
             if !free_width {
-                // The width's row and column drop out: its step is 0.
-                for k in 0..5 {
-                    (jtj[4][k], jtj[k][4]) = (0.0, 0.0);
-                }
-                (jtj[4][4], jtr[4]) = (1.0, 0.0);
+                // The width's row, column and gradient are 0 (its Jacobian column is): a
+                // unit pivot makes its step 0.
+                jtj[4][4] = 1.0;
             }
             let mut improved = false;
             let mut converged = false;
